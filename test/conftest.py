@@ -1,0 +1,23 @@
+"""Shared pytest set-up.
+
+Rule one (../shared/ros2.md): DDS stays on loopback. This runs before any test module
+imports rclpy, and every test session gets its own ROS_DOMAIN_ID unless one is set.
+"""
+import os
+from pathlib import Path
+
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.setdefault("ROS_DOMAIN_ID", str(40 + os.getpid() % 50))
+
+import pytest  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+DATA_DIR = Path(os.environ.get("DTM_DATA_DIR", REPO.parent / "shared" / "data"))
+
+
+@pytest.fixture(scope="session")
+def data_dir() -> Path:
+    """The real recordings in ../shared/data; tests that need them skip (with a reason) without."""
+    if not (DATA_DIR / "index.csv").is_file():
+        pytest.skip(f"real mocap data not found at {DATA_DIR} (set DTM_DATA_DIR or place ../shared/data)")
+    return DATA_DIR
