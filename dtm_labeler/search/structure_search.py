@@ -1,0 +1,174 @@
+"""Structure search at training time: CBGA, simple GA, greedy (Song et al.), given.
+
+Fitness (eq. 18-20): the log-likelihood of the training frames under the structure,
+
+    f(G) = sum_frames [ log P(A0,B0,C0) + sum_{t>0} ( log P(A_t,B_t,C_t) - log P(B_t,C_t) ) ]
+
+scored with a maximum-likelihood Gaussian per triple (the entropy form of eq. 5,
+``-n h(.)``). Every triple's and pair's log-likelihood is computed once, vectorised over all
+``C(n,3)`` triples from the joint covariance of the point states, so one candidate
+structure costs a table lookup and the GA can afford thousands of evaluations. The per-
+triangle mixtures are fitted afterwards for the chosen structure only.
+"""
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from ..model.features import FEATURE_MATRIX, FULL, MISSING, STATE_DIM, observed_map
+from ..model.structure import Structure
+from . import structure_ops as ops
+from .ga import Termination, elite_indices, rank_select
+
+LOG_2PI = float(np.log(2 * np.pi))
+
+
+@dataclass
+class TripleScores:
+    """Log-likelihood of every triple (15-D eq. 12 feature) and pair (9-D) under ML Gaussians."""
+
+    triple: np.ndarray       # (n, n, n), symmetric
+    pair: np.ndarray         # (n, n), symmetric
+    n_frames: int
+
+    @classmethod
+    def from_states(cls, states: np.ndarray, reg_covar: float = 1e-6) -> "TripleScores":
+        """``states`` (F, n, 6): canonicalised, fully observed training frames."""
+        F, n, _ = states.shape
+        if F < 2:
+            raise ValueError("structure search needs at least 2 complete frames")
+        x = states.reshape(F, n * STATE_DIM)
+        S = np.cov(x, rowvar=False, bias=True)
+        triples = np.array(list(itertools.combinations(range(n), 3)), dtype=np.int64)
+        pairs = np.array(list(itertools.combinations(range(n), 2)), dtype=np.int64)
+        off = np.arange(STATE_DIM)
+        tri_idx = (triples[:, :, None] * STATE_DIM + off).reshape(len(triples), -1)       # (m, 18)
+        pair_idx = (pairs[:, :, None] * STATE_DIM + off).reshape(len(pairs), -1)          # (p, 12)
+        G2 = observed_map((MISSING, FULL, FULL))[:, STATE_DIM:]                            # (9, 12)
+        ll3 = _gaussian_ll(S[tri_idx[:, :, None], tri_idx[:, None, :]], FEATURE_MATRIX, F, reg_covar)
+        ll2 = _gaussian_ll(S[pair_idx[:, :, None], pair_idx[:, None, :]], G2, F, reg_covar)
+        triple = np.full((n, n, n), -np.inf)
+        for perm in itertools.permutations(range(3)):
+            triple[triples[:, perm[0]], triples[:, perm[1]], triples[:, perm[2]]] = ll3
+        pair = np.full((n, n), -np.inf)
+        pair[pairs[:, 0], pairs[:, 1]] = ll2
+        pair[pairs[:, 1], pairs[:, 0]] = ll2
+        return cls(triple, pair, F)
+
+    def score(self, population: np.ndarray) -> np.ndarray:
+        """Fitness of (P, T, 3) strings (invalid strings are scored too; callers penalise)."""
+        pop = np.asarray(population, dtype=np.int64)
+        a, b, c = pop[..., 0], pop[..., 1], pop[..., 2]
+        with np.errstate(invalid="ignore"):
+            terms = self.triple[a, b, c]
+            terms[:, 1:] -= self.pair[b[:, 1:], c[:, 1:]]
+        return terms.sum(-1)
+
+    def per_frame(self, structure: Structure) -> float:
+        return float(self.score(structure.array[None])[0]) / self.n_frames
+
+
+def _gaussian_ll(S: np.ndarray, M: np.ndarray, n: int, reg: float) -> np.ndarray:
+    """Total log-likelihood of n samples under the ML Gaussian of features ``M s``."""
+    C = M @ S @ M.T
+    d = M.shape[0]
+    Cr = C + reg * np.eye(d)
+    _, logdet = np.linalg.slogdet(Cr)
+    tr = np.trace(np.linalg.solve(Cr, C), axis1=-2, axis2=-1)
+    return -0.5 * n * (d * LOG_2PI + logdet + tr)
+
+
+@dataclass
+class SearchResult:
+    structure: Structure
+    fitness: float                  # total log-likelihood over the training frames
+    history: list[float] = field(default_factory=list)   # best fitness per generation
+    evaluations: int = 0
+    generations: int = 0
+    stop_reason: str = ""
+
+
+def cbga(scores: TripleScores, n_vertices: int, *, population: int = 60, generations: int = 200,
+         p_crossover: float = 0.9, p_mutation: float = 0.05, n_elite: int = 2, stagnation: int = 60,
+         seed: int = 0, progress: Callable[[int, float], None] | None = None) -> SearchResult:
+    """Constraint-based GA over structures (section IV.A): every individual stays valid."""
+    rng = np.random.default_rng(seed)
+    return _evolve(
+        scores, rng, ops.sample(population, n_vertices, rng),
+        lambda a, b: ops.crossover(a, b, n_vertices, rng) if rng.random() < p_crossover else a.copy(),
+        lambda x: ops.mutate(x, n_vertices, rng, p_mutation),
+        n_vertices, generations, n_elite, stagnation, progress)
+
+
+def simple_ga(scores: TripleScores, n_vertices: int, *, population: int = 60, generations: int = 200,
+              p_crossover: float = 0.9, p_mutation: float = 0.05, n_elite: int = 2, stagnation: int = 60,
+              seed: int = 0, progress: Callable[[int, float], None] | None = None) -> SearchResult:
+    """Baseline: the same GA with plain operators; invalid offspring get the death penalty."""
+    rng = np.random.default_rng(seed)
+    return _evolve(
+        scores, rng, ops.sample(population, n_vertices, rng),
+        lambda a, b: ops.crossover_plain(a, b, rng) if rng.random() < p_crossover else a.copy(),
+        lambda x: ops.mutate_plain(x, n_vertices, rng, p_mutation),
+        n_vertices, generations, n_elite, stagnation, progress)
+
+
+def _evolve(scores, rng, pop, cross, mutate, n_vertices, generations, n_elite, stagnation, progress):
+    from ..model.structure import is_valid
+
+    def fitness(p):
+        f = scores.score(p)
+        valid = np.array([is_valid(x, n_vertices) for x in p])
+        return np.where(valid, f, -np.inf)
+
+    fit = fitness(pop)
+    history = [float(fit.max())]
+    evals = len(pop)
+    term = Termination(max_generations=generations, stagnation=stagnation).start()
+    gen = 0
+    while not term.done(gen, history[-1]):
+        gen += 1
+        elite = pop[elite_indices(fit, n_elite)]
+        parents = rank_select(fit, 2 * (len(pop) - n_elite), rng)
+        kids = np.stack([mutate(cross(pop[parents[2 * i]], pop[parents[2 * i + 1]]))
+                         for i in range(len(pop) - n_elite)])
+        pop = np.concatenate([elite, kids])
+        fit = fitness(pop)
+        evals += len(kids)
+        history.append(float(fit.max()))
+        if progress:
+            progress(gen, history[-1])
+    best = int(np.argmax(fit))
+    return SearchResult(Structure.from_string(pop[best], n_vertices), float(fit[best]), history,
+                        evals, gen, term.reason)
+
+
+def greedy(scores: TripleScores, n_vertices: int) -> SearchResult:
+    """Song et al.'s greedy construction: start from the best pair, then repeatedly attach
+    the (vertex, existing edge) with the largest conditional log-likelihood (least entropy)."""
+    pair = scores.pair.copy()
+    b, c = np.unravel_index(np.argmax(np.where(np.isfinite(pair), pair, -np.inf)), pair.shape)
+    gain = scores.triple[:, b, c] - pair[b, c]
+    gain[[b, c]] = -np.inf
+    a = int(np.argmax(gain))
+    tris = [(a, int(b), int(c))]
+    used = {a, int(b), int(c)}
+    edges = {tuple(sorted(e)) for e in ((a, b), (a, c), (b, c))}
+    evals = n_vertices
+    while len(used) < n_vertices:
+        best = (-np.inf, None)
+        unused = np.array(sorted(set(range(n_vertices)) - used))
+        for (p, q) in edges:
+            g = scores.triple[unused, p, q] - pair[p, q]
+            evals += len(unused)
+            i = int(np.argmax(g))
+            if g[i] > best[0]:
+                best = (g[i], (int(unused[i]), p, q))
+        tris.append(best[1])
+        a, p, q = best[1]
+        used.add(a)
+        edges |= {tuple(sorted((a, p))), tuple(sorted((a, q)))}
+    s = Structure(tuple(tris), n_vertices)
+    return SearchResult(s, float(scores.score(s.array[None])[0]), [], evals, 0, "complete")
