@@ -133,8 +133,10 @@ def cloud_to_structured(msg: Any) -> np.ndarray:
     dtype = _dtype_for(_layout_key(msg), point_step, bool(msg.is_bigendian))
     buf = _as_bytes(msg.data)
     n = height * width
+    full = row_step * height
+    short = row_step * (height - 1) + width * point_step  # last row without its padding
     if n == 0:
-        if buf.size not in (0, row_step * height):
+        if buf.size not in (0, full, max(short, 0)):
             raise PointCloudError(
                 f"cloud has height*width = {height}*{width} = 0 points but {buf.size} data bytes")
         return np.empty(0, dtype=dtype)
@@ -144,8 +146,6 @@ def cloud_to_structured(msg: Any) -> np.ndarray:
         raise PointCloudError(
             f"row_step {row_step} is smaller than width*point_step = {width}*{point_step} "
             f"= {width * point_step}")
-    full = row_step * height
-    short = row_step * (height - 1) + width * point_step  # last row without its padding
     if buf.size != full and buf.size != short:
         raise PointCloudError(
             f"data has {buf.size} bytes, expected height*row_step = {height}*{row_step} = {full}"
