@@ -17,8 +17,10 @@ Non-finite values are NOT filtered here: NaN/Inf coordinates (the usual "no retu
 organised clouds) are returned as they are, and ``make_*`` set ``is_dense`` from them. Reporting
 and dropping them is the labeler's job, which knows what to count in its diagnostics.
 
-Timing on this machine (see the test suite): a 10,000-point cloud decodes in a few tens of
-microseconds and encodes in about a hundred.
+Timing on the development machine: :func:`read_points_xyz` takes about 10 us for 40 points and
+30 us for 10,000; :func:`make_xyz_cloud` about 17 us / 40 us (150 us with ids), and
+:func:`make_labeled_cloud` about 35 us / 160 us (``test_ten_thousand_points_fast`` checks decoding
+stays under 1 ms).
 """
 from __future__ import annotations
 
@@ -184,7 +186,8 @@ def read_points_xyz(msg: Any) -> Tuple[np.ndarray, Optional[np.ndarray]]:
         f = _find_field(msg, axis)
         if f is None:
             raise PointCloudError(
-                f"PointCloud2 has no {axis!r} field (fields: {names}); need float32/float64 x, y, z")
+                f"PointCloud2 has no {axis!r} field (fields: {names}); "
+                f"need float32/float64 x, y, z")
         if f.datatype not in _FLOAT_TYPES:
             raise PointCloudError(
                 f"field {axis!r} has datatype {_dtname(f.datatype)}; x, y, z must be FLOAT32 or "
