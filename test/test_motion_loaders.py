@@ -1,6 +1,4 @@
 """Loaders on the real shared recordings (../shared/data) and on small files written here."""
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -12,7 +10,8 @@ from dtm_labeler.motion.load import class_from_name, csv_kind
 from dtm_labeler.motion.markers_csv import load_markers_csv
 
 SK = "cmu_skeletal"
-BVH = {s: f"{SK}/bvh_from_fbx/{s}.bvh" for s in ("cmu_07_01_walk_s07", "cmu_09_11_run_s09", "cmu_55_01_dance-whirl_s55")}
+BVH = {s: f"{SK}/bvh_from_fbx/{s}.bvh"
+       for s in ("cmu_07_01_walk_s07", "cmu_09_11_run_s09", "cmu_55_01_dance-whirl_s55")}
 AMC = {s: f"{SK}/asf_amc/{s}.amc" for s in ("cmu_55_02_lambada-dance_s55", "cmu_s05_pirouette-dance")}
 C3D = {
     "qualisys": "markers_c3d/qualisys_walk_55markers.c3d",
@@ -89,6 +88,8 @@ def test_labels_prefix_stripped_and_unlabelled_kept(clips, data_dir):
     assert h.meta["unlabelled_names"] == ("*0", "*1", "*2")
     assert h.meta["unlabelled"].shape == (5920, 3, 3)
     assert h.meta["raw_labels"][0].startswith("Bastian:")
+    # data quirk: the three '*' points are bit-identical copies of labelled markers, not clutter
+    assert h.meta["unlabelled_duplicates"] == {"*0": "LFWT", "*1": "CLAV", "*2": "LFHD"}
     assert set(clips["jumptwist"].names) == set(clips["hdm05"].names)  # the same 41-marker set
     full = load_c3d(data_dir / C3D["hdm05"], include_unlabelled=True)
     assert full.n_points == 44 and full.names[-3:] == ("*0", "*1", "*2")
@@ -114,7 +115,8 @@ def test_bone_lengths_constant(clips, key):
 @pytest.mark.parametrize("key,hips", [
     ("cmu_07_01_walk_s07", ("LeftUpLeg", "RightUpLeg")), ("cmu_09_11_run_s09", ("LeftUpLeg", "RightUpLeg")),
     ("cmu_55_01_dance-whirl_s55", ("LeftUpLeg", "RightUpLeg")),
-    ("cmu_55_02_lambada-dance_s55", ("lhipjoint", "rhipjoint")), ("cmu_s05_pirouette-dance", ("lhipjoint", "rhipjoint")),
+    ("cmu_55_02_lambada-dance_s55", ("lhipjoint", "rhipjoint")),
+    ("cmu_s05_pirouette-dance", ("lhipjoint", "rhipjoint")),
 ])
 def test_z_up_heights(clips, key, hips):
     c = clips[key]
@@ -208,6 +210,7 @@ def test_c3d_gaps_units_and_up_axis(tmp_path):
     _write_c3d(f, ["Sub:A", "Sub:B", "*7"], pts, units="mm", rate=250.0)
     c = load_c3d(f)
     assert c.names == ("A", "B") and c.rate == 250.0 and c.meta["unlabelled_names"] == ("*7",)
+    assert c.meta["unlabelled_duplicates"] == {}
     assert c.missing.sum() == 2 and c.missing[1, 0] and c.missing[2, 1]
     np.testing.assert_allclose(c.positions[0, 0], pts[0, 0] / 1000)
     assert not c.missing[3, 1]

@@ -7,6 +7,9 @@
   They are excluded from the clip by default but always kept in
   ``meta['unlabelled']`` (frames x K x 3, metres, Z up, NaN = missing) and
   ``meta['unlabelled_names']``; ``include_unlabelled=True`` appends them as points.
+  ``meta['unlabelled_duplicates']`` maps unlabelled names that are exact copies of a
+  labelled point in every frame to that label (true for HDM05 ``*0 *1 *2`` =
+  ``LFWT CLAV LFHD``: they are not independent clutter).
 * Missing samples: NaN from ezc3d, negative residual, and exact ``(0, 0, 0)``.
 * Units from ``POINT:UNITS`` ('mm', 'cm', 'm'); ``unit_scale`` overrides (metres per unit).
 * ``up_axis``: the file's vertical axis, 'Z' (default; all shared files) or 'Y'
@@ -53,7 +56,8 @@ def load_c3d(path: str | Path, up_axis: str = "Z", include_unlabelled: bool = Fa
     """Read the 3-D points of a C3D file as a MotionClip (see module doc for rules).
 
     ``meta``: ``format``, ``unit_scale``, ``raw_labels`` (labelled points, unstripped),
-    ``unlabelled``, ``unlabelled_names``, ``first_frame`` (C3D header frame number).
+    ``unlabelled``, ``unlabelled_names``, ``unlabelled_duplicates``, ``first_frame``
+    (C3D header frame number).
     """
     import ezc3d  # local import: only needed for C3D
 
@@ -99,8 +103,14 @@ def load_c3d(path: str | Path, up_axis: str = "Z", include_unlabelled: bool = Fa
     if len(set(names)) != len(names):
         raise ValueError(f"{path}: duplicate point labels {sorted({s for s in names if names.count(s) > 1})}")
     unl_names = [raw[i] or f"*{i}" for i in unl]
+    dup = {}  # unlabelled points that are bit-identical copies of a labelled one (HDM05 *0-*2)
+    for k in unl:
+        for i, nm in zip(lab, names):
+            if np.array_equal(xyz[:, k], xyz[:, i], equal_nan=True):
+                dup[raw[k] or f"*{k}"] = nm
+                break
     meta = dict(format="c3d", unit_scale=unit_scale, raw_labels=tuple(raw[i] for i in lab),
-                unlabelled=xyz[:, unl].copy(), unlabelled_names=tuple(unl_names),
+                unlabelled=xyz[:, unl].copy(), unlabelled_names=tuple(unl_names), unlabelled_duplicates=dup,
                 first_frame=int(c["header"]["points"].get("first_frame", 0)))
     if include_unlabelled:
         idx, all_names = lab + unl, names + unl_names

@@ -104,7 +104,9 @@ def to_point_set(clip: MotionClip, points: str | Sequence[str] = "body14",
         raise ValueError(f"points must be 'all', 'body14' or a list of names, got {points!r}")
     names = list(points)
     if all(n in clip.names for n in names):
-        return clip.select(names)
+        out = clip.select(names)
+        out.meta.pop("parents", None)  # parent indices refer to the unselected columns
+        return out
     b14 = derive_body14(clip, marker_set)
     cols = [clip.positions[:, clip.index(n)] if n in clip.names else b14.positions[:, b14.index(n)] for n in names]
     return clip._replace(positions=np.stack(cols, axis=1), names=tuple(names),
