@@ -26,7 +26,6 @@ from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
 import numpy as np
-from scipy.linalg import solve_triangular
 
 __all__ = ["GaussianMixture", "stable_cholesky", "params_per_component", "logsumexp_rows"]
 
@@ -34,6 +33,11 @@ LOG_2PI = math.log(2.0 * math.pi)
 _WEIGHT_ATOL = 1e-6   # |sum(weights) - 1| allowed on input (then renormalised exactly)
 _SYM_RTOL = 1e-8      # asymmetry allowed on input, relative to max |Sigma| (then symmetrised)
 _MAX_JITTER_TRIES = 16
+# OpenBLAS runs a gemm single-threaded while m*n*k stays below 4 * 65536. Threads buy
+# nothing at these sizes, and on a busy 2-core machine a threaded call that must wait for
+# a descheduled worker costs 3-10x; so every (n, d) @ (d, p) product with large n is cut
+# into row blocks that stay in the single-threaded regime (blocks, never per-sample loops).
+_GEMM_SINGLE_THREAD_MNK = 1 << 18
 
 
 def params_per_component(dim: int) -> int:
@@ -85,20 +89,43 @@ def stable_cholesky(cov: np.ndarray, reg: float = 0.0) -> tuple[np.ndarray, np.n
     raise ValueError("covariance could not be regularised to positive definite")
 
 
-def _precision_cholesky(chol: np.ndarray) -> np.ndarray:
-    """``W = L^-1`` (lower triangular) for each factor in a ``(K, d, d)`` stack."""
-    k, d, _ = chol.shape
-    out = np.empty_like(chol)
-    eye = np.eye(d)
-    for i in range(k):
-        out[i] = solve_triangular(chol[i], eye, lower=True, check_finite=False)
+def inv_lower(chol: np.ndarray) -> np.ndarray:
+    """``W = L^-1`` (lower triangular) of one ``(d, d)`` or a stack ``(K, d, d)`` of Cholesky factors.
+
+    Uses numpy's LAPACK only: mixing scipy.linalg calls (a second OpenBLAS with its own
+    thread pool) into numpy-BLAS loops costs ~10x on small machines (pools spin-wait).
+    """
+    return np.tril(np.linalg.inv(chol))
+
+
+def rows_matmul(X: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``X @ B`` for ``X`` ``(n, d)``, in row blocks small enough for single-threaded BLAS."""
+    n, d = X.shape
+    p = B.shape[1]
+    step = max(1, _GEMM_SINGLE_THREAD_MNK // max(1, d * p))
+    if n <= step:
+        return X @ B
+    out = np.empty((n, p))
+    for i in range(0, n, step):
+        np.matmul(X[i:i + step], B, out=out[i:i + step])
+    return out
+
+
+def weighted_gram(D: np.ndarray, rw: np.ndarray) -> np.ndarray:
+    """``sum_i rw_i D_i D_i^T`` (``(d, d)``) for ``D`` ``(n, d)``, in single-threaded BLAS blocks."""
+    n, d = D.shape
+    step = max(1, _GEMM_SINGLE_THREAD_MNK // max(1, d * d))
+    out = np.zeros((d, d))
+    for i in range(0, n, step):
+        blk = D[i:i + step]
+        out += (blk.T * rw[i:i + step]) @ blk
     return out
 
 
 def log_gaussian_one(X: np.ndarray, mean: np.ndarray, prec_chol: np.ndarray) -> np.ndarray:
     """``log N(x_i; mean, Sigma)`` (eq. 7) for all rows, given ``W = chol(Sigma)^-1``."""
     d = X.shape[1]
-    y = X @ prec_chol.T
+    y = rows_matmul(X, prec_chol.T)
     y -= prec_chol @ mean
     return (-0.5 * d * LOG_2PI + np.log(np.diag(prec_chol)).sum()) - 0.5 * np.einsum("ij,ij->i", y, y)
 
@@ -109,7 +136,7 @@ def log_gaussian_all(X: np.ndarray, means: np.ndarray, prec_chol: np.ndarray) ->
     n = X.shape[0]
     wcat = prec_chol.transpose(2, 0, 1).reshape(d, k * d)        # columns: rows of each W_k
     offs = np.einsum("kij,kj->ki", prec_chol, means).reshape(k * d)
-    y = X @ wcat
+    y = rows_matmul(X, wcat)
     y -= offs
     y = y.reshape(n, k, d)
     const = -0.5 * d * LOG_2PI + np.log(np.diagonal(prec_chol, axis1=1, axis2=2)).sum(axis=1)
@@ -184,7 +211,7 @@ class GaussianMixture:
                     raise ValueError(f"covariance {i} is not positive definite") from None
                 if not np.all(np.diag(chol[i]) > 0.0):
                     raise ValueError(f"covariance {i} is not positive definite")
-        prec = _precision_cholesky(chol) if d else chol.copy()
+        prec = inv_lower(chol) if d else chol.copy()
         if not np.all(np.isfinite(prec)):
             raise ValueError("covariance too ill-conditioned to invert")
         wcat = prec.transpose(2, 0, 1).reshape(d, k * d).copy()
@@ -248,7 +275,7 @@ class GaussianMixture:
         n, d, k = X.shape[0], self.dim, self.n_components
         if d == 0:
             return np.broadcast_to(self._const, (n, k)).copy()
-        y = X @ self._wcat
+        y = rows_matmul(X, self._wcat)
         y -= self._offs
         y = y.reshape(n, k, d)
         return self._const - 0.5 * np.einsum("nkd,nkd->nk", y, y)
