@@ -24,7 +24,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import numpy as np
-from scipy.special import logsumexp
 
 from .features import (MISSING, N_PATTERNS, STATE_DIM, feature_map_for, observation_state,
                        observed_map, pattern_codes, pattern_id)
@@ -61,8 +60,11 @@ class LinearMixtureDensity:
         if self.dim == 0:
             return np.zeros(s.shape[0])
         z = (s @ self.W.T - self.c).reshape(s.shape[0], self.K, self.dim)
-        q = np.einsum("nkm,nkm->nk", z, z)
-        return logsumexp(self.logconst - 0.5 * q, axis=1)
+        a = self.logconst - 0.5 * np.einsum("nkm,nkm->nk", z, z)
+        if self.K == 1:
+            return a[:, 0]
+        m = a.max(axis=1)
+        return m + np.log(np.exp(a - m[:, None]).sum(axis=1))
 
 
 @dataclass
@@ -150,7 +152,7 @@ class TriangulatedModel:
 
     @property
     def heading_bins(self) -> int:
-        return int(self.settings.get("heading_bins", 72))
+        return int(self.settings.get("heading_bins", 720))
 
     def triangle_terms(self, t: int, s: np.ndarray, codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Term of triangle ``t`` for (n, 18) triple states and (n, 3) observation codes."""

@@ -37,7 +37,8 @@ Heading invariance (invariant features, not augmentation)
     augmentation smears every triangle density over all headings (the mixture must spend
     components on a ring) and weakens exactly the left/right cues the labeler needs; the
     invariant frame keeps the model as sharp as a fixed-heading one. The heading is
-    quantised to ``heading_bins`` (default 72, 5 deg) only to cache triangle terms.
+    quantised to ``heading_bins`` (default 720, 0.5 deg) only to cache triangle terms; a
+    small yaw jitter at training time keeps the model tolerant to heading noise.
 """
 from __future__ import annotations
 

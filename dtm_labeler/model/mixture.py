@@ -196,21 +196,27 @@ class GaussianMixture:
         if abs(total - 1.0) > _WEIGHT_ATOL:
             raise ValueError(f"weights must sum to 1 (within {_WEIGHT_ATOL:g}), they sum to {total!r}")
         w /= total
-        chol = np.empty_like(cov)
-        for i in range(k):
-            c = cov[i]
-            asym = np.max(np.abs(c - c.T)) if d else 0.0
-            if asym > _SYM_RTOL * max(np.max(np.abs(c)) if d else 0.0, np.finfo(float).tiny):
-                raise ValueError(f"covariance {i} is not symmetric (max |S - S^T| = {asym:.3g})")
-            c = 0.5 * (c + c.T)
-            cov[i] = c
-            if d:
-                try:
-                    chol[i] = np.linalg.cholesky(c)
-                except np.linalg.LinAlgError:
-                    raise ValueError(f"covariance {i} is not positive definite") from None
-                if not np.all(np.diag(chol[i]) > 0.0):
-                    raise ValueError(f"covariance {i} is not positive definite")
+        chol = np.zeros_like(cov)
+        if d:
+            cov_t = cov.transpose(0, 2, 1)
+            asym = np.abs(cov - cov_t).max(axis=(1, 2))
+            scale = np.maximum(np.abs(cov).max(axis=(1, 2)), np.finfo(float).tiny)
+            bad = np.flatnonzero(asym > _SYM_RTOL * scale)
+            if bad.size:
+                i = int(bad[0])
+                raise ValueError(f"covariance {i} is not symmetric (max |S - S^T| = {asym[i]:.3g})")
+            cov = 0.5 * (cov + cov_t)
+            try:
+                chol = np.linalg.cholesky(cov)
+            except np.linalg.LinAlgError:
+                for i in range(k):
+                    try:
+                        np.linalg.cholesky(cov[i])
+                    except np.linalg.LinAlgError:
+                        raise ValueError(f"covariance {i} is not positive definite") from None
+                raise  # pragma: no cover - the batch failed, so one component must have
+            if not np.all(np.diagonal(chol, axis1=1, axis2=2) > 0.0):
+                raise ValueError("a covariance is not positive definite")
         prec = inv_lower(chol) if d else chol.copy()
         if not np.all(np.isfinite(prec)):
             raise ValueError("covariance too ill-conditioned to invert")
@@ -324,12 +330,16 @@ class GaussianMixture:
             means = means + b
         covs = np.einsum("ij,kjl,ml->kim", A, self.covariances, A)
         covs = 0.5 * (covs + covs.transpose(0, 2, 1))
-        if m:
-            for i in range(covs.shape[0]):
-                try:
-                    np.linalg.cholesky(covs[i])
-                except np.linalg.LinAlgError:
-                    covs[i] = stable_cholesky(covs[i], 0.0)[0]
+        try:
+            return GaussianMixture(self.weights, means, covs)
+        except ValueError:
+            if not m:
+                raise
+        for i in range(covs.shape[0]):   # rare: rank-deficient / ill-conditioned A
+            try:
+                np.linalg.cholesky(covs[i])
+            except np.linalg.LinAlgError:
+                covs[i] = stable_cholesky(covs[i], 0.0)[0]
         return GaussianMixture(self.weights, means, covs)
 
     def marginal(self, dims: Sequence[int]) -> "GaussianMixture":

@@ -25,7 +25,9 @@ from ..motion.clip import MotionClip
 from .dtm import TriangulatedModel
 from .features import (FULL, canonicalise, lateral_yaw, observation_state, point_states,
                        triangle_features)
-from .mixture import make_estimator
+from ..motion.pointsets import left_right_pairs
+from .mixture import GaussianMixture
+from .mixture_em import make_estimator
 from .structure import BODY14_GIVEN, Structure
 
 STRUCTURE_METHODS = ("cbga", "greedy", "given", "sga")
@@ -44,7 +46,11 @@ class TrainConfig:
     max_frames_per_triangle: int = 4000
     structure_population: int = 60
     structure_generations: int = 200
-    heading_bins: int = 72
+    heading_bins: int = 720
+    yaw_jitter_deg: float = 4.0
+    position_floor_m: float = 0.02
+    velocity_floor_mps: float = 0.2
+    augment_copies: int = 1
     given_structure: Sequence[Sequence[str]] | None = None
 
     def check(self) -> None:
@@ -76,32 +82,41 @@ class TrainSummary:
         return asdict(self)
 
 
-def left_right_pairs(labels: Sequence[str]) -> list[tuple[int, int]]:
-    """(left, right) index pairs found by name: lhip/rhip, LSHO/RSHO, L_FLE/R_FLE, Knee_L/Knee_R,
-    LeftArm/RightArm."""
+def heading_pairs(labels: Sequence[str]) -> np.ndarray:
+    """(Q, 2) index pairs (left, right) found by name, used for the body heading."""
     idx = {n: i for i, n in enumerate(labels)}
-    pairs = []
-    for name, i in idx.items():
-        for left, right, where in (("Left", "Right", "prefix"), ("left", "right", "prefix"),
-                                   ("L_", "R_", "prefix"), ("_L", "_R", "suffix"), ("l", "r", "prefix"),
-                                   ("L", "R", "prefix")):
-            if where == "prefix" and name.startswith(left):
-                other = right + name[len(left):]
-            elif where == "suffix" and name.endswith(left):
-                other = name[: -len(left)] + right
-            else:
-                continue
-            if other in idx and other != name:
-                pairs.append((i, idx[other]))
-                break
-    return sorted(set(pairs))
+    return np.array([(idx[a], idx[b]) for a, b in left_right_pairs(labels)], dtype=np.int64).reshape(-1, 2)
 
 
-def canonical_states(clip: MotionClip, pairs: np.ndarray) -> np.ndarray:
-    """(F, N, 6) point states of ``clip`` rotated so each frame's body faces +x."""
+def canonical_states(clip: MotionClip, pairs: np.ndarray, jitter_deg: float = 0.0,
+                     rng: np.random.Generator | None = None) -> np.ndarray:
+    """(F, N, 6) point states of ``clip`` rotated so each frame's body faces +x.
+
+    ``jitter_deg`` adds a uniform random yaw error in [-jitter, +jitter] per frame: a small
+    augmentation that keeps the model tolerant to heading noise (marker placement, twist)
+    without smearing it over all headings.
+    """
     states = point_states(clip.positions, clip.rate)
     yaw = lateral_yaw(clip.positions, pairs)
+    if jitter_deg > 0:
+        rng = rng or np.random.default_rng(0)
+        yaw = yaw + np.radians(rng.uniform(-jitter_deg, jitter_deg, size=yaw.shape))
     return canonicalise(states, yaw)
+
+
+def floor_covariances(mix: GaussianMixture, position_m: float, velocity_mps: float) -> GaussianMixture:
+    """Add independent noise of ``position_m`` / ``velocity_mps`` (std) to every component.
+
+    The ML covariances of a few hundred frames are far sharper than the spread between
+    subjects, sessions and marker placements; a floor equal to that spread (convolving the
+    mixture with N(0, diag(floor^2))) is what keeps the model useful on people it never saw.
+    Feature order as eq. 12: nine velocity dimensions, then six relative positions.
+    """
+    if position_m <= 0 and velocity_mps <= 0:
+        return mix
+    floor = np.r_[np.full(9, velocity_mps ** 2), np.full(6, position_m ** 2)]
+    return GaussianMixture(np.asarray(mix.weights), np.asarray(mix.means),
+                           np.asarray(mix.covariances) + np.diag(floor))
 
 
 def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
@@ -119,10 +134,15 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
                              "select one point set for all clips")
     if len(labels) < 3:
         raise ValueError("a triangulated model needs at least 3 points")
-    pairs = np.array(left_right_pairs(labels), dtype=np.int64).reshape(-1, 2)
+    pairs = heading_pairs(labels)
     states = np.concatenate([canonical_states(c, pairs) for c in clips], axis=0)
     codes = observation_state(states)
     complete = (codes == FULL).all(axis=1)
+    jrng = np.random.default_rng(config.seed + 7919)
+    train_states = np.concatenate([states] + [
+        np.concatenate([canonical_states(c, pairs, config.yaw_jitter_deg, jrng) for c in clips], axis=0)
+        for _ in range(config.augment_copies)], axis=0) if config.yaw_jitter_deg > 0 else states
+    train_codes = observation_state(train_states)
     n = len(labels)
     step = lambda msg, i, k: progress(msg, i, k) if progress else None  # noqa: E731
 
@@ -141,9 +161,9 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         if scores is None:
             raise ValueError("structure search needs frames where every point is seen")
         kw = dict(population=config.structure_population, generations=config.structure_generations,
-                  seed=config.seed)
+                  seed=config.seed, root_pairs=pairs if len(pairs) else None)
         if config.structure == "greedy":
-            structure = ss.greedy(scores, n).structure
+            structure = ss.greedy(scores, n, kw["root_pairs"]).structure
         elif config.structure == "cbga":
             structure = ss.cbga(scores, n, **kw).structure
         else:
@@ -156,8 +176,8 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
     mixtures, lengths, total_ll, total_n = [], [], 0.0, 0
     for t, tri in enumerate(structure.triangles):
         step("mixtures", t, structure.n_triangles)
-        ok = (codes[:, list(tri)] == FULL).all(axis=1)
-        X = triangle_features(states[ok], tri)
+        ok = (train_codes[:, list(tri)] == FULL).all(axis=1)
+        X = triangle_features(train_states[ok], tri)
         if X.shape[0] < 20:
             raise ValueError(f"triangle {[labels[v] for v in tri]} has only {X.shape[0]} usable frames")
         if X.shape[0] > config.max_frames_per_triangle:
@@ -166,7 +186,7 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
                              k_max=config.k_max, reg_covar=config.reg_covar,
                              random_state=config.seed + t)
         fit = est.fit(X)
-        mixtures.append(fit.mixture)
+        mixtures.append(floor_covariances(fit.mixture, config.position_floor_m, config.velocity_floor_mps))
         lengths.append(float(fit.message_length))
     step("mixtures", structure.n_triangles, structure.n_triangles)
 

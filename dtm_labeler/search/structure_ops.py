@@ -7,6 +7,10 @@ walking the triangles in order with the used/unused vertex sets of eq. 16-17, 23
 random admissible value (an unused vertex for a new-vertex gene, an existing edge for a
 parent pair). Initialisation, crossover and mutation all end in :func:`repair`, so every
 offspring is a valid decomposable triangulation.
+
+Domain rule (the paper's "custom rules"): with ``root_pairs`` given, the first triangle must
+contain one left/right pair, so a labeling candidate's heading is fixed by its first
+triangle (see :mod:`dtm_labeler.labeling.frame_problem`).
 """
 from __future__ import annotations
 
@@ -17,10 +21,25 @@ def _edge(a: int, b: int) -> tuple[int, int]:
     return (a, b) if a < b else (b, a)
 
 
-def repair(genes: np.ndarray, n_vertices: int, rng: np.random.Generator) -> np.ndarray:
+def root_ok(first: np.ndarray, root_pairs: np.ndarray | None) -> bool:
+    if root_pairs is None or len(root_pairs) == 0:
+        return True
+    f = set(int(v) for v in first)
+    return any(int(a) in f and int(b) in f for a, b in root_pairs)
+
+
+def repair(genes: np.ndarray, n_vertices: int, rng: np.random.Generator,
+           root_pairs: np.ndarray | None = None) -> np.ndarray:
     """Smallest change making ``genes`` (T, 3) valid; valid genes are kept as they are."""
     g = np.array(genes, dtype=np.int64).reshape(-1, 3)
     g = np.where((g < 0) | (g >= n_vertices), -1, g)
+    if not root_ok(g[0], root_pairs):
+        # keep a proposed vertex that belongs to some pair, put its partner beside it
+        rp = np.asarray(root_pairs)
+        hits = [p for p in rp if p[0] in g[0] or p[1] in g[0]]
+        a, b = hits[rng.integers(len(hits))] if hits else rp[rng.integers(len(rp))]
+        third = [v for v in g[0] if v not in (a, b) and v >= 0]
+        g[0] = (a, b, third[0] if third else -1)
     unused = list(range(n_vertices))
     used: list[int] = []
     edges: list[tuple[int, int]] = []
@@ -59,29 +78,31 @@ def repair(genes: np.ndarray, n_vertices: int, rng: np.random.Generator) -> np.n
     return g
 
 
-def sample(n: int, n_vertices: int, rng: np.random.Generator) -> np.ndarray:
+def sample(n: int, n_vertices: int, rng: np.random.Generator, root_pairs: np.ndarray | None = None) -> np.ndarray:
     """Constraint-respecting initial population (eq. 15-17): (n, T, 3)."""
     T = n_vertices - 2
-    return np.stack([repair(np.full((T, 3), -1), n_vertices, rng) for _ in range(n)])
+    return np.stack([repair(np.full((T, 3), -1), n_vertices, rng, root_pairs) for _ in range(n)])
 
 
-def crossover(pa: np.ndarray, pb: np.ndarray, n_vertices: int, rng: np.random.Generator) -> np.ndarray:
+def crossover(pa: np.ndarray, pb: np.ndarray, n_vertices: int, rng: np.random.Generator,
+              root_pairs: np.ndarray | None = None) -> np.ndarray:
     """Two-point exchange on the flat strings (the paper's example), then repair (eq. 22-26)."""
     flat_a, flat_b = pa.reshape(-1), pb.reshape(-1)
     i, j = np.sort(rng.choice(flat_a.size + 1, size=2, replace=False))
     child = flat_a.copy()
     child[i:j] = flat_b[i:j]
-    return repair(child.reshape(pa.shape), n_vertices, rng)
+    return repair(child.reshape(pa.shape), n_vertices, rng, root_pairs)
 
 
-def mutate(ind: np.ndarray, n_vertices: int, rng: np.random.Generator, p_mutation: float) -> np.ndarray:
+def mutate(ind: np.ndarray, n_vertices: int, rng: np.random.Generator, p_mutation: float,
+           root_pairs: np.ndarray | None = None) -> np.ndarray:
     """Each gene replaced by a random vertex with probability ``p_mutation``, then repair (eq. 27-29)."""
     flat = ind.reshape(-1).copy()
     hit = rng.random(flat.size) < p_mutation
     if not hit.any():
         return ind.copy()
     flat[hit] = rng.integers(n_vertices, size=int(hit.sum()))
-    return repair(flat.reshape(ind.shape), n_vertices, rng)
+    return repair(flat.reshape(ind.shape), n_vertices, rng, root_pairs)
 
 
 # -- the simple GA's unconstrained operators (baseline) ---------------------------------

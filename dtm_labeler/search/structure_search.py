@@ -93,34 +93,36 @@ class SearchResult:
 
 def cbga(scores: TripleScores, n_vertices: int, *, population: int = 60, generations: int = 200,
          p_crossover: float = 0.9, p_mutation: float = 0.05, n_elite: int = 2, stagnation: int = 60,
-         seed: int = 0, progress: Callable[[int, float], None] | None = None) -> SearchResult:
+         seed: int = 0, root_pairs: np.ndarray | None = None,
+         progress: Callable[[int, float], None] | None = None) -> SearchResult:
     """Constraint-based GA over structures (section IV.A): every individual stays valid."""
     rng = np.random.default_rng(seed)
     return _evolve(
-        scores, rng, ops.sample(population, n_vertices, rng),
-        lambda a, b: ops.crossover(a, b, n_vertices, rng) if rng.random() < p_crossover else a.copy(),
-        lambda x: ops.mutate(x, n_vertices, rng, p_mutation),
-        n_vertices, generations, n_elite, stagnation, progress)
+        scores, rng, ops.sample(population, n_vertices, rng, root_pairs),
+        lambda a, b: ops.crossover(a, b, n_vertices, rng, root_pairs) if rng.random() < p_crossover else a.copy(),
+        lambda x: ops.mutate(x, n_vertices, rng, p_mutation, root_pairs),
+        n_vertices, generations, n_elite, stagnation, progress, root_pairs)
 
 
 def simple_ga(scores: TripleScores, n_vertices: int, *, population: int = 60, generations: int = 200,
               p_crossover: float = 0.9, p_mutation: float = 0.05, n_elite: int = 2, stagnation: int = 60,
-              seed: int = 0, progress: Callable[[int, float], None] | None = None) -> SearchResult:
+              seed: int = 0, root_pairs: np.ndarray | None = None,
+              progress: Callable[[int, float], None] | None = None) -> SearchResult:
     """Baseline: the same GA with plain operators; invalid offspring get the death penalty."""
     rng = np.random.default_rng(seed)
     return _evolve(
-        scores, rng, ops.sample(population, n_vertices, rng),
+        scores, rng, ops.sample(population, n_vertices, rng, root_pairs),
         lambda a, b: ops.crossover_plain(a, b, rng) if rng.random() < p_crossover else a.copy(),
         lambda x: ops.mutate_plain(x, n_vertices, rng, p_mutation),
-        n_vertices, generations, n_elite, stagnation, progress)
+        n_vertices, generations, n_elite, stagnation, progress, root_pairs)
 
 
-def _evolve(scores, rng, pop, cross, mutate, n_vertices, generations, n_elite, stagnation, progress):
+def _evolve(scores, rng, pop, cross, mutate, n_vertices, generations, n_elite, stagnation, progress, root_pairs):
     from ..model.structure import is_valid
 
     def fitness(p):
         f = scores.score(p)
-        valid = np.array([is_valid(x, n_vertices) for x in p])
+        valid = np.array([is_valid(x, n_vertices) and ops.root_ok(x[0], root_pairs) for x in p])
         return np.where(valid, f, -np.inf)
 
     fit = fitness(pop)
@@ -145,11 +147,17 @@ def _evolve(scores, rng, pop, cross, mutate, n_vertices, generations, n_elite, s
                         evals, gen, term.reason)
 
 
-def greedy(scores: TripleScores, n_vertices: int) -> SearchResult:
-    """Song et al.'s greedy construction: start from the best pair, then repeatedly attach
-    the (vertex, existing edge) with the largest conditional log-likelihood (least entropy)."""
+def greedy(scores: TripleScores, n_vertices: int, root_pairs: np.ndarray | None = None) -> SearchResult:
+    """Song et al.'s greedy construction: start from the best pair (the best left/right
+    pair when ``root_pairs`` is given), then repeatedly attach the (vertex, existing edge)
+    with the largest conditional log-likelihood (least entropy)."""
     pair = scores.pair.copy()
-    b, c = np.unravel_index(np.argmax(np.where(np.isfinite(pair), pair, -np.inf)), pair.shape)
+    allowed = np.isfinite(pair)
+    if root_pairs is not None and len(root_pairs):
+        allowed = np.zeros_like(allowed)
+        rp = np.asarray(root_pairs)
+        allowed[rp[:, 0], rp[:, 1]] = True
+    b, c = np.unravel_index(np.argmax(np.where(allowed, pair, -np.inf)), pair.shape)
     gain = scores.triple[:, b, c] - pair[b, c]
     gain[[b, c]] = -np.inf
     a = int(np.argmax(gain))

@@ -1,0 +1,171 @@
+"""One frame's labeling problem: the fitness of candidate assignments (eq. 14, 18-21, 30-31).
+
+For an assignment ``a`` (label -> point index, or ``n`` for missing) of the frame's points
+with states ``x`` (position, velocity; velocity NaN for a point seen for the first time):
+
+    f(a) = sum_t term_t(x[a[A_t]], x[a[B_t]], x[a[C_t]])          DTM, marginalised (eq. 30-31)
+         + sum_{roots} log b_pos                                    unmodelled absolute positions
+         + sum_{points not labelled} log b(x_p)                     clutter (background density)
+         + (#labelled) log p_detect + (#missing) log(1 - p_detect)
+
+``log b(x) = log b_pos + [x has velocity] log b_vel`` is a uniform density over the capture
+volume and a velocity range. Written relative to "every point is clutter", each labelled
+point gains its model term minus ``log b(x)``, so labelings with different numbers of
+labelled points compare over the same dimensions. The constant ``sum_p log b(x_p)`` is
+left out of :meth:`FrameProblem.fitness` (it does not change the arg max).
+
+Heading: each candidate is canonicalised with the yaw of *its own* labelled left/right
+pairs (see :mod:`dtm_labeler.model.features`), quantised to ``heading_bins`` so triangle
+terms can be cached by ``(bin, triangle, i, j, k)`` for the whole frame.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..model.dtm import TriangulatedModel
+from ..model.features import STATE_DIM, observation_state, rotation_z
+
+
+@dataclass(frozen=True)
+class Background:
+    """Clutter / missing-marker densities used by the fitness."""
+
+    volume_m3: float = 60.0            # capture volume for the uniform position density
+    max_speed_mps: float = 4.0         # clutter velocities uniform in a cube of this half-width
+    detection_probability: float = 0.95
+
+    def __post_init__(self) -> None:
+        if not self.volume_m3 > 0 or not self.max_speed_mps > 0:
+            raise ValueError("clutter volume and speed range must be positive")
+        if not 0.0 < self.detection_probability < 1.0:
+            raise ValueError("detection probability must be in (0, 1)")
+
+    @property
+    def log_position(self) -> float:
+        return -float(np.log(self.volume_m3))
+
+    @property
+    def log_velocity(self) -> float:
+        return -float(np.log((2.0 * self.max_speed_mps) ** 3))
+
+
+class TermCache:
+    """Sorted int64 keys -> float values; vectorised lookups and inserts."""
+
+    def __init__(self) -> None:
+        self.keys = np.zeros(0, dtype=np.int64)
+        self.vals = np.zeros(0)
+
+    def lookup(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        idx = np.searchsorted(self.keys, q)
+        idx_c = np.minimum(idx, max(self.keys.size - 1, 0))
+        found = (idx < self.keys.size) & (self.keys[idx_c] == q) if self.keys.size else np.zeros(q.shape, bool)
+        return np.where(found, self.vals[idx_c] if self.keys.size else 0.0, np.nan), found
+
+    def insert(self, k: np.ndarray, v: np.ndarray) -> None:
+        keys = np.concatenate([self.keys, k])
+        vals = np.concatenate([self.vals, v])
+        order = np.argsort(keys, kind="stable")
+        self.keys, self.vals = keys[order], vals[order]
+
+    def __len__(self) -> int:
+        return self.keys.size
+
+
+class FrameProblem:
+    """Fitness of assignments for one frame; caches triangle terms across the whole search."""
+
+    def __init__(self, model: TriangulatedModel, states: np.ndarray, background: Background,
+                 heading_hint: float | None = None):
+        states = np.asarray(states, dtype=np.float64).reshape(-1, STATE_DIM)
+        self.model = model
+        self.n = states.shape[0]
+        self.M = model.n_labels
+        self.background = background
+        self.heading_hint = 0.0 if heading_hint is None or not np.isfinite(heading_hint) else float(heading_hint)
+        self.states = np.vstack([states, np.full((1, STATE_DIM), np.nan)])       # row n = missing
+        self.codes = observation_state(self.states)
+        self.bins = model.heading_bins
+        self.T = model.structure.n_triangles
+        self.tri = model.triangles
+        self.pairs = model.heading_pairs
+        b = background
+        has_v = self.codes[:-1] == 2
+        # gain of labelling point p (relative to it being clutter), before model terms
+        self.label_gain = np.append(np.log(b.detection_probability) - (b.log_position + has_v * b.log_velocity),
+                                    np.log1p(-b.detection_probability))
+        self.cache = TermCache()
+        self.evaluations = 0
+
+    # -- heading -------------------------------------------------------------------------
+    def yaw(self, pop: np.ndarray) -> np.ndarray:
+        """Facing yaw of each candidate from its labelled left/right pairs (hint if none)."""
+        if self.pairs.size == 0:
+            return np.full(pop.shape[0], self.heading_hint)
+        P = self.states[:, :2]
+        d = P[pop[:, self.pairs[:, 0]]] - P[pop[:, self.pairs[:, 1]]]            # (P, Q, 2)
+        ok = np.isfinite(d).all(-1)
+        d = np.where(ok[..., None], d, 0.0).sum(1)
+        yaw = np.arctan2(-d[:, 0], d[:, 1])
+        return np.where(ok.any(1), yaw, self.heading_hint)
+
+    def heading_bin(self, yaw: np.ndarray) -> np.ndarray:
+        step = 2.0 * np.pi / self.bins
+        return np.mod(np.rint(yaw / step), self.bins).astype(np.int64)
+
+    # -- fitness -------------------------------------------------------------------------
+    def triangle_table(self, pop: np.ndarray, bins: np.ndarray, triangles=None) -> np.ndarray:
+        """(P, len(triangles)) terms (roots included) for assignments ``pop`` at heading ``bins``."""
+        n1 = self.n + 1
+        ts = np.arange(self.T) if triangles is None else np.atleast_1d(np.asarray(triangles, dtype=np.int64))
+        idx = pop[:, self.tri[ts]]                                              # (P, t, 3)
+        keys = (((bins[:, None] * self.T + ts[None, :]) * n1 + idx[..., 0]) * n1 + idx[..., 1]) * n1 + idx[..., 2]
+        vals, found = self.cache.lookup(keys)
+        if not found.all():
+            new_keys = np.unique(keys[~found])
+            new_vals = self._compute(new_keys)
+            self.cache.insert(new_keys, new_vals)
+            vals[~found] = new_vals[np.searchsorted(new_keys, keys[~found])]
+        return vals
+
+    def canonical_states(self, bins: np.ndarray) -> np.ndarray:
+        """(B, n+1, 6) frame states rotated by ``-bin * step`` about z, one copy per bin."""
+        R = rotation_z(-np.asarray(bins) * (2.0 * np.pi / self.bins))                # (B, 3, 3)
+        out = np.empty((len(bins),) + self.states.shape)
+        out[..., :3] = np.einsum("bij,nj->bni", R, self.states[:, :3])
+        out[..., 3:] = np.einsum("bij,nj->bni", R, self.states[:, 3:])
+        return out
+
+    def _compute(self, keys: np.ndarray) -> np.ndarray:
+        n1 = self.n + 1
+        k = keys % n1
+        j = (keys // n1) % n1
+        i = (keys // n1 ** 2) % n1
+        t = (keys // n1 ** 3) % self.T
+        b = keys // (n1 ** 3 * self.T)
+        ub, binv = np.unique(b, return_inverse=True)
+        rot = self.canonical_states(ub)                                          # (B, n+1, 6)
+        trip = np.stack([i, j, k], axis=1)
+        s = rot[binv[:, None], trip].reshape(-1, 3 * STATE_DIM)                  # (m, 18)
+        codes = self.codes[trip]
+        out = np.empty(keys.size)
+        for tt in np.unique(t):
+            sel = np.flatnonzero(t == tt)
+            val, roots = self.model.triangle_terms(int(tt), s[sel], codes[sel])
+            out[sel] = val + roots * self.background.log_position
+        self.evaluations += keys.size
+        return out
+
+    def fitness(self, pop: np.ndarray, return_bins: bool = False):
+        """Fitness (relative log-likelihood, see module doc) of (P, M) assignments."""
+        pop = np.asarray(pop, dtype=np.int64)
+        if pop.ndim == 1:
+            pop = pop[None]
+        bins = self.heading_bin(self.yaw(pop))
+        f = self.triangle_table(pop, bins).sum(1) + self.label_gain[pop].sum(1)
+        return (f, bins) if return_bins else f
+
+    def empty_assignment(self) -> np.ndarray:
+        return np.full(self.M, self.n, dtype=np.int64)

@@ -1,0 +1,228 @@
+"""The stream labeler: points in, labelled points out, one frame at a time.
+
+Per frame: sanitise -> tracker (ids, velocities) -> search (warm-started from the labels the
+tracks carried last frame in ``stream`` mode; from scratch in ``single`` mode) -> votes over
+the window (eq. 32) -> published labels with confidences. The library side of the ROS node
+and of ``dtm-label``; no ROS imports.
+
+Work per frame is bounded: at most ``max_points`` points enter the search (the ones nearest
+the body's last centre), the GA has a generation cap, a stagnation stop and an optional
+time budget. A warm start that still fits (fitness within ``refit_drop`` nats of the
+running level) costs a handful of generations; otherwise a full search runs.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..model.dtm import TriangulatedModel
+from ..search import label_ops
+from ..search.label_search import GASettings, LabelSearch, make_search
+from .frame_problem import Background, FrameProblem
+from .tracker import Tracker, TrackerSettings
+from .voting import VoteBook
+
+METHODS = ("cbga", "sga", "greedy", "exhaustive", "tracker")
+MODES = ("stream", "single")
+
+
+@dataclass
+class LabelerSettings:
+    method: str = "cbga"
+    mode: str = "stream"
+    window: int = 10
+    full: GASettings = field(default_factory=lambda: GASettings(population=64, max_generations=80,
+                                                                stagnation=10))
+    warm: GASettings = field(default_factory=lambda: GASettings(population=24, max_generations=12,
+                                                                stagnation=3, polish=True, polish_rounds=2))
+    background: Background = field(default_factory=Background)
+    tracker: TrackerSettings = field(default_factory=TrackerSettings)
+    max_points: int = 0                  # 0 = 2 x labels + 8
+    refit_drop: float = 25.0             # nats below the running fitness level -> full search
+    max_gap_s: float = 0.5               # longer input gaps reset window and tracks
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {', '.join(METHODS)}")
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {', '.join(MODES)}")
+        if self.window < 1:
+            raise ValueError("window must be >= 1")
+        if self.max_points < 0 or self.refit_drop <= 0 or self.max_gap_s <= 0:
+            raise ValueError("max_points >= 0, refit_drop > 0 and max_gap_s > 0 required")
+
+
+@dataclass
+class FrameResult:
+    labels: np.ndarray            # (n,) published label index per input point, -1 = unlabelled
+    confidence: np.ndarray        # (n,) in [0, 1]
+    track_ids: np.ndarray         # (n,) int64, -1 for dropped (non-finite) points
+    search_labels: np.ndarray     # (n,) this frame's search result before voting
+    assignment: np.ndarray        # (M,) point index per label from the search, -1 = missing
+    log_likelihood: float         # fitness of the search result (see FrameProblem)
+    latency_ms: float
+    full_search: bool
+    generations: int
+    evaluations: int
+    n_dropped: int = 0            # non-finite points removed
+    n_ignored: int = 0            # finite points beyond max_points, left unlabelled
+    reset: str = ""               # why the window was reset this frame, if it was
+    heading: float = float("nan")
+    truth_fitness: float = float("nan")   # fitness of the true labeling (evaluation only)
+
+
+class StreamLabeler:
+    """Labels a stream of unlabeled point clouds with a trained :class:`TriangulatedModel`."""
+
+    def __init__(self, model: TriangulatedModel, settings: LabelerSettings | None = None):
+        self.settings = settings or LabelerSettings()
+        self.model = model
+        self._build()
+
+    def _build(self) -> None:
+        s = self.settings
+        self.rng = np.random.default_rng(s.seed)
+        self.tracker = Tracker(s.tracker)
+        self.votes = VoteBook(s.window if s.mode == "stream" else 1, self.model.n_labels)
+        method = "cbga" if s.method == "tracker" else s.method
+        self.full_search: LabelSearch = make_search(method, s.full)
+        self.warm_search: LabelSearch = make_search(method, s.warm)
+        self.reset()
+
+    # -- state -------------------------------------------------------------------------------
+    def reset(self) -> None:
+        self.tracker.reset()
+        self.votes.reset()
+        self.track_label: dict[int, int] = {}     # published label per track (last frame)
+        self.level = None                          # running fitness level (EMA)
+        self.last_stamp = None
+        self.heading = None
+        self.centre = None
+
+    def set_model(self, model: TriangulatedModel) -> None:
+        """Swap the model (hot reload); window and tracks restart."""
+        self.model = model
+        self._build()
+
+    def update_settings(self, settings: LabelerSettings) -> None:
+        keep_tracks = (settings.tracker == self.settings.tracker and settings.window == self.settings.window
+                       and settings.mode == self.settings.mode and settings.method == self.settings.method)
+        self.settings = settings
+        if keep_tracks:
+            self.full_search.settings = settings.full if hasattr(self.full_search, "settings") else None
+            self.warm_search.settings = settings.warm if hasattr(self.warm_search, "settings") else None
+        else:
+            self._build()
+
+    # -- the frame -----------------------------------------------------------------------------
+    def process(self, xyz: np.ndarray, stamp: float, ids: np.ndarray | None = None,
+                truth: np.ndarray | None = None) -> FrameResult:
+        """Label one frame. ``truth`` (M,) -- the true input index per label, -1 missing -- is
+        only for evaluation: its fitness on the same problem is returned (search errors)."""
+        t0 = time.perf_counter()
+        s = self.settings
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        n_in = xyz.shape[0]
+        finite = np.isfinite(xyz).all(1)
+        reason = ""
+        if self.last_stamp is not None:
+            if stamp < self.last_stamp:
+                reason = "time went backwards"
+            elif stamp - self.last_stamp > s.max_gap_s:
+                reason = f"gap of {stamp - self.last_stamp:.2f} s"
+            elif stamp == self.last_stamp:
+                reason = "repeated stamp"
+        if reason:
+            self.reset()
+        self.last_stamp = stamp
+        keep = np.flatnonzero(finite)
+        max_pts = s.max_points or 2 * self.model.n_labels + 8
+        n_ignored = 0
+        if keep.size > max_pts:
+            ref = self.centre if self.centre is not None else np.median(xyz[keep], axis=0)
+            d = np.linalg.norm(xyz[keep] - ref, axis=1)
+            n_ignored = keep.size - max_pts
+            keep = np.sort(keep[np.argsort(d)[:max_pts]])
+        pts = xyz[keep]
+        upd = self.tracker.update(pts, stamp, None if ids is None else np.asarray(ids)[keep])
+        problem = FrameProblem(self.model, upd.states, s.background, self.heading)
+        n, M = problem.n, problem.M
+
+        seeds = self._seeds(upd.track_ids, n, M) if s.mode == "stream" else None
+        full = True
+        outcome = None
+        if seeds is not None:
+            if s.method == "tracker":
+                a = seeds[0]
+                outcome_f = float(problem.fitness(a[None])[0])
+                outcome = _Outcome(a, outcome_f, 0, 1)
+                full = False
+            else:
+                outcome = self.warm_search.search(problem, self.rng, seeds)
+                full = self.level is not None and outcome.fitness < self.level - s.refit_drop
+        if full:
+            best = self.full_search.search(problem, self.rng, seeds)
+            if outcome is None or best.fitness >= outcome.fitness:
+                outcome = best
+        f = float(outcome.fitness)
+        truth_f = float("nan")
+        if truth is not None:
+            pos = np.full(n_in + 1, n, dtype=np.int64)
+            pos[keep] = np.arange(keep.size)
+            tr = np.asarray(truth, dtype=np.int64)
+            truth_f = float(problem.fitness(np.where(tr < 0, n, pos[np.where(tr < 0, n_in, tr)])[None])[0])
+        self.level = f if self.level is None or full else 0.8 * self.level + 0.2 * f
+
+        assign = np.where(outcome.assignment >= n, -1, outcome.assignment)
+        search_labels = np.full(n, -1, dtype=np.int64)
+        present = assign >= 0
+        search_labels[assign[present]] = np.flatnonzero(present)
+        self.votes.add(upd.track_ids, search_labels)
+        if s.mode == "stream":
+            pub, conf = self.votes.publish(upd.track_ids, search_labels)
+        else:
+            pub, conf = search_labels.copy(), (search_labels >= 0).astype(float)
+        self.track_label = {int(t): int(l) for t, l in zip(upd.track_ids, pub) if l >= 0}
+        if present.any():
+            self.centre = pts[assign[present]].mean(0)
+            yaw = problem.yaw(np.where(assign < 0, n, assign)[None])[0]
+            self.heading = float(yaw)
+
+        def scatter(v, fill):
+            out = np.full(n_in, fill, dtype=np.asarray(v).dtype)
+            out[keep] = v
+            return out
+
+        return FrameResult(
+            labels=scatter(pub, -1), confidence=scatter(conf, 0.0), track_ids=scatter(upd.track_ids, -1),
+            search_labels=scatter(search_labels, -1),
+            assignment=np.where(assign >= 0, keep[np.maximum(assign, 0)], -1),
+            log_likelihood=f, latency_ms=(time.perf_counter() - t0) * 1e3, full_search=full,
+            generations=outcome.generations, evaluations=outcome.evaluations,
+            n_dropped=int((~finite).sum()), n_ignored=n_ignored, reset=reason,
+            heading=self.heading if self.heading is not None else float("nan"), truth_fitness=truth_f)
+
+    def _seeds(self, track_ids: np.ndarray, n: int, M: int) -> np.ndarray | None:
+        """Warm start: last frame's published labels carried by the tracks."""
+        if not self.track_label:
+            return None
+        seed = np.full(M, n, dtype=np.int64)
+        for i, t in enumerate(track_ids):
+            lab = self.track_label.get(int(t))
+            if lab is not None:
+                seed[lab] = i
+        if self.settings.method == "tracker":
+            return seed[None]
+        return label_ops.repair(seed[None], n, self.rng, fill=False)
+
+
+@dataclass
+class _Outcome:
+    assignment: np.ndarray
+    fitness: float
+    generations: int
+    evaluations: int
+

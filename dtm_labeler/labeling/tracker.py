@@ -1,0 +1,112 @@
+"""Frame-to-frame point association, so every point gets a track id and (when it was seen
+before) a velocity for the eq. 12 features.
+
+Constant-velocity prediction, a gate that widens with the track's speed, and optimal
+assignment (``scipy.optimize.linear_sum_assignment``). When the input carries track ids
+they are used instead. New, lost and re-appearing points are normal: a new track has no
+velocity (NaN, marginalised by the model), a lost one coasts for ``max_misses`` frames.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+
+@dataclass
+class TrackerSettings:
+    gate_m: float = 0.06               # base association radius (metres)
+    gate_speed_factor: float = 0.5     # + this x predicted travel in the frame
+    max_misses: int = 12               # frames a lost track coasts before deletion
+
+    def __post_init__(self) -> None:
+        if not self.gate_m > 0 or self.gate_speed_factor < 0 or self.max_misses < 0:
+            raise ValueError("gate_m must be > 0, gate_speed_factor >= 0, max_misses >= 0")
+
+
+@dataclass
+class TrackUpdate:
+    track_ids: np.ndarray      # (n,) int64
+    states: np.ndarray         # (n, 6) position + velocity (NaN if the track is new)
+    new: np.ndarray            # (n,) bool, track started this frame
+    lost: np.ndarray           # ids of tracks deleted this frame
+
+
+class Tracker:
+    def __init__(self, settings: TrackerSettings | None = None):
+        self.settings = settings or TrackerSettings()
+        self.reset()
+
+    def reset(self) -> None:
+        self.ids = np.zeros(0, dtype=np.int64)
+        self.pos = np.zeros((0, 3))
+        self.vel = np.zeros((0, 3))
+        self.last_t = np.zeros(0)
+        self.misses = np.zeros(0, dtype=np.int64)
+        self._next_id = 0
+        self.t = None
+
+    def predicted(self, t: float) -> np.ndarray:
+        dt = (t - self.last_t)[:, None]
+        return self.pos + np.nan_to_num(self.vel) * dt
+
+    def update(self, xyz: np.ndarray, t: float, ids: np.ndarray | None = None) -> TrackUpdate:
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        n = xyz.shape[0]
+        match = np.full(n, -1, dtype=np.int64)        # index into current tracks
+        if ids is not None:
+            ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+            where = {int(k): i for i, k in enumerate(self.ids)}
+            match = np.array([where.get(int(k), -1) for k in ids], dtype=np.int64)
+        elif self.ids.size and n:
+            pred = self.predicted(t)
+            cost = np.linalg.norm(pred[:, None, :] - xyz[None, :, :], axis=-1)          # (K, n)
+            speed = np.linalg.norm(np.nan_to_num(self.vel), axis=1)
+            gate = self.settings.gate_m + self.settings.gate_speed_factor * speed * (t - self.last_t)
+            big = 1e6
+            r, c = linear_sum_assignment(np.where(cost <= gate[:, None], cost, big))
+            ok = cost[r, c] <= gate[r]
+            match[c[ok]] = r[ok]
+        states = np.full((n, 6), np.nan)
+        states[:, :3] = xyz
+        m = match >= 0
+        dt = t - self.last_t[match[m]]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            v = (xyz[m] - self.pos[match[m]]) / np.where(dt > 0, dt, np.nan)[:, None]
+        states[m, 3:] = v
+        track_ids = np.empty(n, dtype=np.int64)
+        track_ids[m] = self.ids[match[m]]
+        new = ~m
+        if ids is not None:
+            track_ids[new] = ids[new]
+            self._next_id = max(self._next_id, int(ids.max()) + 1 if n else self._next_id)
+        else:
+            track_ids[new] = np.arange(self._next_id, self._next_id + new.sum())
+            self._next_id += int(new.sum())
+        # update the track table
+        seen = np.zeros(self.ids.size, dtype=bool)
+        seen[match[m]] = True
+        self.pos[match[m]] = xyz[m]
+        self.vel[match[m]] = np.where(np.isfinite(v), v, 0.0)
+        self.last_t[match[m]] = t
+        self.misses[match[m]] = 0
+        self.misses[~seen] += 1
+        keep = self.misses <= self.settings.max_misses
+        lost = self.ids[~keep]
+        self.ids, self.pos, self.vel = self.ids[keep], self.pos[keep], self.vel[keep]
+        self.last_t, self.misses = self.last_t[keep], self.misses[keep]
+        self.ids = np.concatenate([self.ids, track_ids[new]])
+        self.pos = np.vstack([self.pos, xyz[new]])
+        self.vel = np.vstack([self.vel, np.zeros((int(new.sum()), 3))])
+        self.last_t = np.concatenate([self.last_t, np.full(int(new.sum()), t)])
+        self.misses = np.concatenate([self.misses, np.zeros(int(new.sum()), dtype=np.int64)])
+        self.t = t
+        return TrackUpdate(track_ids, states, new, lost)
+
+    def position_of(self, track_id: int, t: float) -> np.ndarray:
+        """Predicted position of a (possibly coasting) track, NaN if unknown."""
+        i = np.flatnonzero(self.ids == track_id)
+        if i.size == 0:
+            return np.full(3, np.nan)
+        return self.predicted(t)[i[0]]

@@ -1,0 +1,62 @@
+"""Votes over frames (eq. 32): ``N(track, label) += 1`` for every frame in the window where
+the search gave ``label`` to ``track``; the published labeling maximises the total votes
+subject to one label per track and one track per label (Hungarian assignment)."""
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+
+class VoteBook:
+    def __init__(self, window: int, n_labels: int):
+        if window < 1:
+            raise ValueError("vote window must be >= 1 frame")
+        self.window = window
+        self.n_labels = n_labels
+        self.frames: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=window)
+
+    def reset(self) -> None:
+        self.frames.clear()
+
+    def add(self, track_ids: np.ndarray, labels: np.ndarray) -> None:
+        """One frame's search result: ``labels[i]`` (-1 = none) for point with ``track_ids[i]``."""
+        keep = labels >= 0
+        self.frames.append((np.asarray(track_ids)[keep].copy(), np.asarray(labels)[keep].copy()))
+
+    def tally(self, track_ids: np.ndarray) -> np.ndarray:
+        """(n, n_labels) vote counts (eq. 32) for the given tracks over the window."""
+        track_ids = np.asarray(track_ids)
+        votes = np.zeros((track_ids.size, self.n_labels))
+        if not self.frames or track_ids.size == 0:
+            return votes
+        order = np.argsort(track_ids)
+        sorted_ids = track_ids[order]
+        for tids, labs in self.frames:
+            pos = np.searchsorted(sorted_ids, tids)
+            pos_c = np.minimum(pos, sorted_ids.size - 1)
+            hit = sorted_ids[pos_c] == tids
+            np.add.at(votes, (order[pos_c[hit]], labs[hit]), 1.0)
+        return votes
+
+    def publish(self, track_ids: np.ndarray, current: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Published labels (-1 none) and confidences for this frame's points.
+
+        ``current`` is this frame's search result; it breaks ties (a half vote) so a fresh
+        decision wins over an equal count of old ones. Confidence = votes for the published
+        label / frames in the window.
+        """
+        votes = self.tally(track_ids)
+        cur = np.asarray(current)
+        has = cur >= 0
+        votes[np.flatnonzero(has), cur[has]] += 0.5
+        labels = np.full(len(track_ids), -1, dtype=np.int64)
+        conf = np.zeros(len(track_ids))
+        if votes.size == 0 or not votes.any():
+            return labels, conf
+        r, c = linear_sum_assignment(-votes)
+        ok = votes[r, c] > 0
+        labels[r[ok]] = c[ok]
+        conf[r[ok]] = np.minimum((votes[r[ok], c[ok]] - 0.5 * (cur[r[ok]] == c[ok])) / len(self.frames), 1.0)
+        return labels, conf

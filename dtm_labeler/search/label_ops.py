@@ -1,0 +1,161 @@
+"""Constraint-based GA operators on label assignments (section IV.A applied to labeling).
+
+An individual is an int array of length M (model labels); entry ``l`` is the index of the
+point given label ``l`` or ``n`` (= number of points) when the label is *missing*
+(occluded). The constraints are: every entry in ``0..n``; a point carries at most one
+label (each label has at most one point by construction); points not used are clutter.
+They are enforced in one place, :func:`repair`, in the spirit of eq. 22-29: a gene that
+conflicts is replaced by a value from the *unused* set (or "missing" when none is left).
+
+All functions act on a whole population ``(P, M)`` at once: loops run over labels or
+candidate moves, never over individuals or points.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def sample(P: int, M: int, n: int, rng: np.random.Generator, p_missing: float = 0.0) -> np.ndarray:
+    """Random valid assignments: a random injective map labels -> points (eq. 15-17 analogue)."""
+    width = max(n, M)
+    pop = np.argsort(rng.random((P, width)), axis=1)[:, :M]
+    pop = np.where(pop >= n, n, pop)
+    if p_missing > 0:
+        pop[rng.random((P, M)) < p_missing] = n
+    return pop.astype(np.int64)
+
+
+def used_mask(pop: np.ndarray, n: int) -> np.ndarray:
+    """(P, n) True where a point carries a label."""
+    used = np.zeros((pop.shape[0], n + 1), dtype=bool)
+    np.put_along_axis(used, pop, True, axis=1)
+    return used[:, :n]
+
+
+def repair(pop: np.ndarray, n: int, rng: np.random.Generator, fill: bool = True) -> np.ndarray:
+    """Make every row a valid assignment.
+
+    Out-of-range values become missing. When a point is claimed by several labels, one
+    (chosen at random) keeps it; the others get a random *unused* point (``fill``) or become
+    missing. Valid rows come back unchanged.
+    """
+    pop = np.array(pop, dtype=np.int64)
+    P, M = pop.shape
+    pop[(pop < 0) | (pop > n)] = n
+    # duplicates: order each row by (value, random key); a repeat of the previous value loses
+    key = pop * 2.0 + rng.random((P, M))
+    order = np.argsort(key, axis=1)
+    sorted_vals = np.take_along_axis(pop, order, axis=1)
+    dup_sorted = np.zeros_like(sorted_vals, dtype=bool)
+    dup_sorted[:, 1:] = (sorted_vals[:, 1:] == sorted_vals[:, :-1]) & (sorted_vals[:, 1:] < n)
+    losers = np.zeros_like(dup_sorted)
+    np.put_along_axis(losers, order, dup_sorted, axis=1)
+    if not losers.any():
+        return pop
+    pop[losers] = n
+    if fill and n > 0:
+        used = used_mask(pop, n)
+        # unused points in random order first
+        cand = np.argsort(used + rng.random((P, n)), axis=1)            # unused (0.x) before used (1.x)
+        n_free = (~used).sum(1)
+        rank = np.cumsum(losers, axis=1) - 1                             # k-th loser of its row
+        ok = losers & (rank < n_free[:, None])
+        rows, cols = np.nonzero(ok)
+        pop[rows, cols] = cand[rows, rank[rows, cols]]
+    return pop
+
+
+def crossover(pa: np.ndarray, pb: np.ndarray, order: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Two-point exchange along the structure's vertex order (labels of one limb stay
+    together), then :func:`repair` (eq. 22-26)."""
+    P, M = pa.shape
+    pos = np.empty(M, dtype=np.int64)
+    pos[order] = np.arange(M)
+    ij = np.sort(rng.integers(0, M + 1, size=(P, 2)), axis=1)
+    mask = (pos[None, :] >= ij[:, :1]) & (pos[None, :] < ij[:, 1:])
+    return repair(np.where(mask, pb, pa), n, rng)
+
+
+def mutate(pop: np.ndarray, n: int, rng: np.random.Generator, p_mutation: float,
+           p_missing: float = 0.05) -> np.ndarray:
+    """Constraint-based mutation (eq. 27-29): each selected individual gets one move that
+    keeps it valid -- give a label a random point (swapping with the label holding it, if
+    any), or swap two labels, or mark a label missing."""
+    pop = pop.copy()
+    P, M = pop.shape
+    hit = np.flatnonzero(rng.random(P) < p_mutation)
+    if hit.size == 0:
+        return pop
+    lab = rng.integers(0, M, size=hit.size)
+    kind = rng.random(hit.size)
+    target = rng.integers(0, n + 1, size=hit.size) if n > 0 else np.zeros(hit.size, dtype=np.int64)
+    other = rng.integers(0, M, size=hit.size)
+    # swap two labels
+    sw = kind < 0.35
+    a, b = pop[hit[sw], lab[sw]], pop[hit[sw], other[sw]]
+    pop[hit[sw], lab[sw]], pop[hit[sw], other[sw]] = b, a
+    # missing
+    ms = (kind >= 0.35) & (kind < 0.35 + p_missing)
+    pop[hit[ms], lab[ms]] = n
+    # give a point (swap with its holder)
+    gv = kind >= 0.35 + p_missing
+    rows, labs, pts = hit[gv], lab[gv], target[gv]
+    holder = (pop[rows] == pts[:, None]) & (pts[:, None] < n)            # (k, M)
+    has = holder.any(1)
+    hl = holder.argmax(1)
+    old = pop[rows, labs]
+    pop[rows[has], hl[has]] = old[has]
+    pop[rows, labs] = pts
+    return pop
+
+
+def neighbourhood(ind: np.ndarray, n: int, with_missing: bool = True) -> np.ndarray:
+    """Every individual one move away from ``ind``: all label swaps, every label given every
+    point (swapping with its holder) and, optionally, every label made missing."""
+    M = ind.shape[0]
+    i, j = np.triu_indices(M, 1)
+    swaps = np.repeat(ind[None], i.size, 0)
+    swaps[np.arange(i.size), i], swaps[np.arange(i.size), j] = ind[j], ind[i]
+    lab, pt = np.meshgrid(np.arange(M), np.arange(n), indexing="ij")
+    lab, pt = lab.ravel(), pt.ravel()
+    keep = ind[lab] != pt
+    lab, pt = lab[keep], pt[keep]
+    moves = np.repeat(ind[None], lab.size, 0)
+    holder = np.full(n + 1, -1)
+    holder[ind[ind < n]] = np.flatnonzero(ind < n)
+    h = holder[pt]
+    r = np.arange(lab.size)
+    moves[r[h >= 0], h[h >= 0]] = ind[lab[h >= 0]]
+    moves[r, lab] = pt
+    out = [swaps, moves]
+    if with_missing:
+        present = np.flatnonzero(ind < n)
+        miss = np.repeat(ind[None], present.size, 0)
+        miss[np.arange(present.size), present] = n
+        out.append(miss)
+    return np.concatenate(out, axis=0)
+
+
+# -- the simple GA's unconstrained operators (baseline) --------------------------------
+def crossover_plain(pa: np.ndarray, pb: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    P, M = pa.shape
+    ij = np.sort(rng.integers(0, M + 1, size=(P, 2)), axis=1)
+    pos = np.arange(M)
+    mask = (pos[None, :] >= ij[:, :1]) & (pos[None, :] < ij[:, 1:])
+    return np.where(mask, pb, pa)
+
+
+def mutate_plain(pop: np.ndarray, n: int, rng: np.random.Generator, p_gene: float) -> np.ndarray:
+    pop = pop.copy()
+    hit = rng.random(pop.shape) < p_gene
+    pop[hit] = rng.integers(0, n + 1, size=int(hit.sum()))
+    return pop
+
+
+def is_valid(pop: np.ndarray, n: int) -> np.ndarray:
+    """(P,) True where each point is used at most once and values are in 0..n."""
+    pop = np.asarray(pop)
+    in_range = ((pop >= 0) & (pop <= n)).all(1)
+    s = np.sort(np.where(pop >= n, -1 - np.arange(pop.shape[1]), pop), axis=1)
+    distinct = (np.diff(s, axis=1) != 0).all(1)
+    return in_range & distinct

@@ -1,0 +1,331 @@
+"""Per-frame label search strategies behind one interface (Stone Soup style).
+
+* :class:`CBGASearch` -- constraint-based GA (section IV.A): valid initialisation, two-point
+  crossover along the structure order with repair, constraint-based mutation, geometric
+  rank selection [29], elitism; optional warm-start seeds; finished by a steepest-ascent
+  pass over the one-move neighbourhood of the best individual (all label swaps and point
+  moves -- the constraint-based mutation applied exhaustively).
+* :class:`SimpleGASearch` -- the same budget and selection with plain operators (no
+  repair); invalid offspring get the death penalty.
+* :class:`GreedySearch` -- Song et al.'s dynamic programming over the elimination order
+  (max-product on the DTM, exclusion enforced inside each clique only), conflicts then
+  resolved greedily; run at a few heading hypotheses.
+* :class:`ExhaustiveSearch` -- every injective assignment, for small problems (counts
+  search errors exactly).
+"""
+from __future__ import annotations
+
+import itertools
+import math
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..labeling.frame_problem import FrameProblem
+from . import label_ops as ops
+from .ga import Termination, elite_indices, rank_select
+
+
+@dataclass
+class SearchOutcome:
+    assignment: np.ndarray          # (M,) point index per label, n = missing
+    fitness: float
+    generations: int = 0
+    evaluations: int = 0
+    history: list[float] = field(default_factory=list)
+    stop_reason: str = ""
+
+
+@dataclass
+class GASettings:
+    population: int = 48
+    max_generations: int = 60
+    stagnation: int = 8
+    p_crossover: float = 0.8
+    p_mutation: float = 0.6
+    n_elite: int = 2
+    selection_q: float = 0.12
+    time_budget_s: float | None = None
+    polish: bool = True
+    polish_rounds: int = 4
+
+    def __post_init__(self) -> None:
+        if self.population < 4:
+            raise ValueError("population must be at least 4")
+        if self.max_generations < 0 or self.stagnation < 1:
+            raise ValueError("generation cap must be >= 0 and stagnation >= 1")
+        if not 0 <= self.p_crossover <= 1 or not 0 <= self.p_mutation <= 1:
+            raise ValueError("probabilities must be in [0, 1]")
+        if not 0 <= self.n_elite < self.population:
+            raise ValueError("n_elite must be in [0, population)")
+
+
+class LabelSearch(ABC):
+    """Finds the assignment that maximises :meth:`FrameProblem.fitness`."""
+
+    name = "base"
+
+    @abstractmethod
+    def search(self, problem: FrameProblem, rng: np.random.Generator,
+               seeds: np.ndarray | None = None) -> SearchOutcome:
+        """``seeds`` (S, M): assignments to start from (warm start); may be ignored."""
+
+
+def guided_sample(problem: FrameProblem, P: int, rng: np.random.Generator,
+                  temperature: float = 1.0) -> np.ndarray:
+    """Constraint-respecting, model-guided initialisation (eq. 15-17 with the model as guide).
+
+    Labels are placed in the structure's insertion order; each label's point is drawn from
+    the unused points (or "missing") with probability proportional to
+    ``exp(term / temperature)`` -- the triangle's conditional given the parents already
+    placed, i.e. ancestral sampling from the DTM with the one-point-one-label constraint.
+    The first triangle's left/right pair (structures are trained with one, see
+    :func:`structure_ops.repair`) is drawn jointly first, which fixes each candidate's heading.
+    Gumbel-max makes every draw one vectorised arg max over the population.
+    """
+    M, n, T = problem.M, problem.n, problem.T
+    tri = problem.tri
+    gain = problem.label_gain
+    pop = np.full((P, M), n, dtype=np.int64)
+    first = [int(v) for v in tri[0]]
+    root = [(int(a), int(b)) for a, b in problem.pairs if a in first and b in first]
+    todo = list(first)
+    if root and n >= 2:
+        lft, rgt = root[0]
+        I, J = np.nonzero(~np.eye(n, dtype=bool))
+        cand = np.full((I.size, M), n, dtype=np.int64)
+        cand[:, lft], cand[:, rgt] = I, J
+        cbins = problem.heading_bin(problem.yaw(cand))
+        val = problem.triangle_table(cand, cbins, [0])[:, 0] + gain[I] + gain[J]
+        pick = np.argmax(val[None, :] / temperature + rng.gumbel(size=(P, I.size)), axis=1)
+        pop[:, lft], pop[:, rgt] = I[pick], J[pick]
+        bins = cbins[pick]
+        todo = [v for v in first if v not in (lft, rgt)]
+    else:
+        bins = np.full(P, problem.heading_bin(np.array([problem.heading_hint]))[0])
+    steps = [(v, 0) for v in todo] + [(int(tri[t][0]), t) for t in range(1, T)]
+    choices = np.arange(n + 1)
+    for v, t in steps:
+        cand = np.repeat(pop, n + 1, axis=0)
+        cand[:, v] = np.tile(choices, P)
+        val = problem.triangle_table(cand, np.repeat(bins, n + 1), [t])[:, 0].reshape(P, n + 1) + gain[None, :]
+        taken = np.zeros((P, n + 1), dtype=bool)
+        taken[:, :n] = ops.used_mask(pop, n)
+        val = np.where(taken, -np.inf, val)
+        pop[:, v] = np.argmax(val / temperature + rng.gumbel(size=val.shape), axis=1)
+    return pop
+
+
+def polish(problem: FrameProblem, ind: np.ndarray, fit: float, rounds: int,
+           deadline: float | None = None) -> tuple[np.ndarray, float, int]:
+    """Steepest ascent over :func:`label_ops.neighbourhood` (at most ``rounds`` moves)."""
+    evals = 0
+    for _ in range(rounds):
+        if deadline is not None and time.perf_counter() > deadline:
+            break
+        cand = ops.neighbourhood(ind, problem.n)
+        f = problem.fitness(cand)
+        evals += len(cand)
+        i = int(np.argmax(f))
+        if f[i] <= fit + 1e-9:
+            break
+        ind, fit = cand[i], float(f[i])
+    return ind, fit, evals
+
+
+class _GABase(LabelSearch):
+    def __init__(self, settings: GASettings | None = None):
+        self.settings = settings or GASettings()
+
+    def _operators(self, problem, rng):
+        raise NotImplementedError
+
+    def _initial(self, problem, P, rng):
+        return ops.sample(P, problem.M, problem.n, rng)
+
+    def search(self, problem, rng, seeds=None):
+        s = self.settings
+        M, n = problem.M, problem.n
+        deadline = None if s.time_budget_s is None else time.perf_counter() + s.time_budget_s
+        pop = self._initial(problem, s.population, rng)
+        if seeds is not None and len(seeds):
+            seeds = ops.repair(np.asarray(seeds, dtype=np.int64).reshape(-1, M), n, rng)
+            k = min(len(seeds), s.population)
+            pop[:k] = seeds[:k]
+            # half of the rest: mutants of the first seed (local exploration around the warm start)
+            m = (s.population - k) // 2
+            if m:
+                pop[k:k + m] = ops.mutate(np.repeat(seeds[:1], m, 0), n, rng, 1.0)
+        cross, mutate, valid = self._operators(problem, rng)
+        fit = self._fitness(problem, pop, valid)
+        history = [float(fit.max())]
+        evals = len(pop)
+        term = Termination(max_generations=s.max_generations, stagnation=s.stagnation,
+                           time_budget=s.time_budget_s).start()
+        gen = 0
+        while not term.done(gen, history[-1]):
+            gen += 1
+            n_kids = s.population - s.n_elite
+            elite = pop[elite_indices(fit, s.n_elite)]
+            par = rank_select(fit, 2 * n_kids, rng, s.selection_q)
+            pa, pb = pop[par[:n_kids]], pop[par[n_kids:]]
+            do_x = rng.random(n_kids) < s.p_crossover
+            kids = np.where(do_x[:, None], cross(pa, pb), pa)
+            kids = mutate(kids)
+            pop = np.concatenate([elite, kids])
+            fit = self._fitness(problem, pop, valid)
+            evals += n_kids
+            history.append(float(fit.max()))
+        best = int(np.argmax(fit))
+        ind, f = pop[best].copy(), float(fit[best])
+        if self._polish and s.polish:
+            ind, f, e = polish(problem, ind, f, s.polish_rounds, deadline)
+            evals += e
+            history.append(f)
+        return SearchOutcome(ind, f, gen, evals, history, term.reason)
+
+    @staticmethod
+    def _fitness(problem, pop, valid):
+        f = problem.fitness(pop)
+        if valid is not None:
+            f = np.where(valid(pop), f, -np.inf)
+        return f
+
+
+class CBGASearch(_GABase):
+    name = "cbga"
+    _polish = True
+
+    def _initial(self, problem, P, rng):
+        return guided_sample(problem, P, rng)
+
+    def _operators(self, problem, rng):
+        order = np.array(problem.model.structure.to_string()[:3] +
+                         [t[0] for t in problem.model.structure.triangles[1:]])
+        n = problem.n
+        return (lambda a, b: ops.crossover(a, b, order, n, rng),
+                lambda p: ops.mutate(p, n, rng, self.settings.p_mutation),
+                None)
+
+
+class SimpleGASearch(_GABase):
+    name = "sga"
+    _polish = False
+
+    def _operators(self, problem, rng):
+        n, M = problem.n, problem.M
+        return (lambda a, b: ops.crossover_plain(a, b, rng),
+                lambda p: ops.mutate_plain(p, n, rng, self.settings.p_mutation / max(M, 1) * 2),
+                lambda p: ops.is_valid(p, n))
+
+
+class GreedySearch(LabelSearch):
+    """Max-product DP over the elimination order (Song et al.), at ``n_headings`` headings."""
+
+    name = "greedy"
+
+    def __init__(self, n_headings: int = 8):
+        self.n_headings = n_headings
+
+    def search(self, problem, rng, seeds=None):
+        best = (None, -np.inf)
+        evals = 0
+        bins = problem.bins
+        cand_bins = np.unique((np.arange(self.n_headings) * bins) // self.n_headings)
+        if seeds is not None and len(seeds):          # heading of the warm start, if any
+            cand_bins = np.unique(np.append(cand_bins, problem.heading_bin(problem.yaw(np.asarray(seeds)[:1]))))
+        for b in cand_bins:
+            ind = self._dp(problem, int(b))
+            evals += problem.T * (problem.n + 1) ** 3
+            f = float(problem.fitness(ind[None])[0])
+            if f > best[1]:
+                best = (ind, f)
+        return SearchOutcome(best[0], best[1], 0, evals, [best[1]], "complete")
+
+    def _dp(self, problem: FrameProblem, b: int) -> np.ndarray:
+        n1 = problem.n + 1
+        tri = problem.tri
+        M = problem.M
+        grid = np.stack(np.meshgrid(np.arange(n1), np.arange(n1), np.arange(n1), indexing="ij"), -1).reshape(-1, 3)
+        ok = ((grid[:, 0] != grid[:, 1]) | (grid[:, 0] == n1 - 1)) & \
+             ((grid[:, 0] != grid[:, 2]) | (grid[:, 0] == n1 - 1)) & \
+             ((grid[:, 1] != grid[:, 2]) | (grid[:, 1] == n1 - 1))
+        gain = problem.label_gain
+        tables = []
+        for t in range(problem.T):
+            pop = np.full((grid.shape[0], M), n1 - 1)
+            pop[:, tri[t]] = grid
+            vals = problem.triangle_table(pop, np.full(grid.shape[0], b))[:, t]
+            new = [0, 1, 2] if t == 0 else [0]
+            vals = vals + gain[grid[:, new]].sum(1)
+            tables.append(np.where(ok, vals, -np.inf).reshape(n1, n1, n1))
+        msgs: dict[tuple[int, int], np.ndarray] = {}      # edge (u < v) -> table [x_u, x_v]
+
+        def msg(u, v):
+            m = msgs.get((min(u, v), max(u, v)))
+            if m is None:
+                return np.zeros((n1, n1))
+            return m if u < v else m.T
+
+        def send(u, v, table):                              # table indexed [x_u, x_v]
+            key = (min(u, v), max(u, v))
+            msgs[key] = msgs.get(key, 0.0) + (table if u < v else table.T)
+
+        argbest = {}
+        for t in range(problem.T - 1, 0, -1):               # eliminate A_t (free in its clique)
+            a, bb, c = (int(x) for x in tri[t])
+            tot = tables[t] + msg(a, bb)[:, :, None] + msg(a, c)[:, None, :]
+            argbest[t] = tot.argmax(0)
+            send(bb, c, tot.max(0))
+        a, bb, c = (int(x) for x in tri[0])
+        tot = tables[0] + msg(a, bb)[:, :, None] + msg(a, c)[:, None, :] + msg(bb, c)[None]
+        xa, xb, xc = np.unravel_index(int(np.argmax(tot)), tot.shape)
+        assign = np.full(M, n1 - 1, dtype=np.int64)
+        assign[[a, bb, c]] = (xa, xb, xc)
+        for t in range(1, problem.T):
+            a, bb, c = (int(x) for x in tri[t])
+            assign[a] = argbest[t][assign[bb], assign[c]]
+        # the DP ignores exclusion across cliques: later duplicates become missing / unused points
+        return ops.repair(assign[None], problem.n, np.random.default_rng(0), fill=False)[0]
+
+
+class ExhaustiveSearch(LabelSearch):
+    """All injective assignments (labels may be missing only when points run out)."""
+
+    name = "exhaustive"
+
+    def __init__(self, max_candidates: int = 3_000_000, batch: int = 20000):
+        self.max_candidates = max_candidates
+        self.batch = batch
+
+    def search(self, problem, rng, seeds=None):
+        M, n = problem.M, problem.n
+        slots = list(range(n)) + [n] * max(M - n, 0)
+        count = math.perm(len(slots), M) if len(slots) >= M else 0
+        if count > self.max_candidates:
+            raise ValueError(f"exhaustive search over {count} assignments is too large "
+                             f"(limit {self.max_candidates}); use cbga")
+        best, best_f, evals = None, -np.inf, 0
+        it = itertools.permutations(slots, M)
+        while True:
+            chunk = np.array(list(itertools.islice(it, self.batch)), dtype=np.int64)
+            if chunk.size == 0:
+                break
+            f = problem.fitness(chunk)
+            evals += len(chunk)
+            i = int(np.argmax(f))
+            if f[i] > best_f:
+                best, best_f = chunk[i], float(f[i])
+        return SearchOutcome(best, best_f, 0, evals, [best_f], "complete")
+
+
+SEARCHES = {"cbga": CBGASearch, "sga": SimpleGASearch, "greedy": GreedySearch, "exhaustive": ExhaustiveSearch}
+
+
+def make_search(name: str, settings: GASettings | None = None) -> LabelSearch:
+    if name not in SEARCHES:
+        raise ValueError(f"unknown search method {name!r}; choose from {', '.join(SEARCHES)}")
+    cls = SEARCHES[name]
+    return cls(settings) if issubclass(cls, _GABase) else cls()
