@@ -13,11 +13,11 @@ evaluated in log space from precomputed precision-Cholesky factors ``W_k = L_k^-
     log N_k(x) = -d/2 log 2 pi + sum_i log W_k[i, i] - 1/2 |W_k (x - mu_k)|^2
 
 so a batch of rows costs one ``(n, d) @ (d, K d)`` matmul plus a log-sum-exp (this is
-the real-time hot path of the fitness function, eq. 13 / eq. 19-20).
+the real-time hot path of the fitness function, eq. 13 and eq. 18-20).
 
 :meth:`GaussianMixture.linear_map` gives the exact distribution of ``A x + b``; marginals
-(missing markers, sec. IV-D) and the conditionals ``P(A | B, C) = P(A, B, C) / P(B, C)``
-of eq. 4 and eq. 13 are built from it. The estimators live in :mod:`.mixture_em`.
+(missing markers, eq. 30-31) and the conditionals ``P(A | B, C) = P(A, B, C) / P(B, C)``
+of eq. 5 and eq. 13 are built from it. The estimators live in :mod:`.mixture_em`.
 """
 from __future__ import annotations
 
@@ -346,7 +346,7 @@ class GaussianMixture:
         """Marginal over the coordinates ``dims`` (in that order): ``linear_map`` with rows of ``I``.
 
         Implemented by exact sub-indexing (no rounding) and cached per ``dims`` tuple, since
-        the labeler asks for the same few marginals (missing markers, eq. 4) every frame.
+        the labeler asks for the same few marginals (missing markers, eq. 30-31) every frame.
         """
         key = tuple(int(i) for i in dims)
         hit = self._marginal_cache.get(key)
