@@ -195,7 +195,8 @@ class GaussianMixture:
         total = w.sum()
         if abs(total - 1.0) > _WEIGHT_ATOL:
             raise ValueError(f"weights must sum to 1 (within {_WEIGHT_ATOL:g}), they sum to {total!r}")
-        w /= total
+        if abs(total - 1.0) > 8.0 * k * np.finfo(float).eps:   # idempotent: no re-rounding on reload
+            w /= total
         chol = np.zeros_like(cov)
         if d:
             cov_t = cov.transpose(0, 2, 1)
