@@ -371,12 +371,10 @@ class FixedKMixture(MixtureEstimator):
             raise ValueError(f"need at least k={self.k} samples, got {X.shape[0]}")
         n_eff = float(w.sum())
         best = None
-        total_iter = 0
         for _ in range(self.n_init):
             trace: list[float] = []
             state = self._initialize(X, w, rng, self.k)
             state, ll, obj, it, conv = self._run_em(X, w, state, n_eff, trace)
-            total_iter += it
             if best is None or ll > best[1]:
                 best = (state, ll, it, conv, trace)
             if not conv:
@@ -388,8 +386,8 @@ class FixedKMixture(MixtureEstimator):
 class MDLMixture(MixtureEstimator):
     """Figueiredo & Jain (2002) component-annihilating CEM^2 with MDL selection (eq. 8-11).
 
-    Starts from ``k_max`` components (means: k-means++ seeds; covariances: the global
-    diagonal variance / 10; equal weights, as F&J), sweeps components one at a time
+    Starts from ``k_max`` components (the shared k-means++/Lloyd initialisation of
+    :meth:`MixtureEstimator._initialize`), sweeps components one at a time
     (eq. 8 E-step, eq. 9 weight rule with annihilation, eq. 10 M-step) until the relative
     change of the message length is ``< tol`` (at most ``max_iter`` sweeps per stage),
     records ``(k, L)``, removes the least probable component and repeats while
@@ -438,7 +436,8 @@ class MDLMixture(MixtureEstimator):
                 return
             wm = support[m] / total
             if wm == 0.0 and state.k <= self._k_floor:
-                self._note(f"annihilation stopped at k_min={self._k_floor}; component kept with its EM weight")
+                self._note(f"annihilation stopped at k_min={self._k_floor}; "
+                           "component kept with its EM weight")
                 wm = s[m] / s.sum()
             weights = state.weights.copy()
             weights[m] = wm
