@@ -19,7 +19,7 @@ import numpy as np
 
 from ..model.dtm import TriangulatedModel
 from ..search import label_ops
-from ..search.label_search import GASettings, LabelSearch, make_search
+from ..search.label_search import GASettings, LabelSearch, make_search, targeted_moves
 from .frame_problem import Background, FrameProblem
 from .tracker import Tracker, TrackerSettings
 from .voting import VoteBook
@@ -41,6 +41,7 @@ class LabelerSettings:
     tracker: TrackerSettings = field(default_factory=TrackerSettings)
     max_points: int = 0                  # 0 = 2 x labels + 8
     refit_drop: float = 25.0             # nats below the running fitness level -> full search
+    accept_drop: float = 8.0             # carried-over labeling accepted without GA within this
     max_gap_s: float = 0.5               # longer input gaps reset window and tracks
     seed: int = 0
 
@@ -51,8 +52,8 @@ class LabelerSettings:
             raise ValueError(f"mode must be one of {', '.join(MODES)}")
         if self.window < 1:
             raise ValueError("window must be >= 1")
-        if self.max_points < 0 or self.refit_drop <= 0 or self.max_gap_s <= 0:
-            raise ValueError("max_points >= 0, refit_drop > 0 and max_gap_s > 0 required")
+        if self.max_points < 0 or self.refit_drop <= 0 or self.max_gap_s <= 0 or self.accept_drop <= 0:
+            raise ValueError("max_points >= 0 and refit_drop, accept_drop, max_gap_s > 0 required")
 
 
 @dataclass
@@ -157,11 +158,12 @@ class StreamLabeler:
         if seeds is not None:
             if s.method == "tracker":
                 a = seeds[0]
-                outcome_f = float(problem.fitness(a[None])[0])
-                outcome = _Outcome(a, outcome_f, 0, 1)
+                outcome = _Outcome(a, float(problem.fitness(a[None])[0]), 0, 1)
                 full = False
             else:
-                outcome = self.warm_search.search(problem, self.rng, seeds)
+                outcome = self._fast_path(problem, seeds[0])
+                if outcome is None:
+                    outcome = self.warm_search.search(problem, self.rng, seeds)
                 full = self.level is not None and outcome.fitness < self.level - s.refit_drop
         if full:
             best = self.full_search.search(problem, self.rng, seeds)
@@ -204,6 +206,22 @@ class StreamLabeler:
             generations=outcome.generations, evaluations=outcome.evaluations,
             n_dropped=int((~finite).sum()), n_ignored=n_ignored, reset=reason,
             heading=self.heading if self.heading is not None else float("nan"), truth_fitness=truth_f)
+
+    def _fast_path(self, problem: FrameProblem, seed: np.ndarray):
+        """Accept the carried-over labeling after checking its targeted neighbourhood
+        (left/right swaps, missing labels onto free points) when it still fits as well as
+        recent frames did; None sends the frame to the GA."""
+        if self.level is None or self.settings.method not in ("cbga",):
+            return None
+        n = problem.n
+        used = label_ops.used_mask(seed[None], n)[0]
+        free = np.flatnonzero(~used)
+        cand = targeted_moves(seed, n, self.model.heading_pairs, free)
+        f = problem.fitness(cand)
+        i = int(np.argmax(f))
+        if f[i] < self.level - self.settings.accept_drop:
+            return None
+        return _Outcome(cand[i], float(f[i]), 0, len(cand))
 
     def _seeds(self, track_ids: np.ndarray, n: int, M: int) -> np.ndarray | None:
         """Warm start: last frame's published labels carried by the tracks."""

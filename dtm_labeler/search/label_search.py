@@ -118,6 +118,24 @@ def guided_sample(problem: FrameProblem, P: int, rng: np.random.Generator,
     return pop
 
 
+def targeted_moves(ind: np.ndarray, n: int, mirror_pairs: np.ndarray, free_points: np.ndarray) -> np.ndarray:
+    """The few moves a carried-over labeling most often needs: swap each left/right pair,
+    and give each missing label each free (unlabelled) point."""
+    out = [ind[None]]
+    if len(mirror_pairs):
+        sw = np.repeat(ind[None], len(mirror_pairs), 0)
+        r = np.arange(len(mirror_pairs))
+        sw[r, mirror_pairs[:, 0]], sw[r, mirror_pairs[:, 1]] = ind[mirror_pairs[:, 1]], ind[mirror_pairs[:, 0]]
+        out.append(sw)
+    missing = np.flatnonzero(ind >= n)
+    if missing.size and free_points.size:
+        lab, pt = np.meshgrid(missing, free_points, indexing="ij")
+        mv = np.repeat(ind[None], lab.size, 0)
+        mv[np.arange(lab.size), lab.ravel()] = pt.ravel()
+        out.append(mv)
+    return np.concatenate(out)
+
+
 def polish(problem: FrameProblem, ind: np.ndarray, fit: float, rounds: int,
            deadline: float | None = None) -> tuple[np.ndarray, float, int]:
     """Steepest ascent over :func:`label_ops.neighbourhood` (at most ``rounds`` moves)."""
@@ -149,15 +167,15 @@ class _GABase(LabelSearch):
         s = self.settings
         M, n = problem.M, problem.n
         deadline = None if s.time_budget_s is None else time.perf_counter() + s.time_budget_s
-        pop = self._initial(problem, s.population, rng)
         if seeds is not None and len(seeds):
+            # warm start: the seeds, mutants of the first seed, and a quarter of fresh samples
             seeds = ops.repair(np.asarray(seeds, dtype=np.int64).reshape(-1, M), n, rng)
             k = min(len(seeds), s.population)
-            pop[:k] = seeds[:k]
-            # half of the rest: mutants of the first seed (local exploration around the warm start)
-            m = (s.population - k) // 2
-            if m:
-                pop[k:k + m] = ops.mutate(np.repeat(seeds[:1], m, 0), n, rng, 1.0)
+            fresh = (s.population - k) // 4
+            pop = np.concatenate([seeds[:k], ops.mutate(np.repeat(seeds[:1], s.population - k - fresh, 0), n, rng, 1.0),
+                                  self._initial(problem, fresh, rng) if fresh else np.zeros((0, M), np.int64)])
+        else:
+            pop = self._initial(problem, s.population, rng)
         cross, mutate, valid = self._operators(problem, rng)
         fit = self._fitness(problem, pop, valid)
         history = [float(fit.max())]

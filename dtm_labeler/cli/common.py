@@ -1,0 +1,111 @@
+"""Argument parsing and input helpers shared by the console scripts."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from ..motion.clip import MotionClip
+from ..motion.load import load_clip
+from ..motion.pointsets import BODY14, to_point_set
+
+RECORDING_SUFFIXES = (".bvh", ".amc", ".c3d", ".csv")
+
+
+class CliError(Exception):
+    """A user-facing error: printed without a traceback, exit status 2."""
+
+
+def parse_frames(spec: str | None, n_frames: int) -> tuple[int, int]:
+    """``A:B`` with integers or percentages (``0:90%``, ``90%:``); Python slice semantics."""
+    if not spec:
+        return 0, n_frames
+    if ":" not in spec:
+        raise CliError(f"--frames {spec!r}: expected A:B (integers or percentages, e.g. 0:90%)")
+    parts = spec.split(":", 1)
+
+    def one(text: str, default: int) -> int:
+        text = text.strip()
+        if not text:
+            return default
+        try:
+            if text.endswith("%"):
+                return int(round(float(text[:-1]) / 100.0 * n_frames))
+            v = int(text)
+        except ValueError:
+            raise CliError(f"--frames {spec!r}: {text!r} is not an integer or percentage") from None
+        return v if v >= 0 else n_frames + v
+
+    a, b = one(parts[0], 0), one(parts[1], n_frames)
+    a, b = max(0, min(a, n_frames)), max(0, min(b, n_frames))
+    if b <= a:
+        raise CliError(f"--frames {spec!r} selects no frames of {n_frames}")
+    return a, b
+
+
+def expand_inputs(inputs: Sequence[str]) -> list[Path]:
+    """Files as given; folders searched recursively for recordings (FBX and ASF skipped:
+    the BVH and AMC files carry the same motion)."""
+    out: list[Path] = []
+    for item in inputs:
+        p = Path(item)
+        if p.is_dir():
+            found = sorted(q for q in p.rglob("*") if q.suffix.lower() in RECORDING_SUFFIXES
+                           and "positions_csv" not in q.parts)
+            if not found:
+                raise CliError(f"{p}: no recordings (.bvh .amc .c3d .csv) found")
+            out.extend(found)
+        elif p.is_file():
+            out.append(p)
+        else:
+            raise CliError(f"{p}: no such file or folder")
+    return out
+
+
+def point_spec(spec: str) -> str | list[str]:
+    if spec in ("body14", "all"):
+        return spec
+    names = [s.strip() for s in spec.split(",") if s.strip()]
+    if len(names) < 3:
+        raise CliError("--points needs body14, all, or at least 3 comma-separated names")
+    return names
+
+
+def load_inputs(inputs: Sequence[str], points: str | list[str], frames: str | None = None) -> list[MotionClip]:
+    clips = []
+    for path in expand_inputs(inputs):
+        try:
+            clip = load_clip(path)
+            clip = to_point_set(clip, points)
+        except (ValueError, KeyError, OSError) as e:
+            raise CliError(f"{path}: {e}") from None
+        a, b = parse_frames(frames, clip.n_frames)
+        clips.append(clip.slice(a, b))
+    return clips
+
+
+def model_points(clip: MotionClip, labels: Sequence[str]) -> MotionClip:
+    """The clip's points named like the model's labels (deriving the 14 body points if needed)."""
+    if set(labels) <= set(clip.names):
+        return clip.select(labels)
+    if set(labels) <= set(BODY14):
+        return to_point_set(clip, "body14").select(labels)
+    missing = sorted(set(labels) - set(clip.names))
+    raise CliError(f"{clip.source}: has no points named {', '.join(missing[:6])}"
+                   f"{' ...' if len(missing) > 6 else ''} (model labels)")
+
+
+def run_main(main_body, argv=None) -> int:
+    try:
+        return main_body(argv)
+    except CliError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    pass
