@@ -455,3 +455,21 @@ def test_make_estimator():
         make_estimator("mdl", n_components=3)
     with pytest.raises(ValueError):
         make_estimator("mdl", k_min=5, k_max=2)
+
+
+def test_mdl_least_loss_removal_keeps_a_small_real_cluster():
+    """F&J drop the least probable component between stages; with a small genuine cluster and
+    a split big one that deletes the real cluster. ``removal='least_loss'`` keeps it."""
+    rng = np.random.default_rng(21)
+    d = 15
+    means = np.linalg.qr(rng.standard_normal((d, 3)))[0].T * 20.0
+    covs = np.stack([np.eye(d) * s for s in (1.0, 1.5, 0.7)])
+    truth = GaussianMixture(np.array([0.47, 0.45, 0.08]), means, covs)
+    X = truth.sample(3000, rng)
+    for seed in (0, 1):
+        res = MDLMixture(random_state=seed, removal="least_loss").fit(X)
+        assert res.n_components == 3, res.history
+        assert np.sort(res.mixture.weights)[0] == pytest.approx(0.08, abs=0.03)
+    assert isinstance(make_estimator("mdl", removal="least_loss"), MDLMixture)
+    with pytest.raises(ValueError):
+        MDLMixture(removal="random")
