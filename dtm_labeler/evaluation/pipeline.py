@@ -1,0 +1,150 @@
+"""Label labelled recordings as if they were unlabeled streams, and score the result.
+
+``label_clip`` is what ``dtm-label`` runs and what the report writer (``dtm-eval``) calls:
+
+1. the clip's labels are stripped: the model's points are selected (derived to the 14 body
+   points when needed) and every frame becomes an unordered point cloud;
+2. :func:`~dtm_labeler.labeling.corruption.corrupt_clip` hides ``occlude`` points, adds
+   ``clutter`` ghost points and ``noise_mm`` noise, and shuffles each frame (keeping the truth);
+3. a fresh :class:`~dtm_labeler.labeling.stream.StreamLabeler` gets the frames one by one with
+   stamps ``frame / rate`` and the true assignment (only to count search errors);
+4. :class:`~dtm_labeler.labeling.metrics.MetricsAccumulator` scores the published labels.
+
+By default the labeler gets no track ids (its own tracker associates points); with
+``use_ids=True`` it gets the simulated mocap-system ids of the corrupted stream.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..labeling.corruption import CorruptedStream, corrupt_clip
+from ..labeling.metrics import Metrics, MetricsAccumulator
+from ..labeling.stream import LabelerSettings, StreamLabeler
+from ..model.dtm import TriangulatedModel
+from ..motion.clip import MotionClip
+
+Progress = Callable[[int, int], None]
+
+
+@dataclass
+class FrameRecord:
+    """One labelled frame (input order = the shuffled order the labeler saw)."""
+
+    index: int                    # frame number within the clip given
+    stamp: float                  # seconds
+    xyz: np.ndarray               # (n, 3)
+    truth: np.ndarray             # (n,) true label index, -1 = ghost
+    labels: np.ndarray            # (n,) published label, -1 = unlabelled
+    confidence: np.ndarray        # (n,)
+    track_ids: np.ndarray         # (n,) labeler track id
+    search_labels: np.ndarray     # (n,) search result before votes
+    log_likelihood: float
+    truth_fitness: float
+    latency_ms: float
+    full_search: bool
+    generations: int
+    evaluations: int
+    reset: str = ""
+
+    @property
+    def search_error(self) -> bool:
+        return bool(np.isfinite(self.truth_fitness) and self.truth_fitness > self.log_likelihood + 1e-6)
+
+
+@dataclass
+class ClipRun:
+    """Result of one clip: scores, the accumulator (to merge), and the frames if kept."""
+
+    source: str
+    metrics: Metrics
+    accumulator: MetricsAccumulator
+    records: list[FrameRecord] = field(default_factory=list)
+    settings: dict = field(default_factory=dict)
+
+
+def model_clip(model: TriangulatedModel, clip: MotionClip) -> MotionClip:
+    """The clip's points named like the model's labels, in the model's order (the 14 body
+    points are derived from markers / joints when the model uses them). ValueError if the
+    clip lacks some of them."""
+    from ..cli.common import CliError, model_points
+    try:
+        return model_points(clip, model.labels)
+    except (CliError, KeyError) as e:
+        raise ValueError(str(e).strip("'\"")) from None
+
+
+def run_stream(model: TriangulatedModel, stream: CorruptedStream, settings: LabelerSettings | None = None,
+               use_ids: bool = False, keep_records: bool = True, progress: Progress | None = None,
+               done: int = 0, total: int | None = None) -> ClipRun:
+    """Feed a corrupted stream (label index = model label index) to a fresh labeler."""
+    if tuple(stream.names) != tuple(model.labels):
+        raise ValueError("stream label names differ from the model's labels")
+    labeler = StreamLabeler(model, settings or LabelerSettings())
+    acc = MetricsAccumulator(model.labels, stream.rate)
+    records: list[FrameRecord] = []
+    total = len(stream) if total is None else total
+    t_wall = time.perf_counter()
+    for i, f in enumerate(stream):
+        res = labeler.process(f.xyz, f.stamp, ids=f.ids if use_ids else None, truth=f.label_to_index)
+        acc.add_result(f.truth, res, valid=np.isfinite(f.xyz).all(1))
+        if keep_records:
+            records.append(FrameRecord(
+                index=f.index, stamp=f.stamp, xyz=f.xyz, truth=f.truth, labels=res.labels,
+                confidence=res.confidence, track_ids=res.track_ids, search_labels=res.search_labels,
+                log_likelihood=res.log_likelihood, truth_fitness=res.truth_fitness, latency_ms=res.latency_ms,
+                full_search=res.full_search, generations=res.generations, evaluations=res.evaluations,
+                reset=res.reset))
+        if progress is not None:
+            progress(done + i + 1, total)
+    wall = time.perf_counter() - t_wall
+    return ClipRun(source=stream.source, metrics=acc.metrics(), accumulator=acc, records=records,
+                   settings=dict(stream.settings, use_ids=use_ids, wall_s=wall))
+
+
+def label_clip(model: TriangulatedModel, clip: MotionClip, settings: LabelerSettings | None = None,
+               occlude: int = 0, clutter: int = 0, noise_mm: float = 0.0, seed: int = 0,
+               progress: Progress | None = None, use_ids: bool = False, gap_frames: float = 1.0,
+               keep_records: bool = True) -> tuple[Metrics, list[FrameRecord]]:
+    """Strip, corrupt, shuffle, label and score one clip. Returns ``(metrics, records)``;
+    ``progress(done, total)`` is called after every frame."""
+    run = label_clip_run(model, clip, settings, occlude, clutter, noise_mm, seed, progress, use_ids,
+                         gap_frames, keep_records)
+    return run.metrics, run.records
+
+
+def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: LabelerSettings | None = None,
+                   occlude: int = 0, clutter: int = 0, noise_mm: float = 0.0, seed: int = 0,
+                   progress: Progress | None = None, use_ids: bool = False, gap_frames: float = 1.0,
+                   keep_records: bool = True, done: int = 0, total: int | None = None) -> ClipRun:
+    """:func:`label_clip` returning the full :class:`ClipRun`."""
+    mc = model_clip(model, clip)
+    stream = corrupt_clip(mc, occlude=occlude, clutter=clutter, noise_mm=noise_mm, seed=seed,
+                          gap_frames=gap_frames)
+    return run_stream(model, stream, settings, use_ids=use_ids, keep_records=keep_records, progress=progress,
+                      done=done, total=total)
+
+
+def label_clips(model: TriangulatedModel, clips: Sequence[MotionClip], settings: LabelerSettings | None = None,
+                occlude: int = 0, clutter: int = 0, noise_mm: float = 0.0, seed: int = 0,
+                progress: Progress | None = None, use_ids: bool = False, gap_frames: float = 1.0,
+                keep_records: bool = False) -> tuple[Metrics, list[ClipRun]]:
+    """:func:`label_clip` over several clips (clip ``i`` corrupted with ``seed + i``, each with
+    a fresh labeler). Returns the pooled metrics (latencies pooled, durations added, swaps
+    never counted across clips) and the per-clip runs."""
+    clips = list(clips)
+    if not clips:
+        raise ValueError("no clips to label")
+    # check every clip before the (long) labeling starts
+    prepared = [model_clip(model, c) for c in clips]
+    total = sum(c.n_frames for c in prepared)
+    runs, done = [], 0
+    for i, mc in enumerate(prepared):
+        runs.append(label_clip_run(model, mc, settings, occlude, clutter, noise_mm, seed + i, progress, use_ids,
+                                   gap_frames, keep_records, done=done, total=total))
+        done += mc.n_frames
+    pooled = MetricsAccumulator.merge(r.accumulator for r in runs).metrics()
+    return pooled, runs
