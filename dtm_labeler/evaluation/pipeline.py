@@ -66,13 +66,14 @@ class ClipRun:
     settings: dict = field(default_factory=dict)
 
 
-def model_clip(model: TriangulatedModel, clip: MotionClip) -> MotionClip:
-    """The clip's points named like the model's labels, in the model's order (the 14 body
-    points are derived from markers / joints when the model uses them). ValueError if the
-    clip lacks some of them."""
+def model_clip(model: TriangulatedModel | Sequence[str], clip: MotionClip) -> MotionClip:
+    """The clip's points named like the model's labels (``model`` or its label names), in the
+    model's order (the 14 body points are derived from markers / joints when the model uses
+    them). ValueError if the clip lacks some of them."""
     from ..cli.common import CliError, model_points
+    labels = model.labels if isinstance(model, TriangulatedModel) else tuple(model)
     try:
-        return model_points(clip, model.labels)
+        return model_points(clip, labels)
     except (CliError, KeyError) as e:
         raise ValueError(str(e).strip("'\"")) from None
 

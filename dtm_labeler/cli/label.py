@@ -1,0 +1,237 @@
+"""``dtm-label``: label recordings as unlabeled streams with a trained model and score the result.
+
+The input's own labels are stripped (only the model's points are kept, derived to the 14 body
+points when the model uses them), each frame is optionally corrupted (hidden points, ghost
+points, noise) and shuffled, labelled frame by frame by the same engine the ROS node runs, and
+the published labels are compared with the input's labels.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from pathlib import Path
+
+from tqdm import tqdm
+
+from ..evaluation.pipeline import ClipRun, label_clip_run, model_clip
+from ..labeling.metrics import Metrics, MetricsAccumulator
+from ..labeling.stream import METHODS, MODES, LabelerSettings
+from ..model.io import load_model
+from ..motion.load import load_clip
+from ..search.label_search import GASettings
+from .common import CliError, HelpFormatter, expand_inputs, parse_frames, run_main
+
+EPILOG = """examples:
+  dtm-train walk.bvh --frames 0:90% --out walk.npz
+  dtm-label walk.npz walk.bvh --frames 90%: --json
+  dtm-label walk.npz walk.bvh --frames 90%: --occlude 3 --clutter 2 --noise-mm 2 --out labels.csv
+  dtm-label m41.npz capture.c3d --mode single --method greedy
+output (--json): method, mode, frames, labels, accuracy, ghost_rejection, swaps_per_min, search_errors,
+  search_error_rate, latency_ms {p50, p99, max, mean}, fps, per_label, inputs (one entry per input).
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="dtm-label", formatter_class=HelpFormatter, epilog=EPILOG,
+                                description="Label recordings (labels stripped, points shuffled per frame) "
+                                            "with a trained triangulated model; score against their own labels.")
+    p.add_argument("model", metavar="MODEL", help="model file from dtm-train (.npz)")
+    p.add_argument("inputs", nargs="+", metavar="INPUT",
+                   help="labelled recordings (.bvh .amc .c3d .csv) or folders of them")
+    p.add_argument("--method", choices=METHODS, default="cbga",
+                   help="cbga: constraint-based GA; sga: simple GA; greedy: Song et al. DP; exhaustive: all "
+                        "assignments (tiny models only); tracker: carry labels along tracks, search only to start")
+    p.add_argument("--mode", choices=MODES, default="stream",
+                   help="stream: tracks, warm start and votes over the window; single: every frame on its own")
+    p.add_argument("--frames", default=None, help="frame range A:B of every input, integers or percentages (90%%:)")
+    p.add_argument("--occlude", type=int, default=0, metavar="K", help="hide K true points per frame")
+    p.add_argument("--clutter", type=int, default=0, metavar="K", help="add K ghost points per frame")
+    p.add_argument("--noise-mm", type=float, default=0.0, metavar="S", help="Gaussian noise, std per coordinate (mm)")
+    p.add_argument("--gap-frames", type=float, default=1.0, metavar="G",
+                   help="mean length of a simulated occlusion in frames (1: new hidden set every frame)")
+    p.add_argument("--window", type=int, default=LabelerSettings.window, metavar="W",
+                   help="vote window in frames (stream mode)")
+    p.add_argument("--population", type=int, default=None, metavar="P", help="GA population of the full search")
+    p.add_argument("--generations", type=int, default=None, metavar="G",
+                   help="GA generation cap of the full search")
+    p.add_argument("--track-ids", action="store_true",
+                   help="give the labeler the simulated mocap track ids instead of letting its tracker associate")
+    p.add_argument("--seed", type=int, default=0, help="seed of the corruption and of the search")
+    p.add_argument("--out", default=None, metavar="FILE.csv", help="write per-frame, per-point labels as CSV")
+    p.add_argument("--json", action="store_true", help="print one JSON object with the scores")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def _settings(args) -> LabelerSettings:
+    if args.occlude < 0 or args.clutter < 0 or args.noise_mm < 0:
+        raise CliError("--occlude, --clutter and --noise-mm must be >= 0")
+    if args.gap_frames < 1:
+        raise CliError("--gap-frames must be >= 1")
+    full = LabelerSettings().full
+    try:
+        if args.population is not None or args.generations is not None:
+            kw = dict(vars(full))
+            if args.population is not None:
+                kw["population"] = args.population
+            if args.generations is not None:
+                kw["max_generations"] = args.generations
+            full = GASettings(**kw)
+        return LabelerSettings(method=args.method, mode=args.mode, window=args.window, full=full, seed=args.seed)
+    except ValueError as e:
+        raise CliError(str(e)) from None
+
+
+def _load(args, labels):
+    clips = []
+    for path in expand_inputs(args.inputs):
+        try:
+            clip = load_clip(path)
+        except (ValueError, KeyError, OSError) as e:
+            raise CliError(f"{path}: {e}") from None
+        try:
+            clip = model_clip(labels, clip)
+        except ValueError as e:
+            raise CliError(f"{e}") from None
+        a, b = parse_frames(args.frames, clip.n_frames)
+        clip = clip.slice(a, b)
+        clip.meta["frame_range"] = [a, b]
+        clips.append(clip)
+    return clips
+
+
+def _fmt(x, spec=".1f", none="n/a"):
+    return none if x is None else format(x, spec)
+
+
+def _pct(x):
+    return "n/a" if x is None else f"{100 * x:.2f} %"
+
+
+def _metrics_json(m: Metrics) -> dict:
+    d = m.as_dict()
+    d["latency_ms"] = {k: d["latency_ms"][k] for k in ("p50", "p99", "max", "mean")}
+    return d
+
+
+def _write_csv(path: str, runs: list[ClipRun], names: tuple[str, ...], multi: bool) -> None:
+    name = lambda i: names[i] if i >= 0 else ""  # noqa: E731
+    try:
+        fh = open(path, "w", newline="", encoding="utf-8")
+    except OSError as e:
+        raise CliError(f"--out {path}: {e}") from None
+    with fh:
+        w = csv.writer(fh)
+        w.writerow((["input"] if multi else []) + ["frame", "time", "x", "y", "z", "true_label", "label",
+                                                    "confidence", "track_id", "search_label"])
+        for run in runs:
+            src = Path(run.source).name
+            offset = run.settings.get("frame_offset", 0)
+            for r in run.records:
+                for i in range(r.xyz.shape[0]):
+                    x, y, z = r.xyz[i]
+                    w.writerow(([src] if multi else []) + [
+                        r.index + offset, f"{r.stamp + offset / run.settings.get('rate', 1.0):.6f}",
+                        f"{x:.6f}", f"{y:.6f}", f"{z:.6f}", name(int(r.truth[i])), name(int(r.labels[i])),
+                        f"{r.confidence[i]:.4f}", int(r.track_ids[i]), name(int(r.search_labels[i]))])
+
+
+def _main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    settings = _settings(args)
+    try:
+        model = load_model(args.model)
+    except (OSError, ValueError, KeyError) as e:
+        msg = str(e).strip("'\"")
+        raise CliError(msg if str(args.model) in msg else f"{args.model}: cannot read model: {msg}") from None
+    clips = _load(args, model.labels)
+    total = sum(c.n_frames for c in clips)
+    bar = tqdm(total=total, desc="labeling", unit="frame", file=sys.stderr, disable=True if args.quiet else None,
+               leave=False)
+
+    def progress(done: int, _total: int) -> None:
+        bar.update(done - bar.n)
+
+    runs: list[ClipRun] = []
+    done = 0
+    try:
+        for i, clip in enumerate(clips):
+            run = label_clip_run(model, clip, settings, occlude=args.occlude, clutter=args.clutter,
+                                 noise_mm=args.noise_mm, seed=args.seed + i, progress=progress,
+                                 use_ids=args.track_ids, gap_frames=args.gap_frames,
+                                 keep_records=args.out is not None, done=done, total=total)
+            run.settings.update(frame_offset=clip.meta["frame_range"][0], rate=clip.rate,
+                                frame_range=clip.meta["frame_range"])
+            runs.append(run)
+            done += clip.n_frames
+    except ValueError as e:
+        raise CliError(str(e)) from None
+    finally:
+        bar.close()
+    pooled = MetricsAccumulator.merge(r.accumulator for r in runs).metrics()
+    if args.out:
+        _write_csv(args.out, runs, model.labels, multi=len(runs) > 1)
+
+    out = {"method": args.method, "mode": args.mode, "model": str(args.model)} | _metrics_json(pooled)
+    out |= {"occlude": args.occlude, "clutter": args.clutter, "noise_mm": args.noise_mm,
+            "gap_frames": args.gap_frames, "window": args.window, "seed": args.seed, "track_ids": args.track_ids,
+            "inputs": [{"source": r.source, "frame_range": r.settings["frame_range"]} | _metrics_json(r.metrics)
+                       for r in runs]}
+    for item in out["inputs"]:
+        for k in ("per_label", "label_names", "labels"):
+            item.pop(k, None)
+    if args.out:
+        out["out"] = str(args.out)
+    if args.json:
+        print(json.dumps(out, indent=1))
+        return 0
+    _print_summary(args, model, pooled, runs)
+    return 0
+
+
+def _print_summary(args, model, m: Metrics, runs: list[ClipRun]) -> None:
+    lat = m.latency_ms
+    print(f"model          {args.model} ({len(model.labels)} labels)")
+    print(f"method         {args.method}, {args.mode} mode" + (f", window {args.window}" if args.mode == "stream"
+                                                                 else ""))
+    print(f"corruption     occlude {args.occlude}, clutter {args.clutter}, noise {args.noise_mm:g} mm, "
+          f"seed {args.seed}")
+    if len(runs) > 1:
+        print(f"{'input':34s} {'frames':>7s} {'accuracy':>9s} {'swaps/min':>9s} {'errors':>7s} {'p50 ms':>7s}")
+        for r in runs:
+            rm = r.metrics
+            print(f"{Path(r.source).name[:34]:34s} {rm.frames:7d} {_pct(rm.accuracy):>9s} "
+                  f"{_fmt(rm.swaps_per_min):>9s} {rm.search_errors:7d} {_fmt(rm.latency_ms['p50']):>7s}")
+    else:
+        r0, (a, b) = runs[0], runs[0].settings["frame_range"]
+        print(f"input          {Path(r0.source).name} frames {a}:{b}")
+    print(f"frames         {m.frames} ({m.duration_s:.1f} s of recording)")
+    print(f"accuracy       {_pct(m.accuracy)} of {m.points} visible markers; all right in "
+          f"{_pct(m.frame_accuracy)} of frames; search alone {_pct(m.search_accuracy)}")
+    print(f"ghosts         " + (f"{_pct(m.ghost_rejection)} of {m.ghosts} left unlabelled" if m.ghosts else "none"))
+    print(f"swaps          {m.swaps} ({_fmt(m.swaps_per_min)} per min)")
+    print(f"search errors  {m.search_errors} of {m.search_checked} frames ({_pct(m.search_error_rate)})")
+    print(f"latency        p50 {_fmt(lat['p50'])} ms, p99 {_fmt(lat['p99'])} ms, max {_fmt(lat['max'])} ms; "
+          f"{_fmt(m.fps)} frames/s; full searches in {_pct(m.full_search_rate)} of frames")
+    worst = sorted(((v, k) for k, v in m.per_label.items() if v is not None))[:4]
+    if worst and worst[0][0] < 1.0:
+        print("weakest labels " + ", ".join(f"{k} {100 * v:.1f} %" for v, k in worst))
+        pairs = m.confused_pairs(4)
+        if pairs:
+            print("confusions     " + ", ".join(f"{t}->{p} {c}" for t, p, c in pairs))
+    if args.out:
+        print(f"wrote          {args.out}")
+
+
+def main(argv=None) -> int:
+    try:
+        return run_main(_main, argv)
+    except BrokenPipeError:          # e.g. piped into head
+        sys.stderr.close()
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
