@@ -1,0 +1,296 @@
+"""The node's parameters: one table, the mapping to :class:`LabelerSettings`, validation.
+
+Pure Python (no rclpy at import time), so the mapping is unit-testable without a node. The
+node (:mod:`dtm_labeler.ros.node`) declares every entry of :data:`PARAMS` with a
+``ParameterDescriptor`` built by :func:`descriptor` (description, range, read_only), and its
+on-set-parameters callback runs :func:`validate` + :func:`settings_from_params` on the WHOLE
+resulting configuration, so a set with one bad value applies nothing.
+
+``params/labeler.yaml`` holds every parameter with its default (a test checks it matches
+:data:`DEFAULTS`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Dict, Iterable, Mapping, Optional, Sequence, Tuple
+
+from ..labeling.frame_problem import Background
+from ..labeling.stream import METHODS, MODES, LabelerSettings
+from ..labeling.tracker import TrackerSettings
+from ..search.label_search import GASettings
+
+__all__ = ["ParamSpec", "PARAMS", "SPECS", "DEFAULTS", "NODE_NAME", "QOS_CHOICES", "LABELER_KEYS",
+           "INPUT_QOS_KEYS", "validate", "settings_from_params", "check_labels", "descriptor",
+           "qos_profile", "load_params_file", "format_value"]
+
+NODE_NAME = "dtm_labeler"
+QOS_CHOICES = ("sensor_data", "reliable")
+INT_MAX = 2 ** 31 - 1
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One node parameter. ``range`` is inclusive ``(lo, hi)`` for numbers; ``choices`` for
+    strings; ``read_only`` ones can only be given at start-up (params file / ``-p``)."""
+
+    name: str
+    default: Any
+    description: str
+    range: Optional[Tuple[float, float]] = None
+    choices: Optional[Tuple[str, ...]] = None
+    read_only: bool = False
+
+    @property
+    def kind(self) -> str:
+        d = self.default
+        if isinstance(d, bool):
+            return "bool"
+        if isinstance(d, int):
+            return "int"
+        if isinstance(d, float):
+            return "double"
+        if isinstance(d, str):
+            return "string"
+        if isinstance(d, (list, tuple)):
+            return "string_array"
+        raise TypeError(f"unsupported default for {self.name}: {d!r}")
+
+
+_D = LabelerSettings()   # the library defaults; the table below repeats them (a test checks)
+
+PARAMS: Tuple[ParamSpec, ...] = (
+    # -- model ------------------------------------------------------------------------------
+    ParamSpec("model_path", "", "Model file (.npz from dtm-train). Setting it at runtime hot-reloads "
+              "the model; a file that cannot be loaded (or whose labels differ from expected_labels) "
+              "is rejected and the running model is kept. Empty = no model (nothing is labelled)."),
+    ParamSpec("expected_labels", [], "Label names the model must have, in order; empty = accept any "
+              "model. A model whose labels differ is rejected."),
+    ParamSpec("model_name", "", "Name published as LabeledMarkerArray.active_model (e.g. 'walk'); "
+              "empty for a single-model labeler."),
+    # -- search ------------------------------------------------------------------------------
+    ParamSpec("method", _D.method, "Label search: cbga (constraint-based GA, the paper's), sga "
+              "(simple GA), greedy (DP over the DTM), exhaustive (tiny models only), tracker "
+              "(carry labels along tracks, search only when lost).", choices=METHODS),
+    ParamSpec("mode", _D.mode, "stream: warm-started search + per-track votes over the window; "
+              "single: every frame labelled from scratch.", choices=MODES),
+    ParamSpec("window", _D.window, "Frames in the sliding vote window (eq. 32).", range=(1, 10000)),
+    ParamSpec("population", _D.full.population, "Population of the full (cold) GA search.",
+              range=(4, 4096)),
+    ParamSpec("max_generations", _D.full.max_generations, "Generation cap of the full GA search.",
+              range=(0, 100000)),
+    ParamSpec("stagnation", _D.full.stagnation, "Full GA stops after this many generations without "
+              "improvement.", range=(1, 100000)),
+    ParamSpec("time_budget_ms", 0.0, "Time budget per GA search in ms (full and warm); 0 = none.",
+              range=(0.0, 60000.0)),
+    ParamSpec("warm_population", _D.warm.population, "Population of the warm-started GA (stream "
+              "mode, labels carried over from the last frame).", range=(4, 4096)),
+    ParamSpec("warm_generations", _D.warm.max_generations, "Generation cap of the warm GA.",
+              range=(0, 100000)),
+    ParamSpec("warm_stagnation", _D.warm.stagnation, "Warm GA stops after this many generations "
+              "without improvement.", range=(1, 100000)),
+    ParamSpec("refit_drop", _D.refit_drop, "A warm result this many nats below the running fitness "
+              "level triggers a full search.", range=(0.001, 1e9)),
+    ParamSpec("accept_drop", _D.accept_drop, "The carried-over labeling is accepted without a GA "
+              "when within this many nats of the running level.", range=(0.001, 1e9)),
+    ParamSpec("seed", _D.seed, "Random seed of the searches (reproducible runs).", range=(0, INT_MAX)),
+    # -- tracker ------------------------------------------------------------------------------
+    ParamSpec("gate_m", _D.tracker.gate_m, "Tracker association radius in metres (grows with the "
+              "track's speed).", range=(0.0001, 100.0)),
+    ParamSpec("gate_speed_factor", _D.tracker.gate_speed_factor, "Gate growth per metre of "
+              "predicted travel between frames.", range=(0.0, 100.0)),
+    ParamSpec("max_misses", _D.tracker.max_misses, "Frames a lost track coasts (and is predicted) "
+              "before it is deleted.", range=(0, 100000)),
+    # -- clutter model ---------------------------------------------------------------------------
+    ParamSpec("clutter_volume_m3", _D.background.volume_m3, "Capture volume (m^3) of the uniform "
+              "clutter/ghost position density.", range=(1e-6, 1e9)),
+    ParamSpec("clutter_max_speed_mps", _D.background.max_speed_mps, "Clutter velocities are uniform "
+              "within +-this (m/s) per axis.", range=(1e-6, 1e6)),
+    ParamSpec("detection_probability", _D.background.detection_probability, "Probability that a "
+              "body marker is seen in a frame (missing-marker prior); in (0, 1).",
+              range=(0.001, 0.999)),
+    # -- input bounds ------------------------------------------------------------------------------
+    ParamSpec("max_points", _D.max_points, "At most this many points (nearest the body) enter the "
+              "search; the rest are published unlabelled. 0 = 2 x labels + 8.", range=(0, 1000000)),
+    ParamSpec("max_gap_s", _D.max_gap_s, "An input gap (header stamps) longer than this resets the "
+              "window and tracks.", range=(0.001, 1e6)),
+    # -- I/O --------------------------------------------------------------------------------
+    ParamSpec("input_qos", "sensor_data", "QoS of markers/unlabeled: sensor_data (best effort) or "
+              "reliable. Changing it (or input_depth) recreates the subscription.", choices=QOS_CHOICES),
+    ParamSpec("input_depth", 5, "History depth (keep-last) of the input subscription; the node "
+              "itself keeps only the newest cloud.", range=(1, 1000)),
+    ParamSpec("output_qos", "reliable", "QoS of the published topics: reliable or sensor_data "
+              "(best effort). Start-up only.", choices=QOS_CHOICES, read_only=True),
+    ParamSpec("output_depth", 10, "History depth of the published topics. Start-up only.",
+              range=(1, 1000), read_only=True),
+    ParamSpec("publish_cloud", True, "Publish markers/labeled_cloud (PointCloud2 x,y,z,label,"
+              "confidence)."),
+    ParamSpec("publish_visualization", True, "Publish markers/visualization (RViz MarkerArray)."),
+    ParamSpec("visualization_period_s", 0.0, "Minimum header-stamp interval between visualization "
+              "messages (0 = every frame).", range=(0.0, 3600.0)),
+    ParamSpec("marker_scale", 0.05, "Sphere diameter of the RViz markers in metres.",
+              range=(0.001, 10.0)),
+    ParamSpec("publish_occluded", True, "Add an occluded=true, predicted=true LabeledMarker for "
+              "every model label missing this frame whose track can still be predicted."),
+    ParamSpec("diagnostics_period_s", 1.0, "Period of the /diagnostics status (steady clock).",
+              range=(0.01, 3600.0)),
+    ParamSpec("latency_window", 500, "Frames over which the latency percentiles in /diagnostics are "
+              "computed.", range=(1, 1000000)),
+)
+
+SPECS: Dict[str, ParamSpec] = {p.name: p for p in PARAMS}
+DEFAULTS: Dict[str, Any] = {p.name: (list(p.default) if isinstance(p.default, (list, tuple))
+                                     else p.default) for p in PARAMS}
+#: Parameters that change LabelerSettings (the rest are node-only).
+LABELER_KEYS = frozenset({
+    "method", "mode", "window", "population", "max_generations", "stagnation", "time_budget_ms",
+    "warm_population", "warm_generations", "warm_stagnation", "refit_drop", "accept_drop", "seed",
+    "gate_m", "gate_speed_factor", "max_misses", "clutter_volume_m3", "clutter_max_speed_mps",
+    "detection_probability", "max_points", "max_gap_s"})
+INPUT_QOS_KEYS = frozenset({"input_qos", "input_depth"})
+
+
+def _check_one(spec: ParamSpec, value: Any) -> Any:
+    """Type/range/choice check of one value; returns it normalised (int->float for doubles,
+    None->[] for an unset string array)."""
+    kind = spec.kind
+    name = spec.name
+    if kind == "bool":
+        if not isinstance(value, bool):
+            raise ValueError(f"{name} must be a bool, got {value!r}")
+    elif kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError(f"{name} must be an integer, got {value!r}")
+    elif kind == "double":
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"{name} must be a number, got {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise ValueError(f"{name} must be finite, got {value!r}")
+    elif kind == "string":
+        if not isinstance(value, str):
+            raise ValueError(f"{name} must be a string, got {value!r}")
+    elif kind == "string_array":
+        if value is None:
+            value = []
+        if isinstance(value, str) or not all(isinstance(v, str) for v in value):
+            raise ValueError(f"{name} must be a list of strings, got {value!r}")
+        value = list(value)
+    if spec.range is not None and not spec.range[0] <= value <= spec.range[1]:
+        raise ValueError(f"{name} = {value!r} is out of range [{spec.range[0]}, {spec.range[1]}]")
+    if spec.choices is not None and value not in spec.choices:
+        raise ValueError(f"{name} must be one of {', '.join(spec.choices)}, got {value!r}")
+    return value
+
+
+def validate(values: Mapping[str, Any]) -> Dict[str, Any]:
+    """Check a full parameter set (missing keys take their defaults; unknown keys are errors).
+
+    Returns the normalised values. Raises ValueError with a message naming the parameter.
+    """
+    unknown = sorted(set(values) - set(SPECS))
+    if unknown:
+        raise ValueError(f"unknown parameter(s): {', '.join(unknown)}")
+    out = dict(DEFAULTS)
+    for name, value in values.items():
+        out[name] = _check_one(SPECS[name], value)
+    if len(set(out["expected_labels"])) != len(out["expected_labels"]):
+        raise ValueError("expected_labels contains duplicate names")
+    return out
+
+
+def settings_from_params(values: Mapping[str, Any]) -> LabelerSettings:
+    """The :class:`LabelerSettings` of a parameter set (validated first; missing keys take
+    their defaults). Raises ValueError (the settings classes' own checks included)."""
+    v = validate(values)
+    budget = v["time_budget_ms"] / 1e3 if v["time_budget_ms"] > 0 else None
+    d = LabelerSettings()
+    full = GASettings(population=v["population"], max_generations=v["max_generations"],
+                      stagnation=v["stagnation"], p_crossover=d.full.p_crossover,
+                      p_mutation=d.full.p_mutation, n_elite=min(d.full.n_elite, v["population"] - 1),
+                      selection_q=d.full.selection_q, time_budget_s=budget, polish=d.full.polish,
+                      polish_rounds=d.full.polish_rounds)
+    warm = GASettings(population=v["warm_population"], max_generations=v["warm_generations"],
+                      stagnation=v["warm_stagnation"], p_crossover=d.warm.p_crossover,
+                      p_mutation=d.warm.p_mutation, n_elite=min(d.warm.n_elite, v["warm_population"] - 1),
+                      selection_q=d.warm.selection_q, time_budget_s=budget, polish=d.warm.polish,
+                      polish_rounds=d.warm.polish_rounds)
+    return LabelerSettings(
+        method=v["method"], mode=v["mode"], window=v["window"], full=full, warm=warm,
+        background=Background(volume_m3=v["clutter_volume_m3"], max_speed_mps=v["clutter_max_speed_mps"],
+                              detection_probability=v["detection_probability"]),
+        tracker=TrackerSettings(gate_m=v["gate_m"], gate_speed_factor=v["gate_speed_factor"],
+                                max_misses=v["max_misses"]),
+        max_points=v["max_points"], refit_drop=v["refit_drop"], accept_drop=v["accept_drop"],
+        max_gap_s=v["max_gap_s"], seed=v["seed"])
+
+
+def check_labels(model_labels: Sequence[str], expected: Iterable[str], where: str = "model") -> None:
+    """Raise ValueError when ``expected`` is non-empty and differs from the model's labels."""
+    expected = list(expected or [])
+    labels = list(model_labels)
+    if expected and labels != expected:
+        missing = [x for x in expected if x not in labels]
+        extra = [x for x in labels if x not in expected]
+        detail = []
+        if missing:
+            detail.append(f"missing {', '.join(missing)}")
+        if extra:
+            detail.append(f"unexpected {', '.join(extra)}")
+        if not detail:
+            detail.append("same names in a different order")
+        raise ValueError(f"{where} has labels [{', '.join(labels)}], expected_labels are "
+                         f"[{', '.join(expected)}] ({'; '.join(detail)})")
+
+
+def format_value(value: Any) -> str:
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(str(v) for v in value) + "]"
+    return str(value)
+
+
+def descriptor(spec: ParamSpec):
+    """rcl_interfaces ParameterDescriptor of a spec (description, type, range, read_only)."""
+    from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                    ParameterType)
+    types = {"bool": ParameterType.PARAMETER_BOOL, "int": ParameterType.PARAMETER_INTEGER,
+             "double": ParameterType.PARAMETER_DOUBLE, "string": ParameterType.PARAMETER_STRING,
+             "string_array": ParameterType.PARAMETER_STRING_ARRAY}
+    d = ParameterDescriptor(name=spec.name, type=types[spec.kind], description=spec.description,
+                            read_only=spec.read_only)
+    if spec.choices:
+        d.additional_constraints = "one of: " + ", ".join(spec.choices)
+    if spec.range is not None:
+        lo, hi = spec.range
+        if spec.kind == "int":
+            d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=0)]
+        else:
+            d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi),
+                                                         step=0.0)]
+    return d
+
+
+def qos_profile(kind: str, depth: int):
+    """rclpy QoSProfile: 'sensor_data' = best effort, volatile; 'reliable' = reliable, volatile;
+    both keep-last ``depth`` (never an unbounded queue)."""
+    from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
+    if kind not in QOS_CHOICES:
+        raise ValueError(f"QoS must be one of {', '.join(QOS_CHOICES)}, got {kind!r}")
+    rel = ReliabilityPolicy.BEST_EFFORT if kind == "sensor_data" else ReliabilityPolicy.RELIABLE
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(depth), reliability=rel,
+                      durability=DurabilityPolicy.VOLATILE)
+
+
+def load_params_file(path: str | Path, node_name: str = NODE_NAME) -> Dict[str, Any]:
+    """The ``ros__parameters`` a ROS 2 params file gives node ``node_name`` (``/**`` wildcard
+    entries first, then ``name`` / ``/name`` ones override), as a plain dict."""
+    import yaml
+    doc = yaml.safe_load(Path(path).read_text(encoding="utf-8")) or {}
+    out: Dict[str, Any] = {}
+    bare = node_name.lstrip("/")
+    for key in ("/**", "**", bare, "/" + bare):
+        block = doc.get(key)
+        if isinstance(block, dict) and isinstance(block.get("ros__parameters"), dict):
+            out.update(block["ros__parameters"])
+    return out
