@@ -1,0 +1,300 @@
+"""``dtm-bag make|play|label|info``: recordings as rosbag2 bags, real-time replay, offline labeling.
+
+``make``  a labelled recording -> bag with ``/markers/unlabeled`` (PointCloud2, points shuffled
+          per frame, optional uint32 ``id`` track ids) and ``/markers/ground_truth``
+          (LabeledMarkerArray), optionally with simulated occlusions, ghosts and noise.
+``play``  replays a bag over DDS on its recorded timeline (``ros2 bag play`` substitute).
+``label`` labels a bag offline with the node's engine into a new bag (+ ``/markers/labeled``,
+          ``/markers/labeled_cloud``) and scores it against the ground truth.
+``info``  topics, counts and duration of a bag.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import signal
+import sys
+import threading
+
+from tqdm import tqdm
+
+from .common import CliError, HelpFormatter, load_inputs, point_spec, run_main
+
+EPILOG = """examples:
+  dtm-bag make walk.bvh --out walk_bag --frames 90%: --occlude 1 --clutter 2 --noise-mm 1
+  dtm-bag make capture.c3d --points all --storage sqlite3 --no-ids --out capture_bag
+  dtm-bag play walk_bag --rate 0.5 --loop
+  dtm-bag play walk_bag --restamp --clock --wait-for markers/unlabeled markers/ground_truth
+  dtm-bag label walk.npz walk_bag --out walk_labeled --json
+  dtm-bag info walk_labeled
+"""
+
+
+def _nonneg_int(text: str) -> int:
+    v = int(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError("must be >= 0")
+    return v
+
+
+def _pos_float(text: str) -> float:
+    v = float(text)
+    if not (v > 0 and math.isfinite(v)):
+        raise argparse.ArgumentTypeError("must be > 0")
+    return v
+
+
+def _nonneg_float(text: str) -> float:
+    v = float(text)
+    if not (v >= 0 and math.isfinite(v)):
+        raise argparse.ArgumentTypeError("must be >= 0")
+    return v
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from ..labeling.stream import METHODS, MODES, LabelerSettings
+    from ..ros.bag import STORAGES
+
+    p = argparse.ArgumentParser(prog="dtm-bag", formatter_class=HelpFormatter, epilog=EPILOG,
+                                description="rosbag2 tools: make bags from recordings, replay them over DDS, "
+                                            "label them offline.")
+    sub = p.add_subparsers(dest="command", required=True, metavar="{make,play,label,info}")
+
+    m = sub.add_parser("make", formatter_class=HelpFormatter, help="recording -> bag (unlabeled cloud + truth)",
+                       description="Write a labelled recording as a rosbag2 bag: /markers/unlabeled (PointCloud2, "
+                                   "points shuffled per frame) and /markers/ground_truth (LabeledMarkerArray).")
+    m.add_argument("input", metavar="INPUT", help="a recording (.bvh .amc .c3d .csv)")
+    m.add_argument("--out", required=True, metavar="BAG", help="bag directory to write")
+    m.add_argument("--storage", choices=STORAGES, default="mcap")
+    m.add_argument("--points", default="body14", help="body14, all, or NAME,NAME,... (the labels in the bag)")
+    m.add_argument("--frames", default=None, help="frame range A:B, integers or percentages (90%%:)")
+    m.add_argument("--occlude", type=_nonneg_int, default=0, metavar="K", help="hide K true points per frame")
+    m.add_argument("--gap-frames", type=float, default=1.0, metavar="G",
+                   help="mean length of a simulated occlusion in frames (1: new hidden set every frame)")
+    m.add_argument("--clutter", type=_nonneg_int, default=0, metavar="K",
+                   help="K ghost points per frame (short-lived tracks near the body)")
+    m.add_argument("--noise-mm", type=_nonneg_float, default=0.0, metavar="S",
+                   help="Gaussian noise, std per coordinate (mm)")
+    m.add_argument("--ids", action=argparse.BooleanOptionalAction, default=True,
+                   help="add a uint32 'id' field with mocap-like track ids to the cloud")
+    m.add_argument("--frame-id", default="mocap", help="header.frame_id")
+    m.add_argument("--seed", type=int, default=0, help="seed of shuffling, occlusions, ghosts and noise")
+    m.add_argument("--rate-hz", type=_pos_float, default=None, metavar="HZ",
+                   help="re-time the frames at this rate (default: the recording's rate)")
+    m.add_argument("--start-time", type=_nonneg_float, default=1.0, metavar="S",
+                   help="stamp of the first frame, seconds since the epoch")
+    m.add_argument("--no-ground-truth", action="store_true", help="write only /markers/unlabeled")
+    m.add_argument("--force", action="store_true", help="replace BAG if it exists")
+    m.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+    y = sub.add_parser("play", formatter_class=HelpFormatter, help="replay a bag over DDS in real time",
+                       description="Publish a bag's messages over DDS on their recorded timeline (recorded CDR "
+                                   "bytes, one rclpy publisher per topic, reliable QoS). DDS discovery follows "
+                                   "the environment (ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE); --localhost "
+                                   "keeps it on this machine.")
+    y.add_argument("bag", metavar="BAG")
+    y.add_argument("--rate", type=_pos_float, default=1.0, help="playback speed factor")
+    y.add_argument("--loop", action="store_true", help="play again and again until interrupted")
+    y.add_argument("--topics", nargs="+", default=None, metavar="TOPIC", help="play only these topics")
+    y.add_argument("--start-delay", type=_nonneg_float, default=0.0, metavar="S",
+                   help="pause after the subscribers are there, before the first message")
+    y.add_argument("--wait-for", nargs="*", default=None, metavar="TOPIC",
+                   help="wait until each of these topics has a subscriber (default: markers/unlabeled; "
+                        "give no topic to start at once)")
+    y.add_argument("--wait-timeout", type=_nonneg_float, default=30.0, metavar="S",
+                   help="play anyway after waiting this long for subscribers")
+    y.add_argument("--clock", action="store_true", help="publish /clock (for use_sim_time)")
+    y.add_argument("--restamp", action="store_true",
+                   help="set header stamps to the wall-clock send schedule (end-to-end latency = "
+                        "reception - stamp); default: recorded stamps as they are")
+    y.add_argument("--localhost", action="store_true",
+                   help="set ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST for this process")
+    y.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    y.add_argument("--json", action="store_true", help="print the playback summary as JSON")
+
+    la = sub.add_parser("label", formatter_class=HelpFormatter, help="label a bag offline into a new bag",
+                        description="Label every cloud of a bag with the node's engine (StreamLabeler, header "
+                                    "stamps as time); write the input topics plus /markers/labeled and "
+                                    "/markers/labeled_cloud; score against /markers/ground_truth when present.")
+    la.add_argument("model", metavar="MODEL", help="model file from dtm-train (.npz)")
+    la.add_argument("bag", metavar="BAG")
+    la.add_argument("--out", default=None, metavar="OUT_BAG", help="bag to write (default: only score)")
+    la.add_argument("--storage", choices=STORAGES, default=None, help="storage of OUT_BAG (default: as BAG)")
+    la.add_argument("--topic", default="markers/unlabeled", help="cloud topic to label")
+    la.add_argument("--method", choices=METHODS, default=LabelerSettings.method)
+    la.add_argument("--mode", choices=MODES, default=LabelerSettings.mode)
+    la.add_argument("--window", type=int, default=LabelerSettings.window, metavar="W")
+    la.add_argument("--params-file", default=None, metavar="YAML",
+                    help="take the labeler settings from a node parameter file (params/labeler.yaml format); "
+                         "--method/--mode/--window/--seed given explicitly still win")
+    la.add_argument("--seed", type=int, default=0, help="seed of the search")
+    la.add_argument("--force", action="store_true", help="replace OUT_BAG if it exists")
+    la.add_argument("--json", action="store_true", help="print one JSON object")
+    la.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    i = sub.add_parser("info", formatter_class=HelpFormatter, help="topics, counts and duration of a bag")
+    i.add_argument("bag", metavar="BAG")
+    i.add_argument("--json", action="store_true")
+    return p
+
+
+# ------------------------------------------------------------------------------------- make
+
+def _make(args) -> int:
+    from ..labeling.corruption import corrupt_clip
+    from ..ros.bag import BagError, write_bag
+
+    if args.gap_frames < 1:
+        raise CliError("--gap-frames must be >= 1")
+    clips = load_inputs([args.input], point_spec(args.points), args.frames)
+    if len(clips) != 1:
+        raise CliError(f"{args.input}: give one recording, not a folder of {len(clips)}")
+    clip = clips[0]
+    stream = corrupt_clip(clip, occlude=args.occlude, clutter=args.clutter, noise_mm=args.noise_mm, seed=args.seed,
+                          gap_frames=args.gap_frames)
+    try:
+        s = write_bag(stream, args.out, storage=args.storage, frame_id=args.frame_id, ids=args.ids,
+                      start_time=args.start_time, rate_hz=args.rate_hz, ground_truth=not args.no_ground_truth,
+                      force=args.force)
+    except BagError as e:
+        raise CliError(str(e)) from None
+    if args.json:
+        print(json.dumps(s, indent=1))
+        return 0
+    print(f"bag       {s['out']} ({s['storage']})")
+    print(f"source    {clip.source}")
+    print(f"frames    {s['frames']} at {s['rate_hz']:g} Hz = {s['duration_s']:.2f} s, first stamp "
+          f"{s['start_time_s']:g} s")
+    print(f"labels    {len(s['labels'])}: {' '.join(s['labels'])}")
+    print(f"points    {s['points_per_frame']:.1f} per frame ({s['occluded_per_frame']:.1f} hidden, "
+          f"{s['ghosts_per_frame']:.1f} ghosts, noise {args.noise_mm:g} mm), ids {'yes' if s['ids'] else 'no'}")
+    print(f"topics    {', '.join(s['topics'])}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------- play
+
+def _play(args) -> int:
+    if args.localhost:
+        os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    from ..ros.bag import BagError, bag_info
+    from ..ros.player import play
+
+    stop = threading.Event()
+
+    def on_term(signum, frame):
+        stop.set()
+
+    signal.signal(signal.SIGTERM, on_term)
+    say = (lambda s: None) if args.quiet or args.json else (lambda s: print(s, file=sys.stderr, flush=True))
+    try:
+        info = bag_info(args.bag)
+        say(f"playing {args.bag}: {info['messages']} messages, {info['duration_s']:.2f} s at rate {args.rate:g}"
+            + (" (loop)" if args.loop else ""))
+        wait_for = args.wait_for
+        stats = play(args.bag, rate=args.rate, loop=args.loop, topics=args.topics, start_delay=args.start_delay,
+                     clock=args.clock, restamp=args.restamp, wait_for=wait_for, wait_timeout=args.wait_timeout,
+                     stop=stop, log=say)
+    except BagError as e:
+        raise CliError(str(e)) from None
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    if args.json:
+        print(json.dumps(stats.as_dict(), indent=1))
+        return 0
+    lat = stats.lateness_ms
+    say(f"sent {sum(stats.sent.values())} messages (" + ", ".join(f"{t} {n}" for t, n in stats.sent.items())
+        + f") in {stats.duration_s:.2f} s; lateness p50 {lat.get('p50', float('nan')):.2f} ms, "
+          f"p99 {lat.get('p99', float('nan')):.2f} ms, max {lat.get('max', float('nan')):.2f} ms"
+        + (" (stopped)" if stats.stopped else ""))
+    return 0
+
+
+# ------------------------------------------------------------------------------------ label
+
+def _label(args) -> int:
+    from ..labeling.stream import LabelerSettings
+    from ..model.io import load_model
+    from ..ros.bag import BagError, label_bag
+
+    try:
+        model = load_model(args.model)
+    except (OSError, ValueError, KeyError) as e:
+        raise CliError(f"{args.model}: cannot read model: {e}") from None
+    try:
+        if args.params_file:
+            from ..ros import params as P
+            values = dict(P.DEFAULTS) | P.load_params_file(args.params_file)
+            given = {a for a in ("method", "mode", "window", "seed")
+                     if any(x == f"--{a}" or x.startswith(f"--{a}=") for x in args._argv)}
+            values.update({a: getattr(args, a) for a in given})
+            settings = P.settings_from_params(P.validate(values))
+        else:
+            settings = LabelerSettings(method=args.method, mode=args.mode, window=args.window, seed=args.seed)
+    except (ValueError, KeyError, OSError) as e:
+        raise CliError(str(e)) from None
+    bar = tqdm(desc="labeling", unit="frame", file=sys.stderr, disable=True if (args.quiet or args.json) else None,
+               leave=False)
+
+    def progress(i: int, n: int) -> None:
+        bar.total = n
+        bar.update(i - bar.n)
+
+    try:
+        s = label_bag(model, args.bag, args.out, settings, storage=args.storage, topic=args.topic, force=args.force,
+                      progress=progress)
+    except BagError as e:
+        raise CliError(str(e)) from None
+    finally:
+        bar.close()
+    s["model"] = str(args.model)
+    if args.json:
+        print(json.dumps(s, indent=1))
+        return 0
+    lat = s["latency_ms"]
+    print(f"model      {args.model} ({s['labels']} labels), {s['method']}, {s['mode']} mode")
+    print(f"bag        {args.bag}: {s['frames']} frames" + (f" -> {s['out']}" if s["out"] else ""))
+    if s["true_markers"]:
+        print(f"accuracy   {100 * s['accuracy']:.2f} % of {s['true_markers']} visible true markers "
+              f"({s['scored_frames']} frames with ground truth)")
+        if s["ghosts"]:
+            print(f"ghosts     {100 * s['ghost_rejection']:.2f} % of {s['ghosts']} left unlabeled")
+    else:
+        print("accuracy   n/a (no /markers/ground_truth in the bag)")
+    print(f"latency    p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms, max {lat['max']:.2f} ms per frame; "
+          f"{s['fps']:.0f} frames/s")
+    return 0
+
+
+def _info(args) -> int:
+    from ..ros.bag import BagError, bag_info
+    try:
+        s = bag_info(args.bag)
+    except BagError as e:
+        raise CliError(str(e)) from None
+    if args.json:
+        print(json.dumps(s, indent=1))
+        return 0
+    print(f"bag       {s['path']} ({s['storage']})")
+    print(f"messages  {s['messages']}, {s['duration_s']:.3f} s from {s['start_s']:.3f} s")
+    for t, d in s["topics"].items():
+        print(f"  {t:28s} {d['type']:42s} {d['count']}")
+    return 0
+
+
+def _main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    args._argv = argv
+    return {"make": _make, "play": _play, "label": _label, "info": _info}[args.command](args)
+
+
+def main(argv=None) -> int:
+    return run_main(_main, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,195 @@
+"""Replay a rosbag2 bag over DDS on its recorded timeline (the ``ros2 bag play`` substitute).
+
+The messages are read with ``rosbags`` and published as the recorded CDR bytes
+(``Publisher.publish(bytes)``; no deserialisation), one rclpy publisher per topic with the
+topic's message type, reliable QoS (matches reliable and best-effort subscribers). Timing:
+message ``k`` is sent at ``start + (t_k - t_0) / rate`` on ``time.perf_counter``; the lateness
+of every send is measured and reported (typically well under a millisecond here).
+
+Options beyond ``ros2 bag play``:
+
+* ``wait_for`` -- before starting, wait (up to ``wait_timeout`` s) until each of these topics has
+  at least one subscriber (default: ``/markers/unlabeled`` when played); ``start_delay`` adds
+  a pause after that (e.g. for a node that warms up after subscribing).
+* ``restamp`` -- rewrite the header stamp of every message that starts with a
+  ``std_msgs/Header`` to the wall-clock time it is *scheduled* for (the same new stamp for
+  messages recorded with the same time, so clouds and ground truth still pair up). With it,
+  ``reception time - header stamp`` downstream is the end-to-end latency; without it the
+  recorded stamps are sent as they are (like ``ros2 bag play``).
+* ``clock`` -- publish ``/clock`` (rosgraph_msgs/Clock) with the message time before each
+  message (for ``use_sim_time``): the recorded time, or the new stamp with ``restamp``.
+* ``loop`` -- play again and again until stopped; with ``restamp`` time keeps increasing,
+  without it the stamps jump back (as with ``ros2 bag play --loop``).
+
+Rule one (../shared/ros2.md) is the caller's: this module does not set
+``ROS_AUTOMATIC_DISCOVERY_RANGE``; ``dtm-bag play`` and the demo do.
+"""
+from __future__ import annotations
+
+import importlib
+import struct
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable, Sequence
+
+import numpy as np
+
+from .bag import TOPIC_UNLABELED, BagError, RawMessage, read_raw, topic_name, typestore
+
+
+@dataclass
+class PlayStats:
+    sent: dict = field(default_factory=dict)          # topic -> messages sent
+    loops: int = 0
+    lateness_ms: dict = field(default_factory=dict)   # p50, p99, max of (send - scheduled)
+    waited_s: float = 0.0                             # waiting for subscribers
+    matched: dict = field(default_factory=dict)       # topic -> subscribers when starting
+    duration_s: float = 0.0                           # first to last send
+    stopped: bool = False                             # stopped early (stop event / interrupt)
+
+    def as_dict(self) -> dict:
+        return dict(sent=self.sent, loops=self.loops, lateness_ms=self.lateness_ms, waited_s=self.waited_s,
+                    matched=self.matched, duration_s=self.duration_s, stopped=self.stopped)
+
+
+def message_class(msgtype: str):
+    """The rclpy message class of ``pkg/msg/Name``."""
+    pkg, kind, name = msgtype.split("/")
+    try:
+        return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
+    except (ImportError, AttributeError) as e:
+        raise BagError(f"message type {msgtype} is not available to rclpy here ({e})") from None
+
+
+def _has_header(msgtype: str) -> bool:
+    """True when the type's first field is a std_msgs/Header (its stamp is at CDR offset 4)."""
+    try:
+        fields = typestore().fielddefs[msgtype][1]
+        return bool(fields) and fields[0][0] == "header" and fields[0][1][1] == "std_msgs/msg/Header"
+    except (KeyError, IndexError, TypeError):
+        return False
+
+
+def restamp_cdr(data: bytes, stamp_ns: int) -> bytes:
+    """CDR bytes of a header-first message with the header stamp replaced."""
+    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+    endian = "<" if data[1] & 1 else ">"
+    return data[:4] + struct.pack(endian + "iI", sec, nsec) + data[12:]
+
+
+def play(bag: str | Path | None = None, rate: float = 1.0, loop: bool = False, topics: Iterable[str] | None = None,
+         start_delay: float = 0.0, clock: bool = False, restamp: bool = False,
+         wait_for: Sequence[str] | None = None, wait_timeout: float = 30.0, stop: threading.Event | None = None,
+         messages: Sequence[RawMessage] | None = None, node_name: str = "dtm_bag_player",
+         on_start: Callable[[float], None] | None = None, log: Callable[[str], None] | None = None) -> PlayStats:
+    """Publish a bag's messages (or ``messages``) on their timeline; returns :class:`PlayStats`.
+    Starts and shuts down its own rclpy context. See the module doc for the options."""
+    import rclpy
+    from rclpy.duration import Duration
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    if not rate > 0:
+        raise BagError("rate must be positive")
+    msgs = list(messages) if messages is not None else read_raw(bag, topics)
+    if not msgs:
+        raise BagError("nothing to play (no messages)")
+    log = log or (lambda s: None)
+    stop = stop or threading.Event()
+    types = {m.topic: m.msgtype for m in msgs}
+    header_topics = {t for t, ty in types.items() if _has_header(ty)}
+    if wait_for is None:
+        wait_for = [TOPIC_UNLABELED] if TOPIC_UNLABELED in types else []
+    wait_for = [topic_name(t) for t in wait_for]
+    unknown = set(wait_for) - set(types)
+    if unknown:
+        raise BagError(f"--wait-for topics not played: {', '.join(sorted(unknown))}")
+
+    from rclpy.signals import SignalHandlerOptions
+
+    ctx = rclpy.Context()
+    # no rclpy signal handlers: Ctrl-C / SIGTERM reach the caller as exceptions
+    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
+    stats = PlayStats(sent={t: 0 for t in types})
+    try:
+        node = rclpy.create_node(node_name, context=ctx)
+        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        pubs = {t: node.create_publisher(message_class(ty), t, qos) for t, ty in types.items()}
+        clock_pub = None
+        if clock:
+            from rosgraph_msgs.msg import Clock
+            clock_pub = node.create_publisher(Clock, "/clock", 10)
+            clock_msg = Clock()
+
+        # wait for subscribers
+        t_wait = time.monotonic()
+        if wait_for and wait_timeout > 0:
+            log(f"waiting for subscribers on {', '.join(wait_for)}")
+            while not stop.is_set():
+                if all(pubs[t].get_subscription_count() > 0 for t in wait_for):
+                    break
+                if time.monotonic() - t_wait > wait_timeout:
+                    log(f"no subscriber after {wait_timeout:.0f} s; playing anyway")
+                    break
+                time.sleep(0.01)
+        stats.waited_s = time.monotonic() - t_wait
+        stats.matched = {t: p.get_subscription_count() for t, p in pubs.items()}
+        if start_delay > 0:
+            stop.wait(start_delay)
+
+        t_rec = np.array([m.t_ns for m in msgs], dtype=np.int64)
+        t0 = int(t_rec[0])
+        span_ns = int(t_rec[-1] - t0)
+        steps = np.diff(np.unique(t_rec))
+        period_ns = int(np.median(steps)) if steps.size else 0
+        lateness = []
+        wall0 = time.time()
+        perf0 = time.perf_counter()
+        if on_start is not None:
+            on_start(wall0)
+        first_send = last_send = None
+        offset_ns = 0                     # recorded-time offset of this loop pass
+        while not stop.is_set():
+            for m in msgs:
+                rel_ns = m.t_ns - t0 + offset_ns
+                target = perf0 + rel_ns / rate * 1e-9
+                while True:
+                    d = target - time.perf_counter()
+                    if d <= 0 or stop.is_set():
+                        break
+                    time.sleep(min(d, 0.05))
+                if stop.is_set():
+                    break
+                data = m.data
+                stamp = int(round((wall0 + rel_ns / rate * 1e-9) * 1e9)) if restamp else m.t_ns + offset_ns
+                if restamp and m.topic in header_topics:
+                    data = restamp_cdr(data, stamp)
+                if clock_pub is not None:
+                    clock_msg.clock.sec, clock_msg.clock.nanosec = divmod(stamp, 1_000_000_000)
+                    clock_pub.publish(clock_msg)
+                pubs[m.topic].publish(data)
+                now = time.perf_counter()
+                lateness.append(now - target)
+                first_send = now if first_send is None else first_send
+                last_send = now
+                stats.sent[m.topic] += 1
+            else:
+                stats.loops += 1
+                if loop:
+                    offset_ns += span_ns + period_ns
+                    continue
+            break
+        stats.stopped = stop.is_set()
+        for p in pubs.values():
+            p.wait_for_all_acked(Duration(seconds=2.0))
+        if lateness:
+            v = np.asarray(lateness) * 1e3
+            stats.lateness_ms = dict(p50=float(np.percentile(v, 50)), p99=float(np.percentile(v, 99)),
+                                     max=float(v.max()))
+        stats.duration_s = (last_send - first_send) if first_send is not None else 0.0
+        node.destroy_node()
+    finally:
+        if ctx.ok():
+            rclpy.shutdown(context=ctx)
+    return stats
