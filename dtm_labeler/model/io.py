@@ -17,6 +17,7 @@ import io
 import json
 import os
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -70,7 +71,8 @@ def load_model(path: str | os.PathLike) -> TriangulatedModel:
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
+    except (zipfile.BadZipFile, zlib.error, NotImplementedError, ValueError, OSError, EOFError) as e:
+        # zlib.error: damaged deflate data; NotImplementedError: damaged compression-method field
         raise ModelFileError(f"{path}: not a dtm_labeler model file ({e})") from None
     return model_from_arrays(arrays, str(path))
 
