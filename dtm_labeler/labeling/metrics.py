@@ -240,11 +240,11 @@ class MetricsAccumulator:
             correct=correct, accuracy=ratio(correct, points),
             frame_accuracy=ratio(self.frames_all_correct, self.frames_with_points),
             search_accuracy=ratio(self.search_confusion_diag, self.search_points),
-            ghosts=ghosts, ghost_rejection=ratio(c[M, M], ghosts), swaps=self.swaps,
+            ghosts=ghosts, ghost_rejection=ratio(int(c[M, M]), ghosts), swaps=self.swaps,
             swaps_per_min=ratio(self.swaps * 60.0, self.duration_s),
             search_errors=self.search_errors, search_checked=self.search_checked,
             search_error_rate=ratio(self.search_errors, self.search_checked),
             latency_ms=percentile_summary(self.latencies), fps=fps,
             full_search_rate=ratio(self.full_searches, self.full_known),
-            per_label={name: ratio(diag[i], rows[i]) for i, name in enumerate(self.labels)},
+            per_label={name: ratio(int(diag[i]), int(rows[i])) for i, name in enumerate(self.labels)},
             confusion=c.copy())
