@@ -283,7 +283,12 @@ class LabelerNode(Node):
         staged, self._staged = self._staged, None
         if staged is None:
             return
-        values, settings, change = staged
+        try:
+            self._commit(params, *staged)
+        except Exception as e:  # pragma: no cover - validated already; never kill the service
+            self.get_logger().error(f"applying parameters failed: {type(e).__name__}: {e}")
+
+    def _commit(self, params: List[Parameter], values, settings, change) -> None:
         old = self._values
         self._values = values
         with self._cond:
@@ -297,7 +302,7 @@ class LabelerNode(Node):
                     self._stats.reloads_ok += 1
                 self.get_logger().info(f"model reloaded: {change.path}" if change.model is not None
                                        else "model unloaded (model_path is empty)")
-            if settings != self._settings or change is not None:
+            if change is not None or not P.settings_equal(settings, self._settings):
                 self._pending.append(settings)
                 self._settings = settings
             self._cond.notify()
@@ -398,7 +403,7 @@ class LabelerNode(Node):
                 self._stats.resets["model_reload"] += 1
                 self._stats.last_reset = "model reload"
         else:
-            if self._labeler is not None and item != self._labeler.settings:
+            if self._labeler is not None and not P.settings_equal(item, self._labeler.settings):
                 self._labeler.update_settings(item)
                 self._label_track = {}
 
@@ -474,8 +479,15 @@ class LabelerNode(Node):
                 m.occluded = True
                 m.predicted = True
                 markers.append(m)
+        # remember which track carried each label last (for predictions while it is missing);
+        # a track carries at most one label
+        now_tracks = {}
         for i in np.flatnonzero(labels >= 0).tolist():
-            self._label_track[int(labels[i])] = int(tracks[i])
+            if tracks[i] >= 0:
+                now_tracks[int(tracks[i])] = int(labels[i])
+        self._label_track = {l: t for l, t in self._label_track.items()
+                             if l not in present and t not in now_tracks}
+        self._label_track.update({l: t for t, l in now_tracks.items()})
         out.markers = markers
         out.n_unlabeled = int(n - np.count_nonzero(labels >= 0))
         out.latency_ms = float((time.perf_counter() - f.t_recv) * 1e3)

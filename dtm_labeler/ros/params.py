@@ -12,18 +12,17 @@ resulting configuration, so a set with one bad value applies nothing.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, Dict, Iterable, Mapping, Optional, Sequence, Tuple
 
 from ..labeling.frame_problem import Background
 from ..labeling.stream import METHODS, MODES, LabelerSettings
 from ..labeling.tracker import TrackerSettings
-from ..search.label_search import GASettings
 
 __all__ = ["ParamSpec", "PARAMS", "SPECS", "DEFAULTS", "NODE_NAME", "QOS_CHOICES", "LABELER_KEYS",
            "INPUT_QOS_KEYS", "validate", "settings_from_params", "check_labels", "descriptor",
-           "qos_profile", "load_params_file", "format_value"]
+           "qos_profile", "load_params_file", "format_value", "settings_equal"]
 
 NODE_NAME = "dtm_labeler"
 QOS_CHOICES = ("sensor_data", "reliable")
@@ -206,16 +205,13 @@ def settings_from_params(values: Mapping[str, Any]) -> LabelerSettings:
     v = validate(values)
     budget = v["time_budget_ms"] / 1e3 if v["time_budget_ms"] > 0 else None
     d = LabelerSettings()
-    full = GASettings(population=v["population"], max_generations=v["max_generations"],
-                      stagnation=v["stagnation"], p_crossover=d.full.p_crossover,
-                      p_mutation=d.full.p_mutation, n_elite=min(d.full.n_elite, v["population"] - 1),
-                      selection_q=d.full.selection_q, time_budget_s=budget, polish=d.full.polish,
-                      polish_rounds=d.full.polish_rounds)
-    warm = GASettings(population=v["warm_population"], max_generations=v["warm_generations"],
-                      stagnation=v["warm_stagnation"], p_crossover=d.warm.p_crossover,
-                      p_mutation=d.warm.p_mutation, n_elite=min(d.warm.n_elite, v["warm_population"] - 1),
-                      selection_q=d.warm.selection_q, time_budget_s=budget, polish=d.warm.polish,
-                      polish_rounds=d.warm.polish_rounds)
+    # replace() keeps every other GA setting at the library default (whatever fields exist)
+    full = replace(d.full, population=v["population"], max_generations=v["max_generations"],
+                   stagnation=v["stagnation"], n_elite=min(d.full.n_elite, v["population"] - 1),
+                   time_budget_s=budget)
+    warm = replace(d.warm, population=v["warm_population"], max_generations=v["warm_generations"],
+                   stagnation=v["warm_stagnation"], n_elite=min(d.warm.n_elite, v["warm_population"] - 1),
+                   time_budget_s=budget)
     return LabelerSettings(
         method=v["method"], mode=v["mode"], window=v["window"], full=full, warm=warm,
         background=Background(volume_m3=v["clutter_volume_m3"], max_speed_mps=v["clutter_max_speed_mps"],
@@ -224,6 +220,17 @@ def settings_from_params(values: Mapping[str, Any]) -> LabelerSettings:
                                 max_misses=v["max_misses"]),
         max_points=v["max_points"], refit_drop=v["refit_drop"], accept_drop=v["accept_drop"],
         max_gap_s=v["max_gap_s"], seed=v["seed"])
+
+
+def settings_equal(a: Any, b: Any) -> bool:
+    """Equality of (nested) settings dataclasses that may hold numpy arrays."""
+    if is_dataclass(a) and is_dataclass(b):
+        return type(a) is type(b) and all(settings_equal(getattr(a, f.name), getattr(b, f.name))
+                                          for f in fields(a))
+    if hasattr(a, "shape") or hasattr(b, "shape"):
+        import numpy as np
+        return bool(np.array_equal(np.asarray(a), np.asarray(b)))
+    return a == b
 
 
 def check_labels(model_labels: Sequence[str], expected: Iterable[str], where: str = "model") -> None:

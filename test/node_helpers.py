@@ -1,0 +1,429 @@
+"""Shared utilities for tests that run the dtm_labeler node as a real process over real DDS.
+
+Import from test modules (``from node_helpers import ...``); nothing here is a pytest fixture
+by itself, so modules can wrap these in fixtures of any scope.
+
+* :func:`walk_model` -- a model trained once per test session (cached; the 07_01 walk BVH
+  from ../shared/data when present, else the synthetic walker), plus the walk frames to feed,
+  a corrupt model file and one with mismatched labels.
+* :func:`node_env` -- the child environment: the test's own environment (venv python, same
+  LD_LIBRARY_PATH -- never a modified one, see ../shared/ros2.md) with
+  ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, the session's ROS_DOMAIN_ID and the fast-announce
+  Fast DDS profile.
+* :class:`NodeProcess` -- ``python -m dtm_labeler.ros.node`` in a namespace, log to a file,
+  ``stop(signal)`` returns the exit code.
+* :class:`NodeClient` -- an rclpy node in the test process (own context, executor thread):
+  publishes clouds, collects every output topic, waits on predicates (never fixed sleeps),
+  sets/gets parameters through the standard services.
+"""
+from __future__ import annotations
+
+import atexit
+import functools
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional, Sequence
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+FASTDDS_PROFILE = HERE / "fastdds_fast_announce.xml"
+DATA_DIR = Path(os.environ.get("DTM_DATA_DIR", REPO.parent / "shared" / "data"))
+WALK_BVH = DATA_DIR / "cmu_skeletal" / "bvh_from_fbx" / "cmu_07_01_walk_s07.bvh"
+PARAMS_FILE = REPO / "params" / "labeler.yaml"
+
+
+# ----------------------------------------------------------------------------- model + data
+@dataclass
+class WalkModel:
+    path: Path                  # good model file
+    alt_path: Path              # the same model under another path (reload to a new path)
+    corrupt_path: Path          # not a model file
+    mismatched_path: Path       # a valid model whose labels differ (upper-cased names)
+    labels: tuple
+    positions: np.ndarray       # (F, M, 3) frames to feed, columns in model label order
+    rate: float
+    source: str                 # "bvh" | "synthetic"
+
+
+_TMP: List[str] = []
+
+
+def _tmpdir() -> Path:
+    if not _TMP:
+        d = tempfile.mkdtemp(prefix="dtm_node_test_")
+        _TMP.append(d)
+        atexit.register(shutil.rmtree, d, True)
+    return Path(_TMP[0])
+
+
+@functools.lru_cache(maxsize=1)
+def walk_model() -> WalkModel:
+    """Train (once per session) a BODY14 walk model; see module doc."""
+    from dtm_labeler.model.dtm import TriangulatedModel
+    from dtm_labeler.model.io import save_model
+    from dtm_labeler.model.training import TrainConfig, train_model
+    from dtm_labeler.motion import load_clip, synthesize, to_point_set
+
+    if WALK_BVH.is_file():
+        clip = to_point_set(load_clip(WALK_BVH), "body14")
+        source = "bvh"
+    else:
+        clip = synthesize(duration=3.0, rate=120.0, seed=1)
+        source = "synthetic"
+    model, _ = train_model([clip], TrainConfig())
+    d = _tmpdir()
+    path = save_model(model, d / "walk.npz")
+    alt = shutil.copy(path, d / "walk_copy.npz")
+    corrupt = d / "corrupt.npz"
+    corrupt.write_bytes(b"PK\x03\x04 this is not a model file" * 10)
+    other = TriangulatedModel(labels=tuple(x.upper() for x in model.labels), structure=model.structure,
+                              mixtures=model.mixtures, heading_pairs=model.heading_pairs,
+                              settings=model.settings, provenance=model.provenance)
+    mismatched = save_model(other, d / "mismatched.npz")
+    idx = [list(clip.names).index(x) for x in model.labels]
+    pos = np.asarray(clip.positions)[:, idx, :]
+    pos = pos[np.isfinite(pos).all(axis=(1, 2))]
+    return WalkModel(Path(path), Path(alt), corrupt, Path(mismatched), tuple(model.labels), pos,
+                     float(clip.rate), source)
+
+
+class FrameFeed:
+    """Frames of the walk, shuffled per frame, with increasing stamps (loops over the clip)."""
+
+    def __init__(self, wm: WalkModel, seed: int = 0, start_stamp: float = 100.0):
+        self.wm = wm
+        self.rng = np.random.default_rng(seed)
+        self.i = 0
+        self.stamp = start_stamp
+
+    def next(self, dt: Optional[float] = None):
+        """``(xyz (M, 3), truth (M,) label index per row, stamp)``; advances time by one frame
+        (or ``dt`` seconds)."""
+        F = self.wm.positions.shape[0]
+        x = self.wm.positions[self.i % F]
+        perm = self.rng.permutation(x.shape[0])
+        self.i += 1
+        self.stamp += (1.0 / self.wm.rate) if dt is None else dt
+        return x[perm].copy(), perm, self.stamp
+
+
+# ----------------------------------------------------------------------------- processes
+def node_env(extra: Optional[Dict[str, str]] = None) -> Dict[str, str]:
+    env = dict(os.environ)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env.setdefault("ROS_DOMAIN_ID", str(40 + os.getpid() % 50))
+    if FASTDDS_PROFILE.is_file():
+        env["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(FASTDDS_PROFILE)
+    env["RCUTILS_LOGGING_BUFFERED_STREAM"] = "0"
+    env["PYTHONUNBUFFERED"] = "1"
+    env.update(extra or {})
+    return env
+
+
+class NodeProcess:
+    """The labeler node as a child process in namespace ``ns``."""
+
+    def __init__(self, ns: str, params: Optional[Dict[str, Any]] = None, params_file: Optional[Path] = None,
+                 extra_args: Sequence[str] = ()):
+        self.ns = ns.strip("/")
+        self.log_path = _tmpdir() / f"node_{self.ns}_{time.monotonic_ns()}.log"
+        args = [sys.executable, "-m", "dtm_labeler.ros.node", "--ros-args", "-r", f"__ns:=/{self.ns}"]
+        if params_file is not None:
+            args += ["--params-file", str(params_file)]
+        for k, v in (params or {}).items():
+            if isinstance(v, bool):
+                v = "true" if v else "false"
+            elif isinstance(v, (list, tuple)):
+                v = "[" + ",".join(f"'{x}'" for x in v) + "]"
+            args += ["-p", f"{k}:={v}"]
+        args += list(extra_args)
+        self.args = args
+        self._log = open(self.log_path, "wb")
+        self.proc = subprocess.Popen(args, env=node_env(), stdout=self._log, stderr=subprocess.STDOUT,
+                                     cwd=str(REPO))
+
+    @property
+    def fqn(self) -> str:
+        return f"/{self.ns}/dtm_labeler"
+
+    def topic(self, name: str) -> str:
+        return f"/{self.ns}/{name}"
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def log(self) -> str:
+        if not self._log.closed:
+            self._log.flush()
+        return self.log_path.read_text(errors="replace")
+
+    def wait_log(self, text: str, timeout: float = 5.0) -> bool:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if text in self.log():
+                return True
+            time.sleep(0.02)
+        return text in self.log()
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5)
+        self._log.close()
+        return self.proc.returncode
+
+
+# ----------------------------------------------------------------------------- in-process client
+class NodeClient:
+    """Talks to one node process: publisher, subscribers, parameter client, all on a private
+    rclpy context spun by a background executor thread."""
+
+    def __init__(self, node: NodeProcess, input_reliable: bool = True):
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.parameter_client import AsyncParameterClient
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import PointCloud2
+        from visualization_msgs.msg import MarkerArray
+
+        from dtm_labeler_msgs.msg import LabeledMarkerArray
+
+        self.target = node
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx)
+        self.node = rclpy.create_node(f"test_client_{node.ns}", context=self.ctx)
+        self.cond = threading.Condition()
+        self.labeled: List[Any] = []
+        self.clouds: List[Any] = []
+        self.viz: List[Any] = []
+        self.diags: List[Dict[str, str]] = []
+        q = QoSProfile(depth=50)
+        self.pub = self.node.create_publisher(
+            PointCloud2, node.topic("markers/unlabeled"),
+            QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE if input_reliable
+                       else ReliabilityPolicy.BEST_EFFORT))
+        self.sub_l = self.node.create_subscription(LabeledMarkerArray, node.topic("markers/labeled"),
+                                                   self._store(self.labeled), q)
+        self.sub_c = self.node.create_subscription(PointCloud2, node.topic("markers/labeled_cloud"),
+                                                   self._store(self.clouds), q)
+        self.sub_v = self.node.create_subscription(MarkerArray, node.topic("markers/visualization"),
+                                                   self._store(self.viz), q)
+        self.sub_d = self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, q)
+        self.params = AsyncParameterClient(self.node, node.fqn)
+        self.ex = SingleThreadedExecutor(context=self.ctx)
+        self.ex.add_node(self.node)
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self):
+        from rclpy.executors import ExternalShutdownException
+        try:
+            self.ex.spin()
+        except (ExternalShutdownException, Exception):
+            pass
+
+    def _store(self, lst):
+        def cb(msg):
+            with self.cond:
+                lst.append(msg)
+                self.cond.notify_all()
+        return cb
+
+    def _on_diag(self, msg):
+        vals: Dict[str, str] = {}
+        for st in msg.status:
+            if st.hardware_id != self.target.fqn:
+                continue
+            kind = st.name.rsplit(": ", 1)[-1]
+            vals[f"{kind}.level"] = str(int.from_bytes(st.level, "little") if isinstance(st.level, bytes)
+                                        else int(st.level))
+            vals[f"{kind}.message"] = st.message
+            for kv in st.values:
+                vals[kv.key] = kv.value
+        if vals:
+            with self.cond:
+                self.diags.append(vals)
+                self.cond.notify_all()
+
+    # -- waiting ---------------------------------------------------------------------------
+    def wait_for(self, pred: Callable[[], Any], timeout: float = 10.0, what: str = "condition"):
+        end = time.monotonic() + timeout
+        with self.cond:
+            while True:
+                r = pred()
+                if r:
+                    return r
+                left = end - time.monotonic()
+                if left <= 0:
+                    if not self.target.alive():
+                        raise AssertionError(f"node died while waiting for {what}:\n{self.target.log()[-3000:]}")
+                    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+                self.cond.wait(min(left, 0.05))
+
+    def wait_connected(self, timeout: float = 20.0) -> None:
+        """Node process up: our publisher matched, its publishers matched, services ready."""
+        end = time.monotonic() + timeout
+
+        def ok():
+            return (self.pub.get_subscription_count() > 0 and self.sub_l.get_publisher_count() > 0
+                    and self.sub_c.get_publisher_count() > 0 and self.sub_v.get_publisher_count() > 0)
+        while not ok():
+            if not self.target.alive():
+                raise AssertionError(f"node exited (rc {self.target.proc.returncode}):\n{self.target.log()[-3000:]}")
+            if time.monotonic() > end:
+                raise AssertionError(f"node not matched within {timeout} s:\n{self.target.log()[-3000:]}")
+            time.sleep(0.02)
+        if not self.params.wait_for_services(timeout_sec=max(end - time.monotonic(), 1.0)):
+            raise AssertionError("parameter services not available")
+        self.probe(max(end - time.monotonic(), 2.0))
+
+    def probe(self, timeout: float = 5.0) -> None:
+        """Matched is not yet delivered (a best-effort reader drops samples of a writer it has
+        not matched yet): publish empty clouds until the node answers (an empty labelled array,
+        or a diagnostics message counting the cloud when it has no model). Empty clouds do
+        not touch the labeler's state."""
+        end = time.monotonic() + timeout
+        stamp = 1.0
+        with self.cond:
+            n0 = len(self.diags)
+        while True:
+            self.publish(np.zeros((0, 3)), stamp)
+            try:
+                self.wait_for(lambda: self.labeled_at(stamp) is not None or any(
+                    int(d.get("frames_received", "0")) > 0 for d in self.diags[n0:]), 0.1, "probe")
+                return
+            except AssertionError:
+                if time.monotonic() > end:
+                    raise AssertionError(f"node does not answer:\n{self.target.log()[-3000:]}")
+
+    def wait_diag(self, pred: Callable[[Dict[str, str]], Any], timeout: float = 10.0,
+                  what: str = "diagnostics") -> Dict[str, str]:
+        """The first diagnostics message received from now on that satisfies ``pred``."""
+        with self.cond:
+            start = len(self.diags)
+        found: List[Dict[str, str]] = []
+
+        def check():
+            for d in self.diags[start:]:
+                if pred(d):
+                    found.append(d)
+                    return True
+            return False
+        self.wait_for(check, timeout, what)
+        return found[0]
+
+    # -- input -----------------------------------------------------------------------------
+    def publish(self, xyz, stamp: float, frame_id: str = "mocap", ids=None, msg=None):
+        from builtin_interfaces.msg import Time
+        from std_msgs.msg import Header
+
+        from dtm_labeler.ros.pointcloud import make_xyz_cloud
+        sec = int(np.floor(stamp))
+        header = Header(stamp=Time(sec=sec, nanosec=int(round((stamp - sec) * 1e9)) % 1_000_000_000),
+                        frame_id=frame_id)
+        if msg is None:
+            msg = make_xyz_cloud(xyz, header=header, ids=ids)
+        else:
+            msg.header = header
+        self.pub.publish(msg)
+        return header
+
+    @staticmethod
+    def stamp_of(msg) -> float:
+        return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+
+    def labeled_at(self, stamp: float):
+        for m in reversed(self.labeled):
+            if abs(self.stamp_of(m) - stamp) < 1e-6:
+                return m
+        return None
+
+    def send(self, xyz, stamp: float, timeout: float = 5.0, **kw):
+        """Publish one cloud and wait for its LabeledMarkerArray (matched by stamp)."""
+        self.publish(xyz, stamp, **kw)
+        return self.wait_for(lambda: self.labeled_at(stamp), timeout, f"labelled frame at {stamp:.3f}")
+
+    def run_frames(self, feed: FrameFeed, n: int, timeout: float = 5.0) -> float:
+        """Send ``n`` frames in lock step; returns the labelling accuracy over them."""
+        hits = total = 0
+        for _ in range(n):
+            xyz, truth, stamp = feed.next()
+            out = self.send(xyz, stamp, timeout)
+            lab = np.array([m.label_index for m in out.markers if not m.occluded])
+            hits += int(np.sum(lab == truth))
+            total += truth.size
+        return hits / max(total, 1)
+
+    # -- parameters --------------------------------------------------------------------------
+    def _wait_future(self, fut, timeout: float = 10.0):
+        end = time.monotonic() + timeout
+        while not fut.done():
+            if time.monotonic() > end:
+                raise AssertionError("parameter service call timed out")
+            time.sleep(0.002)
+        return fut.result()
+
+    def set(self, **values) -> List[Any]:
+        """Set parameters one by one (SetParameters); returns the SetParametersResult list."""
+        return list(self._wait_future(self.params.set_parameters(_to_params(values))).results)
+
+    def set_atomically(self, **values) -> Any:
+        return self._wait_future(self.params.set_parameters_atomically(_to_params(values))).result
+
+    def get(self, *names: str) -> Dict[str, Any]:
+        from rclpy.parameter import parameter_value_to_python
+        res = self._wait_future(self.params.get_parameters(list(names)))
+        return {n: parameter_value_to_python(v) for n, v in zip(names, res.values)}
+
+    def describe(self, *names: str) -> List[Any]:
+        return list(self._wait_future(self.params.describe_parameters(list(names))).descriptors)
+
+    def list_names(self) -> List[str]:
+        return list(self._wait_future(self.params.list_parameters()).result.names)
+
+    def close(self) -> None:
+        try:
+            self.ex.shutdown(timeout_sec=1.0)
+        except Exception:
+            pass
+        self.node.destroy_node()
+        self.ctx.try_shutdown()
+        self.thread.join(2.0)
+
+
+def _to_params(values: Dict[str, Any]):
+    from rclpy.parameter import Parameter
+    out = []
+    for k, v in values.items():
+        if isinstance(v, (list, tuple)) and all(isinstance(x, str) for x in v):
+            out.append(Parameter(k, Parameter.Type.STRING_ARRAY, list(v)))
+        else:
+            out.append(Parameter(k, value=v))
+    return out
+
+
+def start(ns: str, **kw) -> tuple:
+    """Start a node process and a connected client: ``(NodeProcess, NodeClient)``."""
+    proc = NodeProcess(ns, **kw)
+    try:
+        client = NodeClient(proc)
+        client.wait_connected()
+    except BaseException:
+        proc.stop(signal.SIGKILL)
+        raise
+    return proc, client
