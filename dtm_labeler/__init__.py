@@ -6,4 +6,11 @@ constraint-based genetic algorithm). The algorithmic core has no ROS imports; th
 ROS 2 node and bag tools live in :mod:`dtm_labeler.ros`.
 """
 
+import os as _os
+
+# The numerical work here is many small matrices per frame; multi-threaded BLAS only adds
+# wake-up latency and fights the node's own threads on small machines. Respect a user setting.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    _os.environ.setdefault(_var, "1")
+
 __version__ = "0.1.0"

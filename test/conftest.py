@@ -7,6 +7,8 @@ import os
 from pathlib import Path
 
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):   # small matrices: threads only add latency
+    os.environ.setdefault(_var, "1")
 os.environ.setdefault("ROS_DOMAIN_ID", str(40 + os.getpid() % 50))
 
 import pytest  # noqa: E402

@@ -87,6 +87,8 @@ class FrameProblem:
         self.heading_hint = 0.0 if heading_hint is None or not np.isfinite(heading_hint) else float(heading_hint)
         self.states = np.vstack([states, np.full((1, STATE_DIM), np.nan)])       # row n = missing
         self.codes = observation_state(self.states)
+        self._clean = np.nan_to_num(self.states, nan=0.0)
+        self._rotated: dict[int, np.ndarray] = {}
         self.bins = model.heading_bins
         self.T = model.structure.n_triangles
         self.tri = model.triangles
@@ -131,12 +133,17 @@ class FrameProblem:
         return vals
 
     def canonical_states(self, bins: np.ndarray) -> np.ndarray:
-        """(B, n+1, 6) frame states rotated by ``-bin * step`` about z, one copy per bin."""
-        R = rotation_z(-np.asarray(bins) * (2.0 * np.pi / self.bins))                # (B, 3, 3)
-        out = np.empty((len(bins),) + self.states.shape)
-        out[..., :3] = np.einsum("bij,nj->bni", R, self.states[:, :3])
-        out[..., 3:] = np.einsum("bij,nj->bni", R, self.states[:, 3:])
-        return out
+        """(B, n+1, 6) frame states rotated by ``-bin * step`` about z, one copy per bin
+        (unobserved entries zero; the observation codes say what is missing)."""
+        bins = np.asarray(bins)
+        new = [int(b) for b in bins if int(b) not in self._rotated]
+        if new:
+            R = rotation_z(-np.asarray(new) * (2.0 * np.pi / self.bins))             # (B, 3, 3)
+            rot = np.empty((len(new),) + self.states.shape)
+            rot[..., :3] = np.einsum("bij,nj->bni", R, self._clean[:, :3])
+            rot[..., 3:] = np.einsum("bij,nj->bni", R, self._clean[:, 3:])
+            self._rotated.update(zip(new, rot))
+        return np.stack([self._rotated[int(b)] for b in bins])
 
     def _compute(self, keys: np.ndarray) -> np.ndarray:
         n1 = self.n + 1
@@ -153,7 +160,7 @@ class FrameProblem:
         out = np.empty(keys.size)
         for tt in np.unique(t):
             sel = np.flatnonzero(t == tt)
-            val, roots = self.model.triangle_terms(int(tt), s[sel], codes[sel])
+            val, roots = self.model.triangle_terms(int(tt), s[sel], codes[sel], finite=True)
             out[sel] = val + roots * self.background.log_position
         self.evaluations += keys.size
         return out

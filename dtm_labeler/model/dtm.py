@@ -67,11 +67,49 @@ class LinearMixtureDensity:
         return m + np.log(np.exp(a - m[:, None]).sum(axis=1))
 
 
-@dataclass
-class _PatternTerm:
-    joint: LinearMixtureDensity
-    parents: LinearMixtureDensity | None
-    root: bool
+class PatternTerm:
+    """``log p(obs(A,B,C)) - log p(obs(B,C))`` for one observation pattern, fused: the joint's
+    and the parents' whitening matrices are stacked so one matmul serves both, and the
+    per-component squared norms come from a second matmul with a 0/1 summing matrix."""
+
+    def __init__(self, joint: LinearMixtureDensity, parents: LinearMixtureDensity | None, root: bool):
+        self.joint, self.parents, self.root = joint, parents, root
+        parts = [d for d in (joint, parents) if d is not None and d.dim > 0]
+        self.empty = not parts
+        if self.empty:
+            return
+        self.W = np.vstack([d.W for d in parts]).T.copy()                       # (18, R)
+        self.c = np.concatenate([d.c for d in parts])
+        blocks, self.signs, self.consts, self.splits = [], [], [], []
+        for d, sign in ((joint, 1.0), (parents, -1.0)):
+            if d is None or d.dim == 0:
+                continue
+            blocks.append(np.kron(np.eye(d.K), np.ones((d.dim, 1))))             # (K*m, K)
+            self.signs.append(sign)
+            self.consts.append(d.logconst)
+        R = self.W.shape[1]
+        self.S = np.zeros((R, sum(b.shape[1] for b in blocks)))
+        r = k = 0
+        for b in blocks:
+            self.S[r:r + b.shape[0], k:k + b.shape[1]] = b
+            self.splits.append((k, k + b.shape[1]))
+            r, k = r + b.shape[0], k + b.shape[1]
+
+    def __call__(self, s: np.ndarray) -> np.ndarray:
+        if self.empty:
+            return np.zeros(s.shape[0])
+        z = s @ self.W
+        z -= self.c
+        q = (z * z) @ self.S                                                     # (n, K_total)
+        out = np.zeros(s.shape[0])
+        for (a, b), sign, const in zip(self.splits, self.signs, self.consts):
+            x = const - 0.5 * q[:, a:b]
+            if b - a == 1:
+                out += sign * x[:, 0]
+            else:
+                m = x.max(axis=1)
+                out += sign * (m + np.log(np.exp(x - m[:, None]).sum(axis=1)))
+        return out
 
 
 class TriangleTerms:
@@ -80,40 +118,44 @@ class TriangleTerms:
     def __init__(self, mixture: GaussianMixture, first: bool):
         self.mixture = mixture
         self.first = first
-        self._cache: dict[int, _PatternTerm | None] = {}
+        self._cache: dict[int, PatternTerm | None] = {}
 
-    def pattern(self, pid: int) -> _PatternTerm | None:
+    def pattern(self, pid: int) -> PatternTerm | None:
         if pid not in self._cache:
             self._cache[pid] = self._build(pid)
         return self._cache[pid]
 
-    def _build(self, pid: int) -> _PatternTerm | None:
+    def _build(self, pid: int) -> PatternTerm | None:
         codes = pattern_codes(pid)
         if self.first:
             if all(c == MISSING for c in codes):
                 return None
-            return _PatternTerm(LinearMixtureDensity(self.mixture, observed_map(codes)), None, True)
+            return PatternTerm(LinearMixtureDensity(self.mixture, observed_map(codes)), None, True)
         if codes[0] == MISSING:
             return None                                   # A integrated out: contributes nothing
         parent_codes = (MISSING, codes[1], codes[2])
         root = codes[1] == MISSING and codes[2] == MISSING
         parents = None if root else LinearMixtureDensity(self.mixture, observed_map(parent_codes))
-        return _PatternTerm(LinearMixtureDensity(self.mixture, observed_map(codes)), parents, root)
+        return PatternTerm(LinearMixtureDensity(self.mixture, observed_map(codes)), parents, root)
 
-    def evaluate(self, s: np.ndarray, pids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Terms and root flags for (n, 18) triple states with (n,) pattern ids."""
+    def evaluate(self, s: np.ndarray, pids: np.ndarray, finite: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Terms and root flags for (n, 18) triple states with (n,) pattern ids.
+
+        Unobserved entries are ignored (zero weight in every map); pass ``finite=True`` when
+        the caller already replaced their NaNs by zeros (the labeling hot path does)."""
         out = np.zeros(s.shape[0])
         roots = np.zeros(s.shape[0], dtype=bool)
-        s = np.nan_to_num(s, nan=0.0)
-        for pid in np.unique(pids):
+        if not finite:
+            s = np.nan_to_num(s, nan=0.0)
+        upids = np.unique(pids)
+        for pid in upids:
             term = self.pattern(int(pid))
             if term is None:
                 continue
+            if upids.size == 1:
+                return term(s), np.full(s.shape[0], term.root)
             sel = np.flatnonzero(pids == pid)
-            val = term.joint(s[sel])
-            if term.parents is not None:
-                val = val - term.parents(s[sel])
-            out[sel] = val
+            out[sel] = term(s[sel])
             roots[sel] = term.root
         return out, roots
 
@@ -154,9 +196,10 @@ class TriangulatedModel:
     def heading_bins(self) -> int:
         return int(self.settings.get("heading_bins", 720))
 
-    def triangle_terms(self, t: int, s: np.ndarray, codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def triangle_terms(self, t: int, s: np.ndarray, codes: np.ndarray,
+                       finite: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Term of triangle ``t`` for (n, 18) triple states and (n, 3) observation codes."""
-        return self.terms[t].evaluate(s, pattern_id(codes))
+        return self.terms[t].evaluate(s, pattern_id(codes), finite)
 
     def frame_log_likelihood(self, states: np.ndarray, background_position: float = 0.0) -> np.ndarray:
         """log P(X|G) of labelled, canonicalised frames: (F, n_labels, 6) -> (F,).

@@ -48,6 +48,7 @@ class TrainConfig:
     structure_generations: int = 200
     heading_bins: int = 720
     yaw_jitter_deg: float = 4.0
+    mdl_removal: str = "least_loss"     # F&J remove the least probable; least_loss keeps small real clusters
     position_floor_m: float = 0.02
     velocity_floor_mps: float = 0.2
     augment_copies: int = 1
@@ -183,7 +184,7 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         if X.shape[0] > config.max_frames_per_triangle:
             X = X[np.sort(rng.choice(X.shape[0], config.max_frames_per_triangle, replace=False))]
         est = make_estimator(config.mixture, k_fixed=config.k_fixed, k_min=config.k_min,
-                             k_max=config.k_max, reg_covar=config.reg_covar,
+                             k_max=config.k_max, reg_covar=config.reg_covar, removal=config.mdl_removal,
                              random_state=config.seed + t)
         fit = est.fit(X)
         mixtures.append(floor_covariances(fit.mixture, config.position_floor_m, config.velocity_floor_mps))

@@ -77,11 +77,15 @@ def crossover(pa: np.ndarray, pb: np.ndarray, order: np.ndarray, n: int, rng: np
 
 
 def mutate(pop: np.ndarray, n: int, rng: np.random.Generator, p_mutation: float,
-           p_missing: float = 0.05) -> np.ndarray:
+           p_missing: float = 0.05, pairs: np.ndarray | None = None, p_mirror: float = 0.05) -> np.ndarray:
     """Constraint-based mutation (eq. 27-29): each selected individual gets one move that
     keeps it valid -- give a label a random point (swapping with the label holding it, if
-    any), or swap two labels, or mark a label missing."""
+    any), or swap two labels, or mark a label missing; with ``pairs``, a few individuals are
+    mirrored as a whole (:func:`mirror`)."""
     pop = pop.copy()
+    if pairs is not None and len(pairs):
+        flip = rng.random(pop.shape[0]) < p_mirror
+        pop[flip] = mirror(pop[flip], pairs)
     P, M = pop.shape
     hit = np.flatnonzero(rng.random(P) < p_mutation)
     if hit.size == 0:
@@ -109,7 +113,20 @@ def mutate(pop: np.ndarray, n: int, rng: np.random.Generator, p_mutation: float,
     return pop
 
 
-def neighbourhood(ind: np.ndarray, n: int, with_missing: bool = True) -> np.ndarray:
+def mirror(pop: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """Swap the points of every left/right label pair at once (always valid).
+
+    The body seen from behind with left and right exchanged is a strong local optimum
+    (heading flipped by 180 deg, every limb mirrored); no single swap leaves it, this does.
+    """
+    out = np.array(pop, copy=True)
+    if len(pairs):
+        out[..., pairs[:, 0]], out[..., pairs[:, 1]] = pop[..., pairs[:, 1]], pop[..., pairs[:, 0]]
+    return out
+
+
+def neighbourhood(ind: np.ndarray, n: int, with_missing: bool = True,
+                  pairs: np.ndarray | None = None) -> np.ndarray:
     """Every individual one move away from ``ind``: all label swaps, every label given every
     point (swapping with its holder) and, optionally, every label made missing."""
     M = ind.shape[0]
@@ -128,6 +145,8 @@ def neighbourhood(ind: np.ndarray, n: int, with_missing: bool = True) -> np.ndar
     moves[r[h >= 0], h[h >= 0]] = ind[lab[h >= 0]]
     moves[r, lab] = pt
     out = [swaps, moves]
+    if pairs is not None and len(pairs):
+        out.append(mirror(ind[None], pairs))
     if with_missing:
         present = np.flatnonzero(ind < n)
         miss = np.repeat(ind[None], present.size, 0)

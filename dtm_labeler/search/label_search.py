@@ -49,7 +49,9 @@ class GASettings:
     selection_q: float = 0.12
     time_budget_s: float | None = None
     polish: bool = True
-    polish_rounds: int = 4
+    polish_rounds: int = 12
+    temperatures: np.ndarray = field(default_factory=lambda: np.array([1.0, 3.0, 10.0]))
+    p_recreate: float = 0.25
 
     def __post_init__(self) -> None:
         if self.population < 4:
@@ -73,55 +75,93 @@ class LabelSearch(ABC):
         """``seeds`` (S, M): assignments to start from (warm start); may be ignored."""
 
 
+def _pair_triangles(problem: FrameProblem) -> list[tuple[int, int, int]]:
+    """(left, right, triangle) for every heading pair that shares a triangle."""
+    out = []
+    for a, b in problem.pairs:
+        for t, tri in enumerate(problem.tri):
+            if a in tri and b in tri:
+                out.append((int(a), int(b), t))
+                break
+    return out
+
+
 def guided_sample(problem: FrameProblem, P: int, rng: np.random.Generator,
-                  temperature: float = 1.0) -> np.ndarray:
+                  temperature: float | np.ndarray = 1.0, base: np.ndarray | None = None,
+                  free: np.ndarray | None = None) -> np.ndarray:
     """Constraint-respecting, model-guided initialisation (eq. 15-17 with the model as guide).
 
-    Labels are placed in the structure's insertion order; each label's point is drawn from
-    the unused points (or "missing") with probability proportional to
-    ``exp(term / temperature)`` -- the triangle's conditional given the parents already
-    placed, i.e. ancestral sampling from the DTM with the one-point-one-label constraint.
-    The first triangle's left/right pair (structures are trained with one, see
-    :func:`structure_ops.repair`) is drawn jointly first, which fixes each candidate's heading.
-    Gumbel-max makes every draw one vectorised arg max over the population.
+    1. Heading: each candidate picks one of the model's left/right pairs (that share a
+       triangle) at random and draws its two points jointly, with probability proportional
+       to ``exp(term / temperature)`` of that triangle at the heading the two points imply.
+       Different candidates lean on different pairs, so an occluded pair does not doom all.
+    2. The other labels follow the structure's insertion order; each draws its point from
+       the unused points or "missing" with probability proportional to ``exp(term / T)`` --
+       the triangle's conditional given what is already placed (ancestral sampling from the
+       DTM under the one-point-one-label constraint).
+    Gumbel-max turns every draw into one vectorised arg max over the population.
+    ``temperature`` may be one value or one per candidate (hotter = more diverse).
+
+    With ``base`` (P, M) and ``free`` (P, M) bool, only the free labels are (re)drawn, given
+    the others and the heading they imply: the *ruin-and-recreate* mutation.
     """
     M, n, T = problem.M, problem.n, problem.T
+    temp = np.broadcast_to(np.asarray(temperature, dtype=np.float64), (P,))
     tri = problem.tri
     gain = problem.label_gain
-    pop = np.full((P, M), n, dtype=np.int64)
-    first = [int(v) for v in tri[0]]
-    root = [(int(a), int(b)) for a, b in problem.pairs if a in first and b in first]
-    todo = list(first)
-    if root and n >= 2:
-        lft, rgt = root[0]
-        I, J = np.nonzero(~np.eye(n, dtype=bool))
-        cand = np.full((I.size, M), n, dtype=np.int64)
-        cand[:, lft], cand[:, rgt] = I, J
-        cbins = problem.heading_bin(problem.yaw(cand))
-        val = problem.triangle_table(cand, cbins, [0])[:, 0] + gain[I] + gain[J]
-        pick = np.argmax(val[None, :] / temperature + rng.gumbel(size=(P, I.size)), axis=1)
-        pop[:, lft], pop[:, rgt] = I[pick], J[pick]
-        bins = cbins[pick]
-        todo = [v for v in first if v not in (lft, rgt)]
+    pairs = _pair_triangles(problem)
+    if base is not None:
+        pop = np.where(free, n, base).astype(np.int64)
+        bins = problem.heading_bin(problem.yaw(pop))
+        todo_mask = np.asarray(free, dtype=bool)
     else:
+        pop = np.full((P, M), n, dtype=np.int64)
+        todo_mask = None
+    if base is None and pairs and n >= 2:
+        I, J = np.nonzero(~np.eye(n, dtype=bool))
+        which = rng.integers(len(pairs), size=P)
+        bins = np.empty(P, dtype=np.int64)
+        for q in np.unique(which):
+            lft, rgt, t = pairs[q]
+            rows = np.flatnonzero(which == q)
+            cand = np.full((I.size, M), n, dtype=np.int64)
+            cand[:, lft], cand[:, rgt] = I, J
+            cbins = problem.heading_bin(problem.yaw(cand))
+            val = problem.triangle_table(cand, cbins, [t])[:, 0] + gain[I] + gain[J]
+            pick = np.argmax(val[None, :] / temp[rows, None] + rng.gumbel(size=(rows.size, I.size)), axis=1)
+            pop[rows, lft], pop[rows, rgt] = I[pick], J[pick]
+            bins[rows] = cbins[pick]
+        todo_mask = pop == n
+    elif base is None:
         bins = np.full(P, problem.heading_bin(np.array([problem.heading_hint]))[0])
-    steps = [(v, 0) for v in todo] + [(int(tri[t][0]), t) for t in range(1, T)]
+        todo_mask = np.ones((P, M), dtype=bool)
+    steps = [(int(v), 0) for v in tri[0]] + [(int(tri[t][0]), t) for t in range(1, T)]
     choices = np.arange(n + 1)
     for v, t in steps:
-        cand = np.repeat(pop, n + 1, axis=0)
-        cand[:, v] = np.tile(choices, P)
-        val = problem.triangle_table(cand, np.repeat(bins, n + 1), [t])[:, 0].reshape(P, n + 1) + gain[None, :]
-        taken = np.zeros((P, n + 1), dtype=bool)
-        taken[:, :n] = ops.used_mask(pop, n)
+        todo = np.flatnonzero(todo_mask[:, v])
+        if todo.size == 0:
+            continue
+        sub = pop[todo]
+        cand = np.repeat(sub, n + 1, axis=0)
+        cand[:, v] = np.tile(choices, todo.size)
+        val = problem.triangle_table(cand, np.repeat(bins[todo], n + 1), [t])[:, 0].reshape(todo.size, n + 1)
+        val = val + gain[None, :]
+        taken = np.zeros((todo.size, n + 1), dtype=bool)
+        taken[:, :n] = ops.used_mask(sub, n)
         val = np.where(taken, -np.inf, val)
-        pop[:, v] = np.argmax(val / temperature + rng.gumbel(size=val.shape), axis=1)
+        pop[todo, v] = np.argmax(val / temp[todo, None] + rng.gumbel(size=val.shape), axis=1)
+    # a candidate built on a pair read the wrong way round is the mirror of a good one
+    if base is None and len(problem.pairs):
+        mirrored = ops.mirror(pop, problem.pairs)
+        better = problem.fitness(mirrored) > problem.fitness(pop)
+        pop[better] = mirrored[better]
     return pop
 
 
 def targeted_moves(ind: np.ndarray, n: int, mirror_pairs: np.ndarray, free_points: np.ndarray) -> np.ndarray:
     """The few moves a carried-over labeling most often needs: swap each left/right pair,
     and give each missing label each free (unlabelled) point."""
-    out = [ind[None]]
+    out = [ind[None], ops.mirror(ind[None], mirror_pairs)]
     if len(mirror_pairs):
         sw = np.repeat(ind[None], len(mirror_pairs), 0)
         r = np.arange(len(mirror_pairs))
@@ -143,7 +183,7 @@ def polish(problem: FrameProblem, ind: np.ndarray, fit: float, rounds: int,
     for _ in range(rounds):
         if deadline is not None and time.perf_counter() > deadline:
             break
-        cand = ops.neighbourhood(ind, problem.n)
+        cand = ops.neighbourhood(ind, problem.n, pairs=problem.pairs)
         f = problem.fitness(cand)
         evals += len(cand)
         i = int(np.argmax(f))
@@ -199,8 +239,14 @@ class _GABase(LabelSearch):
         best = int(np.argmax(fit))
         ind, f = pop[best].copy(), float(fit[best])
         if self._polish and s.polish:
-            ind, f, e = polish(problem, ind, f, s.polish_rounds, deadline)
-            evals += e
+            # polish the best and its mirror image: a flipped body is a deep local optimum
+            starts = [ind] + ([ops.mirror(ind[None], problem.pairs)[0]] if len(problem.pairs) else [])
+            for start in starts:
+                f0 = float(problem.fitness(start[None])[0])
+                cand, fc, e = polish(problem, start, f0, s.polish_rounds, deadline)
+                evals += e + 1
+                if fc > f:
+                    ind, f = cand, fc
             history.append(f)
         return SearchOutcome(ind, f, gen, evals, history, term.reason)
 
@@ -212,19 +258,42 @@ class _GABase(LabelSearch):
         return f
 
 
+def ruin_and_recreate(problem: FrameProblem, pop: np.ndarray, rng: np.random.Generator,
+                      rate: float, temperature: float = 3.0) -> np.ndarray:
+    """Model-guided mutation: for a fraction ``rate`` of individuals, clear the labels of one
+    random triangle (or of 2-4 random labels) and redraw them with :func:`guided_sample`
+    given the rest. Reaches multi-label moves (a chain of shifted labels) no swap reaches."""
+    hit = np.flatnonzero(rng.random(pop.shape[0]) < rate)
+    if hit.size == 0:
+        return pop
+    M = pop.shape[1]
+    free = np.zeros((hit.size, M), dtype=bool)
+    by_tri = rng.random(hit.size) < 0.5
+    tri = problem.tri[rng.integers(problem.T, size=hit.size)]
+    free[np.flatnonzero(by_tri)[:, None], tri[by_tri]] = True
+    k = rng.integers(2, 5, size=hit.size)
+    rnd = np.argsort(rng.random((hit.size, M)), axis=1) < k[:, None]
+    free[~by_tri] = rnd[~by_tri]
+    out = pop.copy()
+    out[hit] = guided_sample(problem, hit.size, rng, temperature, base=pop[hit], free=free)
+    return out
+
+
 class CBGASearch(_GABase):
     name = "cbga"
     _polish = True
 
     def _initial(self, problem, P, rng):
-        return guided_sample(problem, P, rng)
+        # a ladder of temperatures: exact ancestral samples plus hotter, more diverse ones
+        return guided_sample(problem, P, rng, self.settings.temperatures[np.arange(P) % len(self.settings.temperatures)])
 
     def _operators(self, problem, rng):
         order = np.array(problem.model.structure.to_string()[:3] +
                          [t[0] for t in problem.model.structure.triangles[1:]])
         n = problem.n
         return (lambda a, b: ops.crossover(a, b, order, n, rng),
-                lambda p: ops.mutate(p, n, rng, self.settings.p_mutation),
+                lambda p: ruin_and_recreate(problem, ops.mutate(p, n, rng, self.settings.p_mutation,
+                                                                pairs=problem.pairs), rng, self.settings.p_recreate),
                 None)
 
 
