@@ -300,12 +300,13 @@ class NodeClient:
         end = time.monotonic() + timeout
         stamp = 1.0
         with self.cond:
-            n0 = len(self.diags)
+            n0, l0 = len(self.diags), len(self.labeled)
+            received0 = int(self.diags[-1].get("frames_received", "0")) if self.diags else 0
         while True:
             self.publish(np.zeros((0, 3)), stamp)
             try:
-                self.wait_for(lambda: self.labeled_at(stamp) is not None or any(
-                    int(d.get("frames_received", "0")) > 0 for d in self.diags[n0:]), 0.1, "probe")
+                self.wait_for(lambda: any(abs(self.stamp_of(m) - stamp) < 1e-9 for m in self.labeled[l0:]) or any(
+                    int(d.get("frames_received", "0")) > received0 for d in self.diags[n0:]), 0.1, "probe")
                 return
             except AssertionError:
                 if time.monotonic() > end:

@@ -203,6 +203,11 @@ class LabelerNode(Node):
                 self.get_logger().error(f"parameter {spec.name}: bad start-up value ({e}); "
                                         f"using the default {P.format_value(spec.default)}")
                 p = self.declare_parameter(spec.name, default, P.descriptor(spec), ignore_override=True)
+            if spec.kind == "string_array" and p.value is None:
+                # declared by type only (an empty list has no type in rclpy): give it a value,
+                # so get_parameters works for it
+                self.set_parameters([self._param(spec.name, [])])
+                p = self.get_parameter(spec.name)
             values[spec.name] = p.value
         # whole-configuration check (choices, cross-field); bad entries fall back to defaults
         for name in list(values):
