@@ -35,13 +35,14 @@ class LabelerSettings:
     window: int = 10
     full: GASettings = field(default_factory=lambda: GASettings(population=64, max_generations=80,
                                                                 stagnation=10))
-    warm: GASettings = field(default_factory=lambda: GASettings(population=24, max_generations=12,
+    warm: GASettings = field(default_factory=lambda: GASettings(population=24, max_generations=10,
                                                                 stagnation=3, polish=True, polish_rounds=2))
     background: Background = field(default_factory=Background)
     tracker: TrackerSettings = field(default_factory=TrackerSettings)
     max_points: int = 0                  # 0 = 2 x labels + 8
     refit_drop: float = 25.0             # nats below the running fitness level -> full search
-    accept_drop: float = 8.0             # carried-over labeling accepted without GA within this
+    accept_drop: float = 15.0            # carried-over labeling accepted without GA within this
+    fast_rounds: int = 4                 # hill-climbing rounds of the fast path
     max_gap_s: float = 0.5               # longer input gaps reset window and tracks
     seed: int = 0
 
@@ -98,7 +99,7 @@ class StreamLabeler:
         self.tracker.reset()
         self.votes.reset()
         self.track_label: dict[int, int] = {}     # published label per track (last frame)
-        self.level = None                          # running fitness level (EMA)
+        self.level = None                          # running fitness per labelled point (EMA)
         self.last_stamp = None
         self.heading = None
         self.centre = None
@@ -164,7 +165,7 @@ class StreamLabeler:
                 outcome = self._fast_path(problem, seeds[0])
                 if outcome is None:
                     outcome = self.warm_search.search(problem, self.rng, seeds)
-                full = self.level is not None and outcome.fitness < self.level - s.refit_drop
+                full = self.level is not None and outcome.fitness < self._expected(outcome.assignment, n) - s.refit_drop
         if full:
             best = self.full_search.search(problem, self.rng, seeds)
             if outcome is None or best.fitness >= outcome.fitness:
@@ -176,7 +177,8 @@ class StreamLabeler:
             pos[keep] = np.arange(keep.size)
             tr = np.asarray(truth, dtype=np.int64)
             truth_f = float(problem.fitness(np.where(tr < 0, n, pos[np.where(tr < 0, n_in, tr)])[None])[0])
-        self.level = f if self.level is None or full else 0.8 * self.level + 0.2 * f
+        per_point = f / max(int((outcome.assignment < n).sum()), 1)
+        self.level = per_point if self.level is None or full else 0.8 * self.level + 0.2 * per_point
 
         assign = np.where(outcome.assignment >= n, -1, outcome.assignment)
         search_labels = np.full(n, -1, dtype=np.int64)
@@ -187,7 +189,14 @@ class StreamLabeler:
             pub, conf = self.votes.publish(upd.track_ids, search_labels)
         else:
             pub, conf = search_labels.copy(), (search_labels >= 0).astype(float)
-        self.track_label = {int(t): int(l) for t, l in zip(upd.track_ids, pub) if l >= 0}
+        # labels stay with their tracks while they coast (occluded for a few frames)
+        published = {int(t): int(lab) for t, lab in zip(upd.track_ids, pub) if lab >= 0}
+        taken = set(published.values())
+        seen = set(int(t) for t in upd.track_ids)
+        lost = set(int(t) for t in upd.lost)
+        self.track_label = {t: lab for t, lab in self.track_label.items()
+                            if t not in seen and t not in lost and lab not in taken}
+        self.track_label.update(published)
         if present.any():
             self.centre = pts[assign[present]].mean(0)
             yaw = problem.yaw(np.where(assign < 0, n, assign)[None])[0]
@@ -208,30 +217,44 @@ class StreamLabeler:
             heading=self.heading if self.heading is not None else float("nan"), truth_fitness=truth_f)
 
     def _fast_path(self, problem: FrameProblem, seed: np.ndarray):
-        """Accept the carried-over labeling after checking its targeted neighbourhood
-        (left/right swaps, missing labels onto free points) when it still fits as well as
-        recent frames did; None sends the frame to the GA."""
-        if self.level is None or self.settings.method not in ("cbga",):
+        """Accept the carried-over labeling after hill-climbing its targeted neighbourhood
+        (mirror, left/right swaps, missing labels onto free points) when it fits as well per
+        labelled point as recent frames did; None sends the frame to the GA."""
+        if self.level is None or self.settings.method != "cbga":
             return None
         n = problem.n
-        used = label_ops.used_mask(seed[None], n)[0]
-        free = np.flatnonzero(~used)
-        cand = targeted_moves(seed, n, self.model.heading_pairs, free)
-        f = problem.fitness(cand)
-        i = int(np.argmax(f))
-        if f[i] < self.level - self.settings.accept_drop:
+        ind = seed
+        f = float(problem.fitness(ind[None])[0])
+        evals = 1
+        for _ in range(self.settings.fast_rounds):
+            free = np.flatnonzero(~label_ops.used_mask(ind[None], n)[0])
+            cand = targeted_moves(ind, n, self.model.heading_pairs, free)
+            fc = problem.fitness(cand)
+            evals += len(cand)
+            i = int(np.argmax(fc))
+            if fc[i] <= f + 1e-9:
+                break
+            ind, f = cand[i], float(fc[i])
+        if f < self._expected(ind, n) - self.settings.accept_drop:
             return None
-        return _Outcome(cand[i], float(f[i]), 0, len(cand))
+        return _Outcome(ind, f, 0, evals)
+
+    def _expected(self, assignment: np.ndarray, n: int) -> float:
+        """Running fitness level scaled to this frame's number of labelled points."""
+        return self.level * max(int((assignment < n).sum()), 1)
 
     def _seeds(self, track_ids: np.ndarray, n: int, M: int) -> np.ndarray | None:
         """Warm start: last frame's published labels carried by the tracks."""
         if not self.track_label:
             return None
         seed = np.full(M, n, dtype=np.int64)
-        for i, t in enumerate(track_ids):
-            lab = self.track_label.get(int(t))
-            if lab is not None:
-                seed[lab] = i
+        tids = np.fromiter(self.track_label.keys(), dtype=np.int64, count=len(self.track_label))
+        labs = np.fromiter(self.track_label.values(), dtype=np.int64, count=len(self.track_label))
+        order = np.argsort(tids)
+        pos = np.searchsorted(tids[order], track_ids)
+        pos = np.minimum(pos, tids.size - 1)
+        hit = tids[order][pos] == track_ids
+        seed[labs[order][pos[hit]]] = np.flatnonzero(hit)
         if self.settings.method == "tracker":
             return seed[None]
         return label_ops.repair(seed[None], n, self.rng, fill=False)

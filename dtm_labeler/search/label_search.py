@@ -159,17 +159,16 @@ def guided_sample(problem: FrameProblem, P: int, rng: np.random.Generator,
 
 
 def targeted_moves(ind: np.ndarray, n: int, mirror_pairs: np.ndarray, free_points: np.ndarray) -> np.ndarray:
-    """The few moves a carried-over labeling most often needs: swap each left/right pair,
-    and give each missing label each free (unlabelled) point."""
+    """The few moves a carried-over labeling most often needs: the whole mirror image, each
+    left/right pair swapped, and every label (missing or not) moved onto each free point."""
     out = [ind[None], ops.mirror(ind[None], mirror_pairs)]
     if len(mirror_pairs):
         sw = np.repeat(ind[None], len(mirror_pairs), 0)
         r = np.arange(len(mirror_pairs))
         sw[r, mirror_pairs[:, 0]], sw[r, mirror_pairs[:, 1]] = ind[mirror_pairs[:, 1]], ind[mirror_pairs[:, 0]]
         out.append(sw)
-    missing = np.flatnonzero(ind >= n)
-    if missing.size and free_points.size:
-        lab, pt = np.meshgrid(missing, free_points, indexing="ij")
+    if free_points.size:
+        lab, pt = np.meshgrid(np.arange(ind.size), free_points, indexing="ij")
         mv = np.repeat(ind[None], lab.size, 0)
         mv[np.arange(lab.size), lab.ravel()] = pt.ravel()
         out.append(mv)
