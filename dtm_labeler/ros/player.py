@@ -193,3 +193,176 @@ def play(bag: str | Path | None = None, rate: float = 1.0, loop: bool = False, t
         if ctx.ok():
             rclpy.shutdown(context=ctx)
     return stats
+
+
+# ----------------------------------------------------------------------------------- monitor
+
+def _diag_values(status) -> dict:
+    return {kv.key: kv.value for kv in status.values}
+
+
+class ReplayMonitor:
+    """Listens to a replay: ``markers/labeled`` (the node's output), ``markers/ground_truth``
+    (the player's) and ``/diagnostics``; scores output against truth (matched by stamp and
+    position) and measures end-to-end latency = reception wall time - header stamp (meaningful
+    when the player restamps with wall-clock times). Runs its own rclpy context and executor
+    thread; use as a context manager or call :meth:`start` / :meth:`close`.
+
+    ``labeled_qos``: 'reliable' (default, matches the node's default output) or 'sensor_data'.
+    """
+
+    def __init__(self, known_labels: Sequence[str] | None = None, labeled_qos: str = "reliable",
+                 node_name: str = "dtm_replay_monitor", diag_node: str = "dtm_labeler"):
+        from .bag import Scorer
+        self.scorer = Scorer(known=set(known_labels) if known_labels else None)
+        self.labeled_qos = labeled_qos
+        self.node_name = node_name
+        self.diag_node = diag_node
+        self.lock = threading.Lock()
+        self.n_labeled = 0
+        self.n_truth = 0
+        self.latency_ms: list[float] = []       # reception - stamp, per labelled frame
+        self.node_latency_ms: list[float] = []  # the node's own latency_ms field
+        self.stamps: list[int] = []             # labelled stamps in arrival order
+        self.out_of_order = 0
+        self.diag: dict = {}                    # last /diagnostics values of the labeler
+        self.diag_count = 0
+        self._ctx = None
+        self._thread = None
+
+    # -- life cycle
+    def start(self) -> "ReplayMonitor":
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from rclpy.signals import SignalHandlerOptions
+        from diagnostic_msgs.msg import DiagnosticArray
+        from dtm_labeler_msgs.msg import LabeledMarkerArray
+
+        self._ctx = rclpy.Context()
+        rclpy.init(context=self._ctx, signal_handler_options=SignalHandlerOptions.NO)
+        self.node = rclpy.create_node(self.node_name, context=self._ctx)
+        rel = ReliabilityPolicy.RELIABLE if self.labeled_qos == "reliable" else ReliabilityPolicy.BEST_EFFORT
+        self.node.create_subscription(LabeledMarkerArray, "markers/labeled", self._on_labeled,
+                                      QoSProfile(depth=1000, reliability=rel))
+        self.node.create_subscription(LabeledMarkerArray, "markers/ground_truth", self._on_truth,
+                                      QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
+        self._executor = SingleThreadedExecutor(context=self._ctx)
+        self._executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, name="replay_monitor", daemon=True)
+        self._thread.start()
+        return self
+
+    def _spin(self) -> None:
+        from rclpy.executors import ExternalShutdownException
+        try:
+            while self._ctx.ok():
+                self._executor.spin_once(timeout_sec=0.1)
+        except (ExternalShutdownException, Exception):  # context shut down under us
+            pass
+
+    def close(self) -> None:
+        import rclpy
+        if self._ctx is None:
+            return
+        ctx, self._ctx = self._ctx, None
+        rclpy.shutdown(context=ctx)
+        if self._thread is not None:
+            self._thread.join(2.0)
+        try:
+            self._executor.shutdown(timeout_sec=1.0)
+            self.node.destroy_node()
+        except Exception:
+            pass
+
+    def __enter__(self) -> "ReplayMonitor":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- callbacks (executor thread)
+    def _on_labeled(self, msg) -> None:
+        now = time.time()
+        from .bag import markers_to_arrays, stamp_ns_of
+        st = stamp_ns_of(msg)
+        xyz, labels = markers_to_arrays(msg)
+        with self.lock:
+            if self.stamps and st <= self.stamps[-1]:
+                self.out_of_order += 1
+            self.stamps.append(st)
+            self.n_labeled += 1
+            self.latency_ms.append((now - st * 1e-9) * 1e3)
+            self.node_latency_ms.append(float(msg.latency_ms))
+            self.scorer.add_output(st, xyz, labels)
+
+    def _on_truth(self, msg) -> None:
+        from .bag import markers_to_arrays, stamp_ns_of
+        xyz, labels = markers_to_arrays(msg)
+        with self.lock:
+            self.n_truth += 1
+            self.scorer.add_truth(stamp_ns_of(msg), xyz, labels)
+
+    def _on_diag(self, msg) -> None:
+        for st in msg.status:
+            if st.name.endswith(": labeling") and (not self.diag_node or st.name.startswith(self.diag_node)):
+                with self.lock:
+                    self.diag = _diag_values(st)
+                    self.diag_count += 1
+
+    # -- queries
+    def publishers_ready(self, topics: Sequence[str] = ("markers/labeled", "/diagnostics")) -> bool:
+        return all(self.node.count_publishers(t if t.startswith("/") else "/" + t) > 0 for t in topics)
+
+    def wait_ready(self, timeout: float = 20.0, alive: Callable[[], bool] | None = None,
+                   topics: Sequence[str] = ("markers/labeled",)) -> bool:
+        """Wait until the node's topics have publishers (the node is up); False on timeout or
+        when ``alive()`` turns False."""
+        t = time.monotonic()
+        while time.monotonic() - t < timeout:
+            if self.publishers_ready(topics):
+                return True
+            if alive is not None and not alive():
+                return False
+            time.sleep(0.05)
+        return False
+
+    def wait_diag(self, predicate: Callable[[dict], bool], timeout: float = 5.0) -> dict:
+        """Wait for a /diagnostics message whose values satisfy ``predicate``; the last values."""
+        t = time.monotonic()
+        while True:
+            with self.lock:
+                d = dict(self.diag)
+            if d and predicate(d):
+                return d
+            if time.monotonic() - t > timeout:
+                return d
+            time.sleep(0.05)
+
+    def skipped(self, d: dict | None = None) -> int:
+        """Frames the node counted as skipped (all reasons) in diagnostics ``d`` (default last)."""
+        d = self.diag if d is None else d
+        return sum(int(v) for k, v in d.items() if k.startswith("frames_skipped_"))
+
+    def snapshot(self) -> dict:
+        with self.lock:
+            lat = np.asarray(self.latency_ms)
+            node_lat = np.asarray(self.node_latency_ms)
+            d = dict(self.diag)
+            s = self.scorer
+            return dict(labeled=self.n_labeled, truth=self.n_truth, accuracy=s.accuracy, correct=s.correct,
+                        true_markers=s.total, ghost_rejection=s.ghost_rejection, ghosts=s.ghosts,
+                        frames_scored=s.frames_scored, out_of_order=self.out_of_order,
+                        latency_ms=_pcts(lat), node_latency_ms=_pcts(node_lat),
+                        node_received=int(d.get("frames_received", 0)), node_published=int(d.get(
+                            "frames_published", 0)), node_skipped=self.skipped(d),
+                        node_skipped_detail={k[len("frames_skipped_"):]: int(v) for k, v in d.items()
+                                             if k.startswith("frames_skipped_")})
+
+
+def _pcts(v: np.ndarray) -> dict:
+    if not v.size:
+        return dict(p50=float("nan"), p99=float("nan"), max=float("nan"), mean=float("nan"), n=0)
+    return dict(p50=float(np.percentile(v, 50)), p99=float(np.percentile(v, 99)), max=float(v.max()),
+                mean=float(v.mean()), n=int(v.size))
