@@ -1,0 +1,133 @@
+"""Frame-to-frame point association: ids, velocities (m/s), coasting, deletion, crossings."""
+import numpy as np
+import pytest
+
+from dtm_labeler.labeling.tracker import Tracker, TrackerSettings
+
+RATE = 100.0
+DT = 1.0 / RATE
+
+
+def test_new_points_get_new_ids_and_no_velocity():
+    tr = Tracker()
+    u = tr.update(np.array([[0, 0, 1.0], [1, 0, 1.0]]), 0.0)
+    assert u.track_ids.tolist() == [0, 1] and u.new.all() and u.lost.size == 0
+    assert np.isnan(u.states[:, 3:]).all() and np.array_equal(u.states[:, :3], [[0, 0, 1], [1, 0, 1]])
+    # second frame: same points moved -> same ids, velocity in m/s
+    u = tr.update(np.array([[1.01, 0, 1.0], [0.0, 0.02, 1.0]]), DT)      # order shuffled
+    assert u.track_ids.tolist() == [1, 0] and not u.new.any()
+    np.testing.assert_allclose(u.states[:, 3:], [[1.0, 0, 0], [0, 2.0, 0]], atol=1e-9)
+    # a third point appears
+    u = tr.update(np.array([[0.0, 0.04, 1.0], [1.02, 0, 1.0], [5, 5, 5]]), 2 * DT)
+    assert u.track_ids.tolist() == [0, 1, 2] and u.new.tolist() == [False, False, True]
+    assert np.isnan(u.states[2, 3:]).all()
+    np.testing.assert_allclose(u.states[:2, 3:], [[0, 2.0, 0], [1.0, 0, 0]], atol=1e-9)
+
+
+def test_velocity_uses_the_true_time_step():
+    tr = Tracker()
+    tr.update(np.array([[0.0, 0, 0]]), 10.0)
+    u = tr.update(np.array([[0.05, 0, 0]]), 10.05)              # irregular stamp: 1 m/s
+    np.testing.assert_allclose(u.states[0, 3:], [1.0, 0, 0], atol=1e-9)
+
+
+def test_vanishing_coasting_reappearing_and_deletion():
+    tr = Tracker(TrackerSettings(max_misses=3))
+    v = np.array([1.5, 0.0, 0.0])                                # 1.5 m/s along x
+    still = np.array([0.0, 2.0, 1.0])
+    p = lambda k: np.array([0.0, 0.0, 1.0]) + v * k * DT       # noqa: E731
+    for k in range(3):
+        u = tr.update(np.vstack([p(k), still]), k * DT)
+    moving_id = int(u.track_ids[0])
+    # gone for 3 frames (coasting), back where constant velocity predicts
+    for k in range(3, 6):
+        u = tr.update(still[None], k * DT)
+        assert u.lost.size == 0
+    np.testing.assert_allclose(tr.position_of(moving_id, 6 * DT), p(6), atol=1e-9)
+    u = tr.update(np.vstack([p(6), still]), 6 * DT)
+    assert int(u.track_ids[0]) == moving_id and not u.new[0]
+    np.testing.assert_allclose(u.states[0, 3:], v, atol=1e-6)   # displacement over 4 frames / 4 dt
+    # gone for longer than max_misses: deleted (reported once), comes back as a new track
+    lost_seen = []
+    for k in range(7, 12):
+        u = tr.update(still[None], k * DT)
+        lost_seen += u.lost.tolist()
+    assert lost_seen == [moving_id]
+    assert np.isnan(tr.position_of(moving_id, 12 * DT)).all()
+    u = tr.update(np.vstack([p(12), still]), 12 * DT)
+    assert u.new[0] and int(u.track_ids[0]) != moving_id and np.isnan(u.states[0, 3:]).all()
+    assert len(set(u.track_ids.tolist())) == 2
+
+
+def test_all_points_missing_in_a_frame():
+    tr = Tracker()
+    a = np.array([[0, 0, 1.0], [0.5, 0, 1.0]])
+    tr.update(a, 0.0)
+    tr.update(a + [0.01, 0, 0], DT)
+    u = tr.update(np.zeros((0, 3)), 2 * DT)
+    assert u.track_ids.shape == (0,) and u.states.shape == (0, 6) and u.lost.size == 0
+    u = tr.update(a + [0.03, 0, 0], 3 * DT)
+    assert u.track_ids.tolist() == [0, 1] and not u.new.any()
+    np.testing.assert_allclose(u.states[:, 3:], [[1.0, 0, 0]] * 2, atol=1e-9)
+
+
+def test_two_points_crossing_at_speed():
+    """Two markers pass each other 1 cm apart at 2 m/s each (4 m/s closing speed, 3.3 cm per
+    frame at 120 Hz): constant-velocity prediction keeps the ids on the right points."""
+    rate = 120.0
+    tr = Tracker()
+    ids_a, ids_b = set(), set()
+    for k in range(-20, 21):
+        t = k / rate
+        a = np.array([2.0 * t, 0.0, 1.0])
+        b = np.array([-2.0 * t, 0.01, 1.0])
+        pts = np.vstack([a, b]) if k % 2 else np.vstack([b, a])     # input order alternates
+        u = tr.update(pts, t + 5.0)
+        ia, ib = (u.track_ids[0], u.track_ids[1]) if k % 2 else (u.track_ids[1], u.track_ids[0])
+        ids_a.add(int(ia))
+        ids_b.add(int(ib))
+        if k > -19:
+            va = u.states[0 if k % 2 else 1, 3:]
+            np.testing.assert_allclose(va, [2.0, 0, 0], atol=1e-6)
+    assert len(ids_a) == 1 and len(ids_b) == 1 and ids_a != ids_b
+
+
+def test_input_ids_are_honoured():
+    tr = Tracker()
+    u = tr.update(np.array([[0, 0, 0], [1, 1, 1.0]]), 0.0, ids=np.array([7, 42]))
+    assert u.track_ids.tolist() == [7, 42] and u.new.all()
+    # ids, not positions, decide: the two points jump far and swap places
+    u = tr.update(np.array([[0, 0, 0], [1, 1, 1.0]]), DT, ids=np.array([42, 7]))
+    assert u.track_ids.tolist() == [42, 7] and not u.new.any()
+    np.testing.assert_allclose(u.states[0, 3:], [-100.0] * 3)
+    # an unknown id starts a track; generated ids never collide with given ones later
+    u = tr.update(np.array([[0, 0, 0]]), 2 * DT, ids=np.array([100]))
+    assert u.new.tolist() == [True] and u.track_ids.tolist() == [100]
+    u = tr.update(np.array([[0, 0, 0], [9, 9, 9.0]]), 3 * DT)
+    assert 100 in u.track_ids.tolist() and u.track_ids.max() > 100
+
+
+def test_gate_and_settings():
+    with pytest.raises(ValueError):
+        TrackerSettings(gate_m=0)
+    with pytest.raises(ValueError):
+        TrackerSettings(max_misses=-1)
+    tr = Tracker(TrackerSettings(gate_m=0.05, gate_speed_factor=0.0))
+    tr.update(np.array([[0, 0, 0.0]]), 0.0)
+    u = tr.update(np.array([[0.2, 0, 0.0]]), DT)                   # outside the gate: a new track
+    assert u.new.all() and u.track_ids.tolist() == [1]
+
+
+def test_time_going_backwards_gives_no_velocity():
+    tr = Tracker()
+    tr.update(np.array([[0, 0, 0.0]]), 1.0)
+    u = tr.update(np.array([[0.01, 0, 0.0]]), 0.99)
+    assert np.isnan(u.states[0, 3:]).all() and not u.new[0]
+
+
+def test_reset():
+    tr = Tracker()
+    tr.update(np.array([[0, 0, 0.0]]), 0.0)
+    tr.reset()
+    u = tr.update(np.array([[0, 0, 0.0]]), 0.1)
+    assert u.new.all() and u.track_ids.tolist() == [0] and tr.t == 0.1

@@ -1,0 +1,104 @@
+"""Votes over frames (eq. 32) and the published one-to-one labeling."""
+import numpy as np
+import pytest
+
+from dtm_labeler.labeling.voting import VoteBook
+
+
+def test_eq32_counts_over_the_window():
+    vb = VoteBook(window=5, n_labels=3)
+    vb.add(np.array([10, 11, 12]), np.array([0, 1, -1]))
+    vb.add(np.array([11, 10]), np.array([0, 0]))             # order of points changes per frame
+    vb.add(np.array([10, 12, 13]), np.array([2, 1, 0]))
+    votes = vb.tally(np.array([12, 10, 11, 99]))
+    assert votes.tolist() == [[0, 1, 0],          # track 12: label 1 once (-1 is no vote)
+                              [2, 0, 1],          # track 10
+                              [1, 1, 0],          # track 11
+                              [0, 0, 0]]          # unknown track
+    assert vb.tally(np.array([], dtype=np.int64)).shape == (0, 3)
+
+
+def test_window_slides():
+    vb = VoteBook(window=2, n_labels=2)
+    vb.add(np.array([1]), np.array([0]))
+    vb.add(np.array([1]), np.array([1]))
+    vb.add(np.array([1]), np.array([1]))                      # first frame falls out
+    assert vb.tally(np.array([1])).tolist() == [[0, 2]]
+    assert len(vb.frames) == 2
+    vb.reset()
+    assert vb.tally(np.array([1])).tolist() == [[0, 0]]
+    with pytest.raises(ValueError):
+        VoteBook(window=0, n_labels=2)
+
+
+def test_publish_majority_and_confidence():
+    vb = VoteBook(window=4, n_labels=3)
+    tracks = np.array([5, 6])
+    for labs in ([0, 1], [0, 1], [1, 0], [0, 1]):
+        vb.add(tracks, np.array(labs))
+    labels, conf = vb.publish(tracks, np.array([0, 1]))
+    assert labels.tolist() == [0, 1]
+    np.testing.assert_allclose(conf, [0.75, 0.75])            # 3 of 4 frames
+    # a fresh decision against an older majority does not win outright
+    vb2 = VoteBook(window=4, n_labels=3)
+    for labs in ([0, 1], [0, 1], [0, 1], [1, 0]):
+        vb2.add(tracks, np.array(labs))
+    labels, conf = vb2.publish(tracks, np.array([1, 0]))
+    assert labels.tolist() == [0, 1]
+    np.testing.assert_allclose(conf, [0.75, 0.75])
+
+
+def test_current_frame_breaks_ties():
+    vb = VoteBook(window=2, n_labels=2)
+    t = np.array([1, 2])
+    vb.add(t, np.array([0, 1]))
+    vb.add(t, np.array([1, 0]))                               # 1:1 for both
+    labels, conf = vb.publish(t, np.array([1, 0]))
+    assert labels.tolist() == [1, 0]
+    np.testing.assert_allclose(conf, [0.5, 0.5])
+
+
+def test_hungarian_uniqueness():
+    """Two tracks voting for the same label: the stronger one gets it, the other its next best."""
+    vb = VoteBook(window=5, n_labels=3)
+    t = np.array([1, 2, 3])
+    for labs in ([0, 0, 2], [0, 0, 2], [0, 1, 2], [0, 0, 2], [1, 0, 2]):
+        vb.add(t, np.array(labs))
+    cur = np.array([1, 0, 2])
+    labels, conf = vb.publish(t, cur)
+    assert len(set(labels[labels >= 0].tolist())) == (labels >= 0).sum()       # one track per label
+    assert labels.tolist() == [0, 1, 2] or labels.tolist() == [1, 0, 2]
+    # total votes (plus the tie-break half vote) are maximal over all one-to-one choices
+    votes = vb.tally(t)
+    votes[np.arange(3), cur] += 0.5
+    best = max(votes[0, a] + votes[1, b] + votes[2, 2] for a, b in [(0, 1), (1, 0)])
+    assert votes[np.arange(3), labels].sum() == best
+    assert conf[2] == pytest.approx(1.0)
+
+
+def test_track_without_votes_stays_unlabelled():
+    vb = VoteBook(window=3, n_labels=2)
+    vb.add(np.array([1, 2]), np.array([0, -1]))
+    labels, conf = vb.publish(np.array([1, 2]), np.array([0, -1]))
+    assert labels.tolist() == [0, -1] and conf.tolist() == [1.0, 0.0]
+    # more tracks than labels: only n_labels get one
+    vb = VoteBook(window=1, n_labels=1)
+    vb.add(np.array([1, 2]), np.array([0, 0]))
+    labels, _ = vb.publish(np.array([1, 2]), np.array([0, 0]))
+    assert sorted(labels.tolist()) == [-1, 0]
+    # nothing at all
+    labels, conf = VoteBook(window=3, n_labels=2).publish(np.array([], dtype=np.int64), np.array([], dtype=np.int64))
+    assert labels.size == 0 and conf.size == 0
+
+
+def test_confidence_in_unit_interval_random():
+    rng = np.random.default_rng(0)
+    vb = VoteBook(window=6, n_labels=5)
+    for _ in range(20):
+        t = rng.permutation(8)[:6]
+        labs = np.where(rng.random(6) < 0.2, -1, rng.permutation(5).tolist() + [-1])
+        vb.add(t, labs)
+        labels, conf = vb.publish(t, labs)
+        assert ((conf >= 0) & (conf <= 1)).all()
+        assert len(set(labels[labels >= 0].tolist())) == (labels >= 0).sum()
+        assert np.all(conf[labels < 0] == 0)
