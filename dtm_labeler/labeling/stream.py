@@ -210,7 +210,7 @@ class StreamLabeler:
         return FrameResult(
             labels=scatter(pub, -1), confidence=scatter(conf, 0.0), track_ids=scatter(upd.track_ids, -1),
             search_labels=scatter(search_labels, -1),
-            assignment=np.where(assign >= 0, keep[np.maximum(assign, 0)], -1),
+            assignment=_input_index(assign, keep),
             log_likelihood=f, latency_ms=(time.perf_counter() - t0) * 1e3, full_search=full,
             generations=outcome.generations, evaluations=outcome.evaluations,
             n_dropped=int((~finite).sum()), n_ignored=n_ignored, reset=reason,
@@ -258,6 +258,14 @@ class StreamLabeler:
         if self.settings.method == "tracker":
             return seed[None]
         return label_ops.repair(seed[None], n, self.rng, fill=False)
+
+
+def _input_index(assign: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Search assignment (index into the kept points, -1 missing) -> input point index."""
+    out = np.full(assign.shape, -1, dtype=np.int64)
+    present = assign >= 0
+    out[present] = keep[assign[present]]
+    return out
 
 
 @dataclass

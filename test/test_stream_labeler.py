@@ -1,0 +1,214 @@
+"""The stream labeler end to end: accuracy on a synthetic walker and a real CMU walk, and
+robustness to NaN/Inf, empty/tiny/huge frames, duplicates, time going backwards and gaps."""
+import numpy as np
+import pytest
+
+from dtm_labeler.labeling.stream import FrameResult, LabelerSettings, StreamLabeler
+from dtm_labeler.model.training import TrainConfig, train_model
+from dtm_labeler.motion import load_clip
+from dtm_labeler.motion.synthetic import synthesize
+
+CFG = TrainConfig(mixture="fixed", k_fixed=2, structure="given")
+
+
+@pytest.fixture(scope="module")
+def model():
+    clips = [synthesize(duration=3.0, seed=s, heading=h, noise_mm=2) for s, h in [(0, 0.0), (1, 1.0), (2, 2.5)]]
+    m, _ = train_model(clips, CFG)
+    return m
+
+
+@pytest.fixture(scope="module")
+def walker():
+    return synthesize(duration=0.5, seed=7, heading=-2.0, noise_mm=2, start_xy=(1.0, 2.0))
+
+
+def shuffled(frame, rng, n_clutter=2, centre=None):
+    """Points in random order plus clutter near the body; returns (xyz, truth label per point)."""
+    M = frame.shape[0]
+    c = frame.mean(0) if centre is None else centre
+    clutter = c + rng.uniform(-1.0, 1.0, size=(n_clutter, 3)) * [1.0, 1.0, 0.8]
+    pts = np.vstack([frame, clutter])
+    truth = np.r_[np.arange(M), np.full(n_clutter, -1)]
+    perm = rng.permutation(len(pts))
+    return pts[perm], truth[perm]
+
+
+def check_result(r: FrameResult, n_in, M):
+    assert r.labels.shape == (n_in,) and r.confidence.shape == (n_in,) and r.track_ids.shape == (n_in,)
+    assert r.assignment.shape == (M,)
+    lab = r.labels[r.labels >= 0]
+    assert len(set(lab.tolist())) == lab.size, "one point per label"
+    assert ((r.confidence >= 0) & (r.confidence <= 1)).all()
+    assert (r.labels < M).all()
+
+
+def accuracy(r, truth):
+    """Fraction of the body's points given their true label (clutter must stay unlabelled)."""
+    body = truth >= 0
+    return float(np.mean(r.labels[body] == truth[body])), int(np.sum(r.labels[~body] >= 0))
+
+
+def run(labeler, clip, frames, rng, n_clutter=2, **kw):
+    accs, clutter_labelled = [], 0
+    for f in frames:
+        xyz, truth = shuffled(clip.positions[f], rng, n_clutter)
+        r = labeler.process(xyz, f / clip.rate, **kw)
+        check_result(r, len(xyz), labeler.model.n_labels)
+        a, c = accuracy(r, truth)
+        accs.append(a)
+        clutter_labelled += c
+    return np.array(accs), clutter_labelled
+
+
+# ---------------------------------------------------------------- accuracy
+def test_stream_mode_labels_the_synthetic_walker(model, walker):
+    lab = StreamLabeler(model, LabelerSettings(mode="stream"))
+    accs, clutter = run(lab, walker, range(walker.n_frames), np.random.default_rng(0))
+    assert accs[3:].mean() >= 0.97, accs
+    assert clutter <= 2
+
+
+def test_single_mode_labels_the_synthetic_walker(model, walker):
+    lab = StreamLabeler(model, LabelerSettings(mode="single"))
+    accs, clutter = run(lab, walker, range(0, walker.n_frames, 10), np.random.default_rng(1))
+    # frame 0 has no velocities yet; from frame 1 on every frame is searched from scratch
+    assert accs[1:].mean() >= 0.9, accs
+    assert clutter <= 2
+
+
+def test_real_cmu_walk(data_dir):
+    clip = load_clip(data_dir / "cmu_skeletal/positions_csv/cmu_07_01_walk_s07.csv", points="body14")
+    model, _ = train_model([clip.slice(0, 200)], CFG)
+    test = clip.slice(200, 240)
+    lab = StreamLabeler(model, LabelerSettings(mode="stream"))
+    accs, clutter = run(lab, test, range(test.n_frames), np.random.default_rng(2))
+    assert accs[3:].mean() >= 0.95, accs
+    lab = StreamLabeler(model, LabelerSettings(mode="single"))
+    accs, _ = run(lab, test, range(0, test.n_frames, 8), np.random.default_rng(3))
+    assert accs[1:].mean() >= 0.85, accs
+
+
+def test_tracker_method_propagates_labels(model, walker):
+    lab = StreamLabeler(model, LabelerSettings(mode="stream", method="tracker"))
+    rng = np.random.default_rng(4)
+    accs = []
+    for f in range(12):
+        xyz, truth = shuffled(walker.positions[f], rng, 0)
+        r = lab.process(xyz, f / walker.rate)
+        accs.append(accuracy(r, truth)[0])
+        if f >= 2:
+            assert not r.full_search and r.generations == 0 and r.evaluations == 1
+    assert np.mean(accs[1:]) >= 0.97, accs
+
+
+# ---------------------------------------------------------------- robustness
+def test_nan_inf_points_are_dropped(model, walker):
+    lab = StreamLabeler(model)
+    rng = np.random.default_rng(5)
+    for f in range(8):
+        xyz, truth = shuffled(walker.positions[f], rng, 1)
+        bad = np.array([[np.nan, 0, 0], [np.inf, 1, 1], [0, -np.inf, 0], [np.nan] * 3])
+        xyz = np.vstack([xyz[:5], bad, xyz[5:]])
+        truth = np.r_[truth[:5], [-1] * 4, truth[5:]]
+        r = lab.process(xyz, f / walker.rate)
+        check_result(r, len(xyz), 14)
+        assert r.n_dropped == 4
+        assert (r.track_ids[5:9] == -1).all() and (r.labels[5:9] == -1).all()
+        assert (r.confidence[5:9] == 0).all()
+        assert np.isfinite(r.log_likelihood)
+    assert accuracy(r, truth)[0] >= 0.9
+
+
+def test_empty_and_tiny_frames(model, walker):
+    lab = StreamLabeler(model)
+    t = 0.0
+    for k in [0, 1, 2, 3, 0, 14, 0, 1]:
+        xyz = walker.positions[int(t * walker.rate)][:k]
+        r = lab.process(xyz, t)
+        check_result(r, k, 14)
+        assert (r.assignment < k).all() and np.isfinite(r.log_likelihood)
+        t += 1 / walker.rate
+    # all-NaN frame
+    r = lab.process(np.full((5, 3), np.nan), t)
+    check_result(r, 5, 14)
+    assert r.n_dropped == 5 and (r.labels == -1).all() and (r.assignment == -1).all()
+
+
+def test_huge_frame_is_bounded(model, walker):
+    settings = LabelerSettings()
+    lab = StreamLabeler(model, settings)
+    rng = np.random.default_rng(6)
+    max_pts = 2 * 14 + 8
+    for f in range(4):
+        body = walker.positions[f]
+        far = body.mean(0) + rng.uniform(-15, 15, size=(600, 3))
+        far[:, 2] = np.abs(far[:, 2])
+        xyz = np.vstack([far[:300], body, far[300:]])
+        r = lab.process(xyz, f / walker.rate)
+        check_result(r, len(xyz), 14)
+        assert r.n_ignored == len(xyz) - max_pts
+        assert (r.track_ids >= 0).sum() == max_pts                  # only max_points enter
+        assert r.latency_ms < 20_000
+    body_labels = r.labels[300:314]
+    assert np.mean(body_labels == np.arange(14)) >= 0.85
+    # explicit max_points
+    lab = StreamLabeler(model, LabelerSettings(max_points=20))
+    r = lab.process(np.vstack([walker.positions[0], far[:30]]), 0.0)
+    assert r.n_ignored == 14 + 30 - 20 and (r.track_ids >= 0).sum() == 20
+
+
+def test_duplicated_points(model, walker):
+    lab = StreamLabeler(model)
+    rng = np.random.default_rng(7)
+    src = np.r_[np.arange(14), [0, 3, 8, 12]]                   # body point behind each input row
+    for f in range(6):
+        body = walker.positions[f]
+        perm = rng.permutation(len(src))
+        r = lab.process(body[src[perm]], f / walker.rate)         # 4 exact duplicates, shuffled
+        check_result(r, len(src), 14)
+        got = r.labels >= 0
+        assert got.sum() >= 13
+        assert np.mean(r.labels[got] == src[perm][got]) >= 0.9   # a copy of the right point
+
+
+def test_time_going_backwards_and_gaps_reset(model, walker):
+    lab = StreamLabeler(model)
+    rng = np.random.default_rng(8)
+    stamps = [0.0, 1 / 120, 2 / 120, 3 / 120]
+    for k, t in enumerate(stamps):
+        xyz, truth = shuffled(walker.positions[k], rng, 0)
+        r = lab.process(xyz, 10.0 + t)
+        assert r.reset == ""
+    first_ids = set(r.track_ids.tolist())
+    xyz, truth = shuffled(walker.positions[4], rng, 0)
+    r = lab.process(xyz, 10.0)                                   # backwards
+    assert r.reset == "time went backwards"
+    assert set(r.track_ids.tolist()).isdisjoint(first_ids) or r.full_search
+    assert r.full_search
+    r = lab.process(walker.positions[5], 10.0)                   # same stamp again
+    assert r.reset == "repeated stamp"
+    r = lab.process(walker.positions[6], 10.0 + 1 / 120)
+    assert r.reset == ""
+    r = lab.process(walker.positions[7], 12.0)                   # long gap
+    assert r.reset.startswith("gap of 1.99") and r.full_search
+    assert accuracy(r, np.arange(14))[0] >= 0.9
+    r = lab.process(walker.positions[8], 12.0 + 1 / 120)
+    assert r.reset == "" and accuracy(r, np.arange(14))[0] >= 0.9
+
+
+def test_input_ids_and_truth_fitness(model, walker):
+    lab = StreamLabeler(model)
+    for f in range(4):
+        r = lab.process(walker.positions[f], f / walker.rate, ids=np.arange(100, 114), truth=np.arange(14))
+        assert r.track_ids.tolist() == list(range(100, 114))
+        assert np.isfinite(r.truth_fitness)
+        assert r.log_likelihood >= r.truth_fitness - 1e-6
+    assert (r.labels == np.arange(14)).mean() >= 0.9
+
+
+def test_settings_validation(model):
+    for kw in [dict(method="magic"), dict(mode="batch"), dict(window=0), dict(max_points=-1),
+               dict(max_gap_s=0)]:
+        with pytest.raises(ValueError):
+            LabelerSettings(**kw)
