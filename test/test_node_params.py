@@ -18,9 +18,11 @@ from dtm_labeler.ros import params as P
 
 def test_yaml_lists_every_parameter_with_its_default():
     values = P.load_params_file(H.PARAMS_FILE)
-    assert set(values) == set(P.DEFAULTS), set(values) ^ set(P.DEFAULTS)
+    hint = "regenerate: python -m dtm_labeler.ros.params --write-yaml params/labeler.yaml"
+    assert set(values) == set(P.DEFAULTS), (set(values) ^ set(P.DEFAULTS), hint)
     for k, v in values.items():
-        assert v == P.DEFAULTS[k] and type(v) is type(P.DEFAULTS[k]), (k, v, P.DEFAULTS[k])
+        assert v == P.DEFAULTS[k] and type(v) is type(P.DEFAULTS[k]), (k, v, P.DEFAULTS[k], hint)
+    assert H.PARAMS_FILE.read_text() == P.render_yaml(), hint
     # the same file with the wildcard key gives the same values
     text = H.PARAMS_FILE.read_text().replace("\ndtm_labeler:\n", "\n/**:\n")
     wild = H._tmpdir() / "wildcard.yaml"
@@ -264,11 +266,17 @@ def test_stream_output_and_headers(running):
 def test_runtime_changes_take_effect(running):
     proc, cl, feed, wm = running
     cl.run_frames(feed, 5)
-    r = cl.set(window=3, method="greedy", mode="single")
+    r = cl.set(window=3, method="tracker")
     assert all(x.successful for x in r), r
-    d = cl.wait_diag(lambda d: d["method"] == "greedy" and d["window"] == "3" and d["mode"] == "single")
+    d = cl.wait_diag(lambda d: d["method"] == "tracker" and d["window"] == "3")
     assert d["labeling.level"] == "0"
-    assert cl.run_frames(feed, 10) > 0.5      # still labelling with the new method
+    assert cl.run_frames(feed, 10) > 0.9      # still labelling with the new method
+    # mode single: no votes, every frame searched from scratch (confidence = 1 for labelled points)
+    assert cl.set(mode="single", method="cbga")[0].successful
+    cl.wait_diag(lambda d: d["mode"] == "single" and d["method"] == "cbga")
+    xyz, truth, stamp = feed.next()
+    out = cl.send(xyz, stamp)
+    assert {m.confidence for m in out.markers if m.label_index >= 0} == {1.0}
     # max_points: an effect on the output itself -- at most 5 points searched, the rest ignored
     before = int(cl.wait_diag(lambda d: True)["points_ignored_max_points"])
     assert cl.set_atomically(max_points=5, method="cbga", mode="stream", window=10).successful
