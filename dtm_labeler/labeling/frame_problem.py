@@ -92,7 +92,8 @@ class FrameProblem:
         self.bins = model.heading_bins
         self.T = model.structure.n_triangles
         self.tri = model.triangles
-        self.pairs = model.heading_pairs
+        self.pairs = model.heading_pairs          # for the yaw of a candidate
+        self.mirror_pairs = model.mirror_pairs    # every left/right pair (mirror moves)
         b = background
         has_v = self.codes[:-1] == 2
         # gain of labelling point p (relative to it being clutter), before model terms

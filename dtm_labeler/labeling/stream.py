@@ -36,13 +36,15 @@ class LabelerSettings:
     full: GASettings = field(default_factory=lambda: GASettings(population=64, max_generations=80,
                                                                 stagnation=10))
     warm: GASettings = field(default_factory=lambda: GASettings(population=24, max_generations=10,
-                                                                stagnation=3, polish=True, polish_rounds=2))
+                                                                stagnation=3, polish=True, polish_rounds=1,
+                                                                p_recreate=0.15))
     background: Background = field(default_factory=Background)
     tracker: TrackerSettings = field(default_factory=TrackerSettings)
     max_points: int = 0                  # 0 = 2 x labels + 8
-    refit_drop: float = 25.0             # nats below the running fitness level -> full search
-    accept_drop: float = 15.0            # carried-over labeling accepted without GA within this
+    refit_drop: float = 60.0             # nats below the running fitness level -> full search
+    accept_drop: float = 30.0            # carried-over labeling accepted without GA within this
     fast_rounds: int = 4                 # hill-climbing rounds of the fast path
+    swap_radius_m: float = 0.15          # fast path also tries swapping labels this close
     max_gap_s: float = 0.5               # longer input gaps reset window and tracks
     seed: int = 0
 
@@ -226,9 +228,10 @@ class StreamLabeler:
         ind = seed
         f = float(problem.fitness(ind[None])[0])
         evals = 1
+        close = self._close_label_pairs(problem, ind)
         for _ in range(self.settings.fast_rounds):
             free = np.flatnonzero(~label_ops.used_mask(ind[None], n)[0])
-            cand = targeted_moves(ind, n, self.model.heading_pairs, free)
+            cand = targeted_moves(ind, n, self.model.mirror_pairs, free, close)
             fc = problem.fitness(cand)
             evals += len(cand)
             i = int(np.argmax(fc))
@@ -238,6 +241,15 @@ class StreamLabeler:
         if f < self._expected(ind, n) - self.settings.accept_drop:
             return None
         return _Outcome(ind, f, 0, evals)
+
+    def _close_label_pairs(self, problem: FrameProblem, ind: np.ndarray) -> np.ndarray:
+        """Pairs of labels whose points are closer than ``swap_radius_m`` (where the tracker
+        may have swapped two markers that passed each other)."""
+        have = np.flatnonzero(ind < problem.n)
+        p = problem.states[ind[have], :3]
+        d = np.linalg.norm(p[:, None] - p[None], axis=-1)
+        i, j = np.nonzero(np.triu(d < self.settings.swap_radius_m, 1))
+        return np.stack([have[i], have[j]], axis=1)
 
     def _expected(self, assignment: np.ndarray, n: int) -> float:
         """Running fitness level scaled to this frame's number of labelled points."""

@@ -168,12 +168,15 @@ class TriangulatedModel:
     structure: Structure
     mixtures: list[GaussianMixture]
     heading_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
+    mirror_pairs: np.ndarray | None = None      # all left/right pairs (default: heading_pairs)
     settings: dict = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.labels = tuple(self.labels)
         self.heading_pairs = np.asarray(self.heading_pairs, dtype=np.int64).reshape(-1, 2)
+        self.mirror_pairs = (self.heading_pairs.copy() if self.mirror_pairs is None
+                             else np.asarray(self.mirror_pairs, dtype=np.int64).reshape(-1, 2))
         if self.structure.n_vertices != len(self.labels):
             raise ValueError(f"structure has {self.structure.n_vertices} vertices, model has "
                              f"{len(self.labels)} labels")
@@ -182,9 +185,9 @@ class TriangulatedModel:
         for t, m in enumerate(self.mixtures):
             if m.dim != 15:
                 raise ValueError(f"triangle {t}: mixture dimension {m.dim}, expected 15 (eq. 12)")
-        if self.heading_pairs.size and (self.heading_pairs.min() < 0 or
-                                        self.heading_pairs.max() >= len(self.labels)):
-            raise ValueError("heading pair index out of range")
+        for name, pr in (("heading", self.heading_pairs), ("mirror", self.mirror_pairs)):
+            if pr.size and (pr.min() < 0 or pr.max() >= len(self.labels)):
+                raise ValueError(f"{name} pair index out of range")
         self.terms = [TriangleTerms(m, first=(t == 0)) for t, m in enumerate(self.mixtures)]
         self.triangles = self.structure.array
 

@@ -41,6 +41,7 @@ def model_to_bytes(model: TriangulatedModel) -> bytes:
         "labels": list(model.labels),
         "structure": [list(t) for t in model.structure.triangles],
         "heading_pairs": model.heading_pairs.tolist(),
+        "mirror_pairs": model.mirror_pairs.tolist(),
         "components": model.components_per_triangle(),
         "settings": model.settings,
         "provenance": model.provenance,
@@ -101,6 +102,8 @@ def model_from_arrays(arrays: dict, where: str = "model") -> TriangulatedModel:
             mixtures.append(GaussianMixture.from_arrays({k[len(f'tri{t}_'):]: arrays[k] for k in keys}))
         return TriangulatedModel(labels=tuple(labels), structure=structure, mixtures=mixtures,
                                  heading_pairs=np.asarray(header.get("heading_pairs", []), dtype=np.int64),
+                                 mirror_pairs=(np.asarray(header["mirror_pairs"], dtype=np.int64)
+                                               if "mirror_pairs" in header else None),
                                  settings=dict(header.get("settings", {})),
                                  provenance=dict(header.get("provenance", {})))
     except ModelFileError:

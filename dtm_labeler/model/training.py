@@ -84,9 +84,34 @@ class TrainSummary:
 
 
 def heading_pairs(labels: Sequence[str]) -> np.ndarray:
-    """(Q, 2) index pairs (left, right) found by name, used for the body heading."""
+    """(Q, 2) index pairs (left, right) found by name."""
     idx = {n: i for i, n in enumerate(labels)}
     return np.array([(idx[a], idx[b]) for a, b in left_right_pairs(labels)], dtype=np.int64).reshape(-1, 2)
+
+
+def stable_heading_pairs(clips: Sequence[MotionClip], pairs: np.ndarray, max_rms_deg: float = 20.0,
+                         keep_at_least: int = 2) -> np.ndarray:
+    """The left/right pairs whose lateral direction follows the body's.
+
+    Swinging limbs (wrists, ankles) turn their left-right vector far from the trunk's; using
+    them for the heading adds noise the sharp triangle densities punish. For every pair, the
+    RMS angle between its lateral vector and the consensus of all pairs is measured over the
+    training frames; pairs under ``max_rms_deg`` are kept (at least the ``keep_at_least``
+    best, typically shoulders and hips).
+    """
+    if len(pairs) <= keep_at_least:
+        return pairs
+    rms = []
+    cons = np.concatenate([lateral_yaw(c.positions, pairs) for c in clips])
+    for q in pairs:
+        own = np.concatenate([lateral_yaw(c.positions, q[None]) for c in clips])
+        d = np.angle(np.exp(1j * (own - cons)))
+        d = d[np.isfinite(d)]
+        rms.append(np.sqrt(np.mean(d ** 2)) if d.size else np.inf)
+    rms = np.degrees(np.array(rms))
+    keep = rms < max_rms_deg
+    keep[np.argsort(rms)[:keep_at_least]] = True
+    return pairs[keep]
 
 
 def canonical_states(clip: MotionClip, pairs: np.ndarray, jitter_deg: float = 0.0,
@@ -135,7 +160,8 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
                              "select one point set for all clips")
     if len(labels) < 3:
         raise ValueError("a triangulated model needs at least 3 points")
-    pairs = heading_pairs(labels)
+    all_pairs = heading_pairs(labels)
+    pairs = stable_heading_pairs(clips, all_pairs)
     states = np.concatenate([canonical_states(c, pairs) for c in clips], axis=0)
     codes = observation_state(states)
     complete = (codes == FULL).all(axis=1)
@@ -166,7 +192,8 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         if config.structure == "greedy":
             structure = ss.greedy(scores, n, kw["root_pairs"]).structure
         elif config.structure == "cbga":
-            structure = ss.cbga(scores, n, **kw).structure
+            res = ss.cbga(scores, n, **kw)
+            structure = ss.refine(scores, res, n, np.random.default_rng(config.seed), kw["root_pairs"]).structure
         else:
             structure = ss.simple_ga(scores, n, **kw).structure
     struct_ll = scores.per_frame(structure) if scores is not None else float("nan")
@@ -193,6 +220,7 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
 
     model = TriangulatedModel(
         labels=tuple(labels), structure=structure, mixtures=mixtures, heading_pairs=pairs,
+        mirror_pairs=all_pairs,
         settings={"heading_bins": config.heading_bins, "feature": "eq12, yaw-canonical (lateral pairs)",
                   "velocity": "backward difference, m/s"},
         provenance={"trained": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),

@@ -151,17 +151,24 @@ def guided_sample(problem: FrameProblem, P: int, rng: np.random.Generator,
         val = np.where(taken, -np.inf, val)
         pop[todo, v] = np.argmax(val / temp[todo, None] + rng.gumbel(size=val.shape), axis=1)
     # a candidate built on a pair read the wrong way round is the mirror of a good one
-    if base is None and len(problem.pairs):
-        mirrored = ops.mirror(pop, problem.pairs)
+    if base is None and len(problem.mirror_pairs):
+        mirrored = ops.mirror(pop, problem.mirror_pairs)
         better = problem.fitness(mirrored) > problem.fitness(pop)
         pop[better] = mirrored[better]
     return pop
 
 
-def targeted_moves(ind: np.ndarray, n: int, mirror_pairs: np.ndarray, free_points: np.ndarray) -> np.ndarray:
+def targeted_moves(ind: np.ndarray, n: int, mirror_pairs: np.ndarray, free_points: np.ndarray,
+                   close_pairs: np.ndarray | None = None) -> np.ndarray:
     """The few moves a carried-over labeling most often needs: the whole mirror image, each
-    left/right pair swapped, and every label (missing or not) moved onto each free point."""
+    left/right pair swapped, labels on nearby points swapped (``close_pairs``: where tracks
+    cross) and every label (missing or not) moved onto each free point."""
     out = [ind[None], ops.mirror(ind[None], mirror_pairs)]
+    if close_pairs is not None and len(close_pairs):
+        sw = np.repeat(ind[None], len(close_pairs), 0)
+        r = np.arange(len(close_pairs))
+        sw[r, close_pairs[:, 0]], sw[r, close_pairs[:, 1]] = ind[close_pairs[:, 1]], ind[close_pairs[:, 0]]
+        out.append(sw)
     if len(mirror_pairs):
         sw = np.repeat(ind[None], len(mirror_pairs), 0)
         r = np.arange(len(mirror_pairs))
@@ -182,7 +189,7 @@ def polish(problem: FrameProblem, ind: np.ndarray, fit: float, rounds: int,
     for _ in range(rounds):
         if deadline is not None and time.perf_counter() > deadline:
             break
-        cand = ops.neighbourhood(ind, problem.n, pairs=problem.pairs)
+        cand = ops.neighbourhood(ind, problem.n, pairs=problem.mirror_pairs)
         f = problem.fitness(cand)
         evals += len(cand)
         i = int(np.argmax(f))
@@ -239,7 +246,7 @@ class _GABase(LabelSearch):
         ind, f = pop[best].copy(), float(fit[best])
         if self._polish and s.polish:
             # polish the best and its mirror image: a flipped body is a deep local optimum
-            starts = [ind] + ([ops.mirror(ind[None], problem.pairs)[0]] if len(problem.pairs) else [])
+            starts = [ind] + ([ops.mirror(ind[None], problem.mirror_pairs)[0]] if len(problem.mirror_pairs) else [])
             for start in starts:
                 f0 = float(problem.fitness(start[None])[0])
                 cand, fc, e = polish(problem, start, f0, s.polish_rounds, deadline)
@@ -292,7 +299,7 @@ class CBGASearch(_GABase):
         n = problem.n
         return (lambda a, b: ops.crossover(a, b, order, n, rng),
                 lambda p: ruin_and_recreate(problem, ops.mutate(p, n, rng, self.settings.p_mutation,
-                                                                pairs=problem.pairs), rng, self.settings.p_recreate),
+                                                                pairs=problem.mirror_pairs), rng, self.settings.p_recreate),
                 None)
 
 

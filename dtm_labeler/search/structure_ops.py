@@ -119,3 +119,28 @@ def mutate_plain(ind: np.ndarray, n_vertices: int, rng: np.random.Generator, p_m
     hit = rng.random(flat.size) < p_mutation
     flat[hit] = rng.integers(n_vertices, size=int(hit.sum()))
     return flat.reshape(ind.shape)
+
+
+def reattachments(ind: np.ndarray, n_vertices: int, rng: np.random.Generator,
+                  root_pairs: np.ndarray | None = None) -> np.ndarray:
+    """Every structure one re-attachment away: triangle ``t``'s new vertex hung on another
+    edge that exists before ``t`` (then :func:`repair`), for all ``t > 0``; also the new
+    vertices of consecutive triangles exchanged. The local refinement of CBGA's best."""
+    out = []
+    g = np.asarray(ind, dtype=np.int64)
+    edges_before = set()
+    a, b, c = (int(x) for x in g[0])
+    edges_before |= {_edge(a, b), _edge(a, c), _edge(b, c)}
+    for t in range(1, g.shape[0]):
+        for e in sorted(edges_before):
+            if e != _edge(int(g[t, 1]), int(g[t, 2])):
+                cand = g.copy()
+                cand[t, 1:] = e
+                out.append(repair(cand, n_vertices, rng, root_pairs))
+        if t + 1 < g.shape[0]:
+            cand = g.copy()
+            cand[[t, t + 1], 0] = cand[[t + 1, t], 0]
+            out.append(repair(cand, n_vertices, rng, root_pairs))
+        a, b, c = (int(x) for x in g[t])
+        edges_before |= {_edge(a, b), _edge(a, c)}
+    return np.stack(out) if out else g[None]

@@ -104,6 +104,24 @@ def cbga(scores: TripleScores, n_vertices: int, *, population: int = 60, generat
         n_vertices, generations, n_elite, stagnation, progress, root_pairs)
 
 
+def refine(scores: TripleScores, res: SearchResult, n_vertices: int, rng: np.random.Generator,
+           root_pairs: np.ndarray | None = None, rounds: int = 50) -> SearchResult:
+    """Steepest ascent over :func:`structure_ops.reattachments` from a search's best
+    (training runs it after CBGA; kept separate so GA comparisons use equal budgets)."""
+    best, fit = res.structure.array, res.fitness
+    evals = res.evaluations
+    for _ in range(rounds):
+        cand = ops.reattachments(best, n_vertices, rng, root_pairs)
+        f = scores.score(cand)
+        evals += len(cand)
+        i = int(np.argmax(f))
+        if f[i] <= fit + 1e-9:
+            break
+        best, fit = cand[i], float(f[i])
+    return SearchResult(Structure.from_string(best, n_vertices), fit, res.history + [fit], evals,
+                        res.generations, res.stop_reason)
+
+
 def simple_ga(scores: TripleScores, n_vertices: int, *, population: int = 60, generations: int = 200,
               p_crossover: float = 0.9, p_mutation: float = 0.05, n_elite: int = 2, stagnation: int = 60,
               seed: int = 0, root_pairs: np.ndarray | None = None,
