@@ -397,9 +397,10 @@ class LabelerNode(Node):
         self._edges = sorted(model.structure.edges()) if model is not None else []
         self._label_track = {}
         self._viz_clear = True
-        self._model_path = path
-        self._model_status = "loaded" if model is not None else "no model"
-        self._model_error = ""
+        with self._stats_lock:
+            self._model_path = path
+            self._model_status = "loaded" if model is not None else "no model"
+            self._model_error = "" if model is not None else "model_path is empty"
 
     def _apply(self, item) -> None:
         if isinstance(item, _ModelChange):
