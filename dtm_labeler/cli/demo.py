@@ -363,6 +363,7 @@ def _main(argv=None) -> int:
                    frames_lost=max(sent - received, 0), accuracy=s["accuracy"], true_markers=s["true_markers"],
                    ghost_rejection=s["ghost_rejection"], latency_ms=s["latency_ms"],
                    node_latency_ms=s["node_latency_ms"], player_lateness_ms=play.get("lateness_ms", {}),
+                   node_resets=int(final.get("resets_gap", 0) or 0) + int(final.get("resets_time_backwards", 0) or 0),
                    node_exit_status=node_rc, node_ok=not node_failed, node_log_tail=node_log or None, domain_id=int(env["ROS_DOMAIN_ID"]),
                    seconds=time.perf_counter() - t_start, work_dir=str(work) if args.keep else None)
     if args.json:
@@ -381,7 +382,8 @@ def _main(argv=None) -> int:
         print(f"  latency     end-to-end (stamp -> labelled frame here) p50 {lat['p50']:.1f} ms, "
               f"p99 {lat['p99']:.1f} ms, max {lat['max']:.1f} ms; in the node p50 {nl['p50']:.1f} ms, "
               f"p99 {nl['p99']:.1f} ms")
-        print(f"  node        {'ok' if not node_failed else 'FAILED'} (exit status {node_rc}); "
+        print(f"  node        {'ok' if not node_failed else 'FAILED'} (exit status {node_rc}), "
+              f"{summary['node_resets']} window resets; "
               f"total {summary['seconds']:.1f} s")
         if node_failed:
             print(f"  node log    (last lines)\n{node_log}")

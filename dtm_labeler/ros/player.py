@@ -224,6 +224,8 @@ class ReplayMonitor:
         self.latency_ms: list[float] = []       # reception - stamp, per labelled frame
         self.node_latency_ms: list[float] = []  # the node's own latency_ms field
         self.stamps: list[int] = []             # labelled stamps in arrival order
+        self.recv_times: list[float] = []       # wall reception time per labelled frame
+        self.truth_stamps: list[int] = []       # ground-truth stamps in arrival order
         self.out_of_order = 0
         self.diag: dict = {}                    # last /diagnostics values of the labeler
         self.diag_count = 0
@@ -292,6 +294,7 @@ class ReplayMonitor:
             if self.stamps and st <= self.stamps[-1]:
                 self.out_of_order += 1
             self.stamps.append(st)
+            self.recv_times.append(now)
             self.n_labeled += 1
             self.latency_ms.append((now - st * 1e-9) * 1e3)
             self.node_latency_ms.append(float(msg.latency_ms))
@@ -302,6 +305,7 @@ class ReplayMonitor:
         xyz, labels = markers_to_arrays(msg)
         with self.lock:
             self.n_truth += 1
+            self.truth_stamps.append(stamp_ns_of(msg))
             self.scorer.add_truth(stamp_ns_of(msg), xyz, labels)
 
     def _on_diag(self, msg) -> None:

@@ -1,0 +1,221 @@
+#!/usr/bin/env python
+"""End-to-end latency of the labeler node over DDS, and the highest input rate it sustains.
+
+Set-up per case: a model (body14 from the CMU 07_01 walk BVH, trained on all its frames; or the
+41 markers of the CMU 85_02 C3D, ``--points all``, trained on its first 50 %), a bag of the
+recording (the whole walk / the C3D's last 50 %; 1 mm noise, shuffled, track ids) resampled to
+the rate under test, the node (``dtm-labeler-node``, default parameters) in its own process,
+the player (``dtm-bag play --restamp``) in another, and this process listening.
+
+Latency = reception of ``markers/labeled`` here - the cloud's header stamp (the player's
+wall-clock send schedule): DDS both ways + decoding + labeling + publishing. Skipped = frames
+sent without a labelled output (the node labels the newest cloud and drops stale ones).
+
+Rate ramp: the same streams at increasing rates; "sustained" = the highest rate at which no
+frame was skipped after the first 0.5 s of a run (the start has a cold search).
+
+Writes results/node_latency.json and results/node_latency.md; prints the table.
+Rule one: this script sets ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a ROS_DOMAIN_ID itself.
+
+    .venv/bin/python benchmarks/bench_node_latency.py [--quick] [--rates 120 360] [--ramp 60 120 ...]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.setdefault("ROS_DOMAIN_ID", str(60 + os.getpid() % 30))
+
+import numpy as np  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get("DTM_DATA_DIR", REPO.parent / "shared" / "data"))
+CASES = {
+    "body14": dict(path="cmu_skeletal/bvh_from_fbx/cmu_07_01_walk_s07.bvh", points="body14", train="0:100%",
+                   test="0:100%"),
+    "markers41": dict(path="markers_c3d/cmu_85_02_jumptwist_s85_41markers.c3d", points="all", train="0:50%",
+                      test="50%:100%"),
+}
+
+
+def model_for(case: dict, work: Path, structure: str) -> tuple[Path, object]:
+    from dtm_labeler.cli.common import load_inputs
+    from dtm_labeler.cli.demo import cache_dir
+    from dtm_labeler.model.io import load_model, save_model
+    from dtm_labeler.model.training import TrainConfig, train_model
+    import hashlib
+    key = json.dumps([case, structure, (DATA / case["path"]).stat().st_mtime], sort_keys=True)
+    path = cache_dir() / f"bench_model_{hashlib.sha1(key.encode()).hexdigest()[:12]}.npz"
+    if not path.is_file():
+        t = time.perf_counter()
+        clip = load_inputs([str(DATA / case["path"])], case["points"], case["train"])[0]
+        model, _ = train_model([clip], TrainConfig(structure=structure, seed=0))
+        save_model(model, path)
+        print(f"  trained {path.name} on {clip.n_frames} frames in {time.perf_counter() - t:.1f} s", flush=True)
+    return path, load_model(path)
+
+
+def make_bag(case: dict, model, rate: float, work: Path, seconds: float | None) -> tuple[Path, int]:
+    from dtm_labeler.cli.common import load_inputs, model_points
+    from dtm_labeler.cli.demo import resample
+    from dtm_labeler.labeling.corruption import corrupt_clip
+    from dtm_labeler.ros.bag import write_bag
+    clip = load_inputs([str(DATA / case["path"])], case["points"], case["test"])[0]
+    clip = resample(model_points(clip, model.labels), rate)
+    if seconds:
+        clip = clip.slice(0, int(round(seconds * rate)))
+    stream = corrupt_clip(clip, noise_mm=1.0, seed=0)
+    bag = work / f"bag_{case['points']}_{rate:g}"
+    write_bag(stream, bag, force=True)
+    return bag, len(stream)
+
+
+def run_once(mon, bag: Path, env: dict, n_frames: int, rate: float) -> dict:
+    from dtm_labeler.cli.demo import start_player, stop_process
+    with mon.lock:
+        i_lab, i_truth = len(mon.stamps), len(mon.truth_stamps)
+    d0 = mon.wait_diag(lambda d: True, timeout=3)
+    p = start_player(bag, env, ["--restamp", "--wait-for", "markers/unlabeled", "markers/ground_truth",
+                                "--start-delay", "0.2"])
+    try:
+        out, err = p.communicate(timeout=120)
+    except Exception:
+        stop_process(p)
+        raise
+    if p.returncode != 0:
+        raise RuntimeError(err.decode())
+    play = json.loads(out)
+    sent = play["sent"]["/markers/unlabeled"]
+    r0 = int(d0.get("frames_received", 0))
+    mon.wait_diag(lambda d: int(d.get("frames_received", 0)) - r0 >= sent
+                  and int(d["frames_published"]) + mon.skipped(d) == int(d["frames_received"]), timeout=6)
+    time.sleep(0.3)
+    with mon.lock:
+        lab = np.array(mon.stamps[i_lab:], dtype=np.int64)
+        recv = np.array(mon.recv_times[i_lab:])
+        truth = np.array(mon.truth_stamps[i_truth:], dtype=np.int64)
+        d1 = dict(mon.diag)
+    lat = (recv - lab * 1e-9) * 1e3
+    t0 = truth.min() if truth.size else 0
+    late = truth >= t0 + int(0.5e9)
+    done = np.isin(truth, lab)
+    received = int(d1.get("frames_received", 0)) - r0
+
+    def pct(v, q):
+        return float(np.percentile(v, q)) if v.size else float("nan")
+    steady = lat[lab >= t0 + int(0.5e9)] if lab.size else lat
+    return dict(rate_hz=rate, sent=sent, received=received, labelled=int(lab.size),
+                skipped=int(sent - lab.size), skipped_after_warmup=int((late & ~done).sum()),
+                latency_ms=dict(p50=pct(lat, 50), p90=pct(lat, 90), p99=pct(lat, 99),
+                                max=float(lat.max()) if lat.size else float("nan")),
+                latency_after_warmup_ms=dict(p50=pct(steady, 50), p99=pct(steady, 99)),
+                player_lateness_ms=play["lateness_ms"], node_labeling_p50_ms=float(d1.get("labeling_p50_ms", "nan")),
+                node_full_searches=int(d1.get("full_searches", 0)))
+
+
+def bench_case(name: str, case: dict, rates, ramp, work: Path, env: dict, args) -> dict:
+    from dtm_labeler.cli.demo import start_node, stop_process, tail
+    from dtm_labeler.ros.player import ReplayMonitor
+    print(f"{name}: {case['path']} ({case['points']})", flush=True)
+    model_path, model = model_for(case, work, args.structure)
+    log = work / f"node_{name}.log"
+    node = start_node(model_path, env, log)
+    out = dict(case=name, data=case["path"], points=case["points"], labels=len(model.labels),
+               train_frames=case["train"], test_frames=case["test"], fixed=[], ramp=[])
+    try:
+        with ReplayMonitor(known_labels=model.labels) as mon:
+            if not mon.wait_ready(30, alive=lambda: node.poll() is None, topics=("markers/labeled", "/diagnostics")):
+                raise RuntimeError(f"node did not start:\n{tail(log)}")
+            mon.wait_diag(lambda d: True, timeout=10)
+            for rate in rates:
+                bag, n = make_bag(case, model, rate, work, args.seconds)
+                r = run_once(mon, bag, env, n, rate)
+                out["fixed"].append(r)
+                print(f"  {rate:6.0f} Hz  sent {r['sent']:5d}  labelled {r['labelled']:5d}  skipped {r['skipped']:5d}"
+                      f"  latency p50 {r['latency_ms']['p50']:7.1f}  p99 {r['latency_ms']['p99']:7.1f}"
+                      f"  max {r['latency_ms']['max']:7.1f} ms", flush=True)
+            best = None
+            for rate in ramp:
+                bag, n = make_bag(case, model, rate, work, args.ramp_seconds)
+                r = run_once(mon, bag, env, n, rate)
+                out["ramp"].append(r)
+                ok = r["skipped_after_warmup"] == 0 and r["received"] == r["sent"]
+                print(f"  ramp {rate:6.0f} Hz  skipped after warm-up {r['skipped_after_warmup']:4d} / {r['sent']}"
+                      f"  p50 {r['latency_after_warmup_ms']['p50']:6.1f} ms  {'ok' if ok else 'SKIPS'}", flush=True)
+                if ok:
+                    best = rate
+                elif best is not None or rate >= 240:
+                    break
+            out["sustained_rate_hz"] = best
+    finally:
+        stop_process(node)
+    return out
+
+
+def markdown(res: dict) -> str:
+    lines = ["# Node end-to-end latency", "",
+             f"{res['when']}, {res['machine']}; load average at start {res['load_average']}.", "",
+             "Latency = reception of `markers/labeled` in a listener process - the cloud's header stamp "
+             "(the player's send schedule); node with default parameters, player and listener in their own "
+             "processes, DDS on loopback.", "",
+             "| case | labels | rate (Hz) | sent | labelled | skipped | p50 (ms) | p90 (ms) | p99 (ms) | max (ms) |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for c in res["cases"]:
+        for r in c["fixed"]:
+            l = r["latency_ms"]
+            lines.append(f"| {c['case']} | {c['labels']} | {r['rate_hz']:g} | {r['sent']} | {r['labelled']} | "
+                         f"{r['skipped']} | {l['p50']:.1f} | {l['p90']:.1f} | {l['p99']:.1f} | {l['max']:.1f} |")
+    lines += ["", "| case | highest rate without skips after the first 0.5 s (Hz) | ramp (Hz: skipped after warm-up) |",
+              "|---|---:|---|"]
+    for c in res["cases"]:
+        ramp = ", ".join(f"{r['rate_hz']:g}: {r['skipped_after_warmup']}" for r in c["ramp"])
+        best = c.get("sustained_rate_hz")
+        text = f"{best:g}" if best else (f"< {c['ramp'][0]['rate_hz']:g}" if c["ramp"] else "n/a")
+        lines.append(f"| {c['case']} | {text} | {ramp} |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cases", nargs="+", choices=sorted(CASES), default=sorted(CASES))
+    ap.add_argument("--rates", nargs="+", type=float, default=[120.0, 360.0])
+    ap.add_argument("--ramp", nargs="+", type=float, default=[30.0, 60.0, 90.0, 120.0, 180.0, 240.0, 360.0, 480.0])
+    ap.add_argument("--seconds", type=float, default=None, help="stream length per fixed-rate run (default: all)")
+    ap.add_argument("--ramp-seconds", type=float, default=2.0)
+    ap.add_argument("--structure", default="greedy", help="structure search for the benchmark models")
+    ap.add_argument("--quick", action="store_true", help="body14 only, short runs")
+    ap.add_argument("--out", default=str(REPO / "results" / "node_latency.json"))
+    args = ap.parse_args()
+    if args.quick:
+        args.cases, args.seconds, args.ramp, args.ramp_seconds = ["body14"], 1.5, [60.0, 120.0, 240.0], 1.5
+    if not (DATA / "index.csv").is_file():
+        print(f"no data at {DATA}", file=sys.stderr)
+        return 2
+    from dtm_labeler.cli.demo import ros_env
+    env = ros_env()
+    res = dict(when=time.strftime("%Y-%m-%d %H:%M"), machine=f"{platform.machine()}, {os.cpu_count()} cores",
+               load_average=[round(x, 2) for x in os.getloadavg()], domain_id=int(env["ROS_DOMAIN_ID"]), cases=[])
+    with tempfile.TemporaryDirectory(prefix="dtm_bench_") as tmp:
+        for name in args.cases:
+            res["cases"].append(bench_case(name, CASES[name], args.rates, args.ramp, Path(tmp), env, args))
+    res["load_average_end"] = [round(x, 2) for x in os.getloadavg()]
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(res, indent=1))
+    md = markdown(res)
+    out.with_suffix(".md").write_text(md)
+    print()
+    print(md)
+    print(f"wrote {out} and {out.with_suffix('.md')}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
