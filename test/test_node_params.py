@@ -216,7 +216,8 @@ def test_bad_startup_values_fall_back_to_defaults(rclpy_ctx):
 def running():
     wm = H.walk_model()
     proc, client = H.start("t_params", params_file=H.PARAMS_FILE,
-                           params={"model_path": wm.path, "diagnostics_period_s": 0.1})
+                           params={"model_path": wm.path, "diagnostics_period_s": 0.1,
+                                   "visualization_period_s": 0.0})
     feed = H.FrameFeed(wm, seed=1)
     yield proc, client, feed, wm
     client.close()
@@ -293,6 +294,25 @@ def test_runtime_changes_take_effect(running):
     assert cl.send(xyz, stamp)
     cl.run_frames(feed, 5)
     assert cl.run_frames(feed, 20) > 0.9
+
+
+def test_visualization_period_throttles_markers(running):
+    proc, cl, feed, wm = running
+    assert cl.set(visualization_period_s=0.05)[0].successful
+    cl.run_frames(feed, 2)
+    with cl.cond:
+        n0 = len(cl.viz)
+    cl.run_frames(feed, 24)                  # 0.2 s of stamps at 120 Hz
+    with cl.cond:
+        got = len(cl.viz) - n0
+    assert 3 <= got <= 5, got
+    assert cl.set(visualization_period_s=0.0, publish_visualization=False)[0].successful
+    cl.run_frames(feed, 2)
+    with cl.cond:
+        n0 = len(cl.viz)
+    cl.run_frames(feed, 5)
+    assert len(cl.viz) == n0
+    assert all(r.successful for r in cl.set(publish_visualization=True))
 
 
 def test_bad_values_rejected_and_nothing_changes(running):

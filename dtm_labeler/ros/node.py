@@ -60,7 +60,7 @@ from ..labeling.stream import StreamLabeler
 from ..model.io import ModelFileError, load_model
 from . import params as P
 from .pointcloud import PointCloudError, make_labeled_cloud, read_points_xyz
-from .visualization import build_marker_array, label_colors
+from .visualization import MarkerArrayBuilder, label_colors
 
 __all__ = ["LabelerNode", "main", "NO_TRACK"]
 
@@ -141,6 +141,7 @@ class LabelerNode(Node):
         self._viz_clear = True
         self._colors = np.zeros((0, 4))
         self._edges: list = []
+        self._viz_builder: Optional[MarkerArrayBuilder] = None
 
         self._values = self._declare_all()
         n = self._values["latency_window"]
@@ -397,6 +398,7 @@ class LabelerNode(Node):
         self._edges = sorted(model.structure.edges()) if model is not None else []
         self._label_track = {}
         self._viz_clear = True
+        self._viz_builder = None
         with self._stats_lock:
             self._model_path = path
             self._model_status = "loaded" if model is not None else "no model"
@@ -498,16 +500,20 @@ class LabelerNode(Node):
         out.n_unlabeled = int(n - np.count_nonzero(labels >= 0))
         out.latency_ms = float((time.perf_counter() - f.t_recv) * 1e3)
         self._pub_labeled.publish(out)
-        if values["publish_cloud"]:
+        # the optional outputs are only built when someone listens (a cheap graph query)
+        if values["publish_cloud"] and self._pub_cloud.get_subscription_count() > 0:
             self._pub_cloud.publish(make_labeled_cloud(xyz, labels, np.asarray(conf, dtype=np.float32),
                                                        header=f.header))
-        if values["publish_visualization"]:
+        if values["publish_visualization"] and self._pub_viz.get_subscription_count() > 0:
             period = values["visualization_period_s"]
             last = self._last_viz_stamp
             if (reset or self._viz_clear or last is None or f.stamp < last or f.stamp - last >= period):
-                self._pub_viz.publish(build_marker_array(
-                    f.header, xyz, labels, conf, names, self._edges, scale=values["marker_scale"],
-                    delete_all=bool(reset) or self._viz_clear, colors=self._colors))
+                vb = self._viz_builder
+                if vb is None or vb.scale != values["marker_scale"] or vb.names != names:
+                    vb = self._viz_builder = MarkerArrayBuilder(names, self._edges, scale=values["marker_scale"],
+                                                                colors=self._colors)
+                self._pub_viz.publish(vb.build(f.header, xyz, labels, conf,
+                                               delete_all=bool(reset) or self._viz_clear))
                 self._last_viz_stamp = f.stamp
                 self._viz_clear = False
         t_end = time.perf_counter()

@@ -126,10 +126,12 @@ PARAMS: Tuple[ParamSpec, ...] = (
     ParamSpec("output_depth", 10, "History depth of the published topics. Start-up only.",
               range=(1, 1000), read_only=True),
     ParamSpec("publish_cloud", True, "Publish markers/labeled_cloud (PointCloud2 x,y,z,label,"
-              "confidence)."),
-    ParamSpec("publish_visualization", True, "Publish markers/visualization (RViz MarkerArray)."),
-    ParamSpec("visualization_period_s", 0.0, "Minimum header-stamp interval between visualization "
-              "messages (0 = every frame).", range=(0.0, 3600.0)),
+              "confidence) -- built only while it has subscribers."),
+    ParamSpec("publish_visualization", True, "Publish markers/visualization (RViz MarkerArray) -- "
+              "built only while it has subscribers."),
+    ParamSpec("visualization_period_s", 0.033, "Minimum header-stamp interval between visualization "
+              "messages (0 = every frame; the default gives RViz about 30 Hz and saves the "
+              "MarkerArray cost on most frames of a 120 Hz stream).", range=(0.0, 3600.0)),
     ParamSpec("marker_scale", 0.05, "Sphere diameter of the RViz markers in metres.",
               range=(0.001, 10.0)),
     ParamSpec("publish_occluded", True, "Add an occluded=true, predicted=true LabeledMarker for "
