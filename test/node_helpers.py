@@ -136,10 +136,15 @@ class NodeProcess:
     """The labeler node as a child process in namespace ``ns``."""
 
     def __init__(self, ns: str, params: Optional[Dict[str, Any]] = None, params_file: Optional[Path] = None,
-                 extra_args: Sequence[str] = ()):
+                 extra_args: Sequence[str] = (), console_script: bool = False):
         self.ns = ns.strip("/")
         self.log_path = _tmpdir() / f"node_{self.ns}_{time.monotonic_ns()}.log"
-        args = [sys.executable, "-m", "dtm_labeler.ros.node", "--ros-args", "-r", f"__ns:=/{self.ns}"]
+        script = Path(sys.executable).parent / "dtm-labeler-node"
+        if console_script and script.is_file():
+            cmd = [str(script)]
+        else:
+            cmd = [sys.executable, "-m", "dtm_labeler.ros.node"]
+        args = cmd + ["--ros-args", "-r", f"__ns:=/{self.ns}"]
         if params_file is not None:
             args += ["--params-file", str(params_file)]
         for k, v in (params or {}).items():

@@ -287,6 +287,10 @@ def test_runtime_changes_take_effect(running):
     assert 0 < len(labelled) <= 5 and out.n_unlabeled >= len(xyz) - 5
     d = cl.wait_diag(lambda d: int(d["points_ignored_max_points"]) >= before + len(xyz) - 5)
     assert d["max_points"] == "5"
+    # use_sim_time: stamps come from the headers, diagnostics run on the steady clock
+    assert cl.set(use_sim_time=True)[0].successful
+    n_diag = len(cl.diags)
+    cl.wait_for(lambda: len(cl.diags) > n_diag + 1, 5, "diagnostics with use_sim_time")
     assert cl.set(max_points=0)[0].successful
     # labels carried over from 5-point frames recover slowly (library behaviour); a gap
     # longer than max_gap_s resets the window

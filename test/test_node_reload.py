@@ -15,7 +15,8 @@ def running():
     wm = H.walk_model()
     missing = H._tmpdir() / "not_there.npz"
     proc, client = H.start("t_reload", params={"model_path": missing, "expected_labels": list(wm.labels),
-                                               "diagnostics_period_s": 0.1, "model_name": "walk"})
+                                               "diagnostics_period_s": 0.1, "model_name": "walk"},
+                           console_script=True)
     feed = H.FrameFeed(wm, seed=3)
     yield proc, client, feed, wm
     client.close()

@@ -36,7 +36,6 @@ Real-time path
 from __future__ import annotations
 
 import collections
-import math
 import sys
 import threading
 import time
@@ -57,7 +56,7 @@ from visualization_msgs.msg import MarkerArray
 from dtm_labeler_msgs.msg import LabeledMarker, LabeledMarkerArray
 
 from ..labeling.stream import StreamLabeler
-from ..model.io import ModelFileError, load_model
+from ..model.io import load_model
 from . import params as P
 from .pointcloud import PointCloudError, make_labeled_cloud, read_points_xyz
 from .visualization import MarkerArrayBuilder, label_colors
@@ -102,6 +101,7 @@ class _Stats:
     resets: Dict[str, int] = field(default_factory=lambda: collections.Counter())
     last_reset: str = ""
     full_searches: int = 0
+    frames_overrun: int = 0
     last_log_likelihood: float = float("nan")
     reloads_ok: int = 0
     reloads_failed: int = 0
@@ -136,6 +136,7 @@ class LabelerNode(Node):
         self._stats = _Stats()
         self._staged = None
         self._frame_number = 0
+        self._prev_stamp: Optional[float] = None
         self._label_track: Dict[int, int] = {}
         self._last_viz_stamp: Optional[float] = None
         self._viz_clear = True
@@ -518,6 +519,9 @@ class LabelerNode(Node):
                 self._viz_clear = False
         t_end = time.perf_counter()
         self._frame_number += 1
+        # overrun: this frame took longer (receive -> published) than the stamp interval
+        overrun = (self._prev_stamp is not None and 0.0 < f.stamp - self._prev_stamp < t_end - f.t_recv)
+        self._prev_stamp = f.stamp
 
         with self._stats_lock:
             s = self._stats
@@ -536,6 +540,8 @@ class LabelerNode(Node):
                 s.frames_duplicates += 1
             if full:
                 s.full_searches += 1
+            if overrun:
+                s.frames_overrun += 1
             if reset:
                 s.resets[_reset_kind(reset)] += 1
                 s.last_reset = f"{reset} (stamp {f.stamp:.3f})"
@@ -566,7 +572,7 @@ class LabelerNode(Node):
             snap = {k: getattr(s, k) for k in (
                 "received", "labelled", "published", "bad_cloud_reason", "frames_empty", "frames_nonfinite",
                 "points_nonfinite", "frames_over_max_points", "points_ignored", "frames_duplicates",
-                "last_reset", "full_searches", "last_log_likelihood", "reloads_ok", "reloads_failed",
+                "last_reset", "full_searches", "frames_overrun", "last_log_likelihood", "reloads_ok", "reloads_failed",
                 "labeler_error")}
             model_path, model_status, model_error = self._model_path, self._model_status, self._model_error
 
@@ -580,6 +586,7 @@ class LabelerNode(Node):
             ("frames_received", snap["received"]), ("frames_labelled", snap["labelled"]),
             ("frames_published", snap["published"]),
             ("frames_skipped_stale", skipped.get("stale", 0)),
+            ("frames_overrun", snap["frames_overrun"]),
             ("frames_skipped_bad_cloud", skipped.get("bad_cloud", 0)),
             ("frames_skipped_no_model", skipped.get("no_model", 0)),
             ("frames_skipped_error", skipped.get("error", 0)),

@@ -137,7 +137,7 @@ class MarkerArrayBuilder:
             self._points.append(_point((0.0, 0.0, 0.0)))
         return self._points
 
-    def _fill(self, pts: list, xyz: np.ndarray, offset: int) -> list:
+    def _fill(self, xyz: np.ndarray, offset: int) -> list:
         pool = self._pool(offset + xyz.shape[0])
         out = pool[offset:offset + xyz.shape[0]]
         for q, (x, y, z) in zip(out, xyz.tolist()):
@@ -174,7 +174,7 @@ class MarkerArrayBuilder:
         # labelled spheres
         m = self._labelled
         m.action = Marker.ADD if idx.size else Marker.DELETE
-        m.points = self._fill(None, xyz[idx], used)
+        m.points = self._fill(xyz[idx], used)
         used += idx.size
         while len(self._colors) < idx.size:
             self._colors.append(_color((1.0, 1.0, 1.0, 1.0)))
@@ -193,7 +193,7 @@ class MarkerArrayBuilder:
         un = np.flatnonzero(finite & ~valid)
         m = self._unlabelled
         m.action = Marker.ADD if un.size else Marker.DELETE
-        m.points = self._fill(None, xyz[un], used)
+        m.points = self._fill(xyz[un], used)
         used += un.size
         markers.append(m)
         # skeleton
@@ -201,7 +201,7 @@ class MarkerArrayBuilder:
         m = self._skeleton
         m.action = Marker.ADD if ends else Marker.DELETE
         seg = xyz[np.asarray(ends, dtype=np.int64).reshape(-1)] if ends else np.zeros((0, 3))
-        m.points = self._fill(None, seg, used)
+        m.points = self._fill(seg, used)
         markers.append(m)
         # names
         lift = 1.2 * self.scale
