@@ -385,6 +385,8 @@ class LabelerNode(Node):
                 try:
                     self._label(frame)
                 except Exception as e:
+                    if self._stop:
+                        return
                     with self._stats_lock:
                         self._stats.skipped["error"] += 1
                         self._stats.labeler_error = f"{type(e).__name__}: {e}"
@@ -500,6 +502,8 @@ class LabelerNode(Node):
         out.markers = markers
         out.n_unlabeled = int(n - np.count_nonzero(labels >= 0))
         out.latency_ms = float((time.perf_counter() - f.t_recv) * 1e3)
+        if self._stop:                       # shutting down: the publishers may be gone
+            return
         self._pub_labeled.publish(out)
         # the optional outputs are only built when someone listens (a cheap graph query)
         if values["publish_cloud"] and self._pub_cloud.get_subscription_count() > 0:
