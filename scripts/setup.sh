@@ -13,6 +13,9 @@ fi
 source .venv/bin/activate
 if ! cmp -s requirements.txt .venv/.requirements.installed 2>/dev/null; then
   echo "[setup] installing pinned requirements (about a minute the first time)"
+  # a pip that builds editable installs through PEP 660 (the stock one falls back to
+  # 'setup.py develop', which the ament setup.cfg options break under setuptools 80)
+  pip install -q --disable-pip-version-check pip==26.3
   pip install -q --disable-pip-version-check -r requirements.txt
   cp requirements.txt .venv/.requirements.installed
 fi

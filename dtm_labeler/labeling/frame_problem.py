@@ -159,8 +159,14 @@ class FrameProblem:
         s = rot[binv[:, None], trip].reshape(-1, 3 * STATE_DIM)                  # (m, 18)
         codes = self.codes[trip]
         out = np.empty(keys.size)
-        for tt in np.unique(t):
-            sel = np.flatnonzero(t == tt)
+        full = (codes == 2).all(axis=1)
+        if full.any():                         # the common case: one batched call for all triangles
+            sel = np.flatnonzero(full)
+            out[sel] = self.model.batched_full(s[sel], t[sel])
+            out[sel[t[sel] == 0]] += self.background.log_position        # the first triangle is a root
+        rest = np.flatnonzero(~full)
+        for tt in np.unique(t[rest]):
+            sel = rest[t[rest] == tt]
             val, roots = self.model.triangle_terms(int(tt), s[sel], codes[sel], finite=True)
             out[sel] = val + roots * self.background.log_position
         self.evaluations += keys.size

@@ -160,6 +160,76 @@ class TriangleTerms:
         return out, roots
 
 
+FULL_PATTERN = 26          # all three vertices with position and velocity (2 + 3*2 + 9*2)
+
+
+class BatchedFullTerms:
+    """Every triangle's fully observed term in one vectorised call.
+
+    The common case on the hot path is a batch of triples from *different* triangles, all with
+    positions and velocities. Per-triangle calls would cost one Python round trip each; here
+    the whitening matrices of all triangles are zero-padded to a common width and gathered
+    per row, so the whole batch is three einsums and two masked log-sum-exps.
+    """
+
+    def __init__(self, terms: "list[TriangleTerms]"):
+        parts = [t.pattern(FULL_PATTERN) for t in terms]
+        T = len(parts)
+        R = max(p.W.shape[1] for p in parts)
+        kj = max(p.joint.K for p in parts)
+        kp = max((p.parents.K if p.parents is not None else 1) for p in parts)
+        self.W = np.zeros((T, 18, R))
+        self.c = np.zeros((T, R))
+        self.Sj = np.zeros((T, R, kj))
+        self.Sp = np.zeros((T, R, kp))
+        self.cj = np.full((T, kj), -np.inf)
+        self.cp = np.full((T, kp), -np.inf)
+        self.has_parent = np.zeros(T, dtype=bool)
+        for t, p in enumerate(parts):
+            r = p.W.shape[1]
+            self.W[t, :, :r] = p.W
+            self.c[t, :r] = p.c
+            (a, b) = p.splits[0]
+            rows_j = p.joint.K * p.joint.dim
+            self.Sj[t, :rows_j, :b - a] = p.S[:rows_j, a:b]
+            self.cj[t, :p.joint.K] = p.joint.logconst
+            if p.parents is not None:
+                a2, b2 = p.splits[1]
+                self.Sp[t, rows_j:r, :b2 - a2] = p.S[rows_j:r, a2:b2]
+                self.cp[t, :p.parents.K] = p.parents.logconst
+                self.has_parent[t] = True
+
+    @staticmethod
+    def _lse(x: np.ndarray) -> np.ndarray:
+        m = x.max(axis=1)
+        return m + np.log(np.exp(x - m[:, None]).sum(axis=1))
+
+    def __call__(self, s: np.ndarray, tri: np.ndarray, gather_max: int = 64) -> np.ndarray:
+        """Terms for (n, 18) states of triangles ``tri`` (n,). Small batches gather each row's
+        matrices (no Python loop); large ones loop over the triangles present (one matmul each)."""
+        if s.shape[0] <= gather_max:
+            z = np.einsum("nj,njr->nr", s, self.W[tri]) - self.c[tri]
+            zz = z * z
+            qj = np.einsum("nr,nrk->nk", zz, self.Sj[tri])
+            qp = np.einsum("nr,nrk->nk", zz, self.Sp[tri])
+        else:
+            qj = np.empty((s.shape[0], self.Sj.shape[2]))
+            qp = np.empty((s.shape[0], self.Sp.shape[2]))
+            order = np.argsort(tri, kind="stable")
+            bounds = np.flatnonzero(np.diff(tri[order])) + 1
+            for sel in np.split(order, bounds):
+                t = tri[sel[0]]
+                z = s[sel] @ self.W[t] - self.c[t]
+                zz = z * z
+                qj[sel] = zz @ self.Sj[t]
+                qp[sel] = zz @ self.Sp[t]
+        out = self._lse(self.cj[tri] - 0.5 * qj)
+        hp = self.has_parent[tri]
+        if hp.any():
+            out[hp] -= self._lse(self.cp[tri[hp]] - 0.5 * qp[hp])
+        return out
+
+
 @dataclass
 class TriangulatedModel:
     """Labels, structure, one mixture per triangle (eq. 12 features), settings, provenance."""
@@ -198,6 +268,12 @@ class TriangulatedModel:
     @property
     def heading_bins(self) -> int:
         return int(self.settings.get("heading_bins", 720))
+
+    @property
+    def batched_full(self) -> BatchedFullTerms:
+        if getattr(self, "_batched_full", None) is None:
+            self._batched_full = BatchedFullTerms(self.terms)
+        return self._batched_full
 
     def triangle_terms(self, t: int, s: np.ndarray, codes: np.ndarray,
                        finite: bool = False) -> tuple[np.ndarray, np.ndarray]:
