@@ -2,7 +2,7 @@
 
 One model is trained on the first 90 % of each of the three BVH recordings; the test frames
 come from the last 10 % (within-sequence, unseen frames). Every case pools three corruption /
-search seeds, because a single unlucky start can cost a stream a lot (see the xfail below).
+search seeds, because a single unlucky start can cost a stream a lot.
 Floors sit a few points below what was measured (measured values in comments: engine
 0e909b0, 3 seeds pooled). No wall-clock assertions.
 """
