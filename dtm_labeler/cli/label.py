@@ -27,7 +27,8 @@ EPILOG = """examples:
   dtm-train walk.bvh --frames 0:90% --out walk.npz
   dtm-label walk.npz walk.bvh --frames 90%: --json
   dtm-label walk.npz walk.bvh --frames 90%: --occlude 3 --clutter 2 --noise-mm 2 --out labels.csv
-  dtm-label m41.npz capture.c3d --mode single --method greedy
+  dtm-label walk.npz walk.bvh run.bvh --frames 0:50 --mode single --method greedy
+  dtm-train capture.c3d --points all --frames 0:90% --out m41.npz && dtm-label m41.npz capture.c3d --frames 90%:
 output (--json): method, mode, frames, labels, accuracy, ghost_rejection, swaps_per_min, search_errors,
   search_error_rate, latency_ms {p50, p99, max, mean}, fps, per_label, inputs (one entry per input).
 """
@@ -45,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "assignments (tiny models only); tracker: carry labels along tracks, search only to start")
     p.add_argument("--mode", choices=MODES, default="stream",
                    help="stream: tracks, warm start and votes over the window; single: every frame on its own")
-    p.add_argument("--frames", default=None, help="frame range A:B of every input, integers or percentages (90%%:)")
+    p.add_argument("--frames", default="0:100%", help="frame range A:B of every input, integers or percentages")
     p.add_argument("--occlude", type=int, default=0, metavar="K", help="hide K true points per frame")
     p.add_argument("--clutter", type=int, default=0, metavar="K", help="add K ghost points per frame")
     p.add_argument("--noise-mm", type=float, default=0.0, metavar="S", help="Gaussian noise, std per coordinate (mm)")
@@ -53,8 +54,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="mean length of a simulated occlusion in frames (1: new hidden set every frame)")
     p.add_argument("--window", type=int, default=LabelerSettings.window, metavar="W",
                    help="vote window in frames (stream mode)")
-    p.add_argument("--population", type=int, default=None, metavar="P", help="GA population of the full search")
-    p.add_argument("--generations", type=int, default=None, metavar="G",
+    full = LabelerSettings().full
+    p.add_argument("--population", type=int, default=full.population, metavar="P",
+                   help="GA population of the full search")
+    p.add_argument("--generations", type=int, default=full.max_generations, metavar="G",
                    help="GA generation cap of the full search")
     p.add_argument("--track-ids", action="store_true",
                    help="give the labeler the simulated mocap track ids instead of letting its tracker associate")
