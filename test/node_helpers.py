@@ -222,7 +222,7 @@ class NodeClient:
         q = QoSProfile(depth=50)
         self.pub = self.node.create_publisher(
             PointCloud2, node.topic("markers/unlabeled"),
-            QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE if input_reliable
+            QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE if input_reliable
                        else ReliabilityPolicy.BEST_EFFORT))
         self.sub_l = self.node.create_subscription(LabeledMarkerArray, node.topic("markers/labeled"),
                                                    self._store(self.labeled), q)

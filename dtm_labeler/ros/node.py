@@ -30,6 +30,10 @@ Real-time path
   resulting configuration -- including loading a new model file and checking its labels -- and
   handed to the worker through the same condition variable as the frames; the worker applies
   them between two frames. A rejected set changes nothing and the old model keeps running.
+* Input gaps longer than ``max_gap_s`` are judged on the stamps the node RECEIVES, not on the
+  frames it labels: clouds dropped as stale while a slow search runs are not a gap (otherwise
+  a cold search slower than max_gap_s would reset the window, forcing another cold search --
+  a reset spiral). Time going backwards (bag loop) and repeated stamps reset via the labeler.
 * Stamps come from the message headers only (``use_sim_time`` works); the wall clock is used
   for latency measurement, rates and the diagnostics period (steady clock).
 """
@@ -39,7 +43,7 @@ import collections
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Dict, List, Optional
 
 import numpy as np
@@ -77,6 +81,7 @@ class _Frame:
     stamp: float
     t_recv: float          # perf_counter() at callback entry
     decode_ms: float
+    gap: float = 0.0       # largest input gap > max_gap_s since the last frame taken by the worker
 
 
 @dataclass
@@ -118,6 +123,16 @@ def _reset_kind(reason: str) -> str:
     return "other"
 
 
+def _engine_settings(settings):
+    """The settings the node gives the StreamLabeler: gaps are detected by the node on the
+    received stamps (see ``_on_cloud``), so the labeler's own gap check (on the stamps it
+    processes) is switched off; time going backwards and repeated stamps stay with it."""
+    return replace(settings, max_gap_s=_NO_GAP)
+
+
+_NO_GAP = 1e12
+
+
 def _stamp_seconds(header) -> float:
     return float(header.stamp.sec) + 1e-9 * float(header.stamp.nanosec)
 
@@ -137,6 +152,7 @@ class LabelerNode(Node):
         self._staged = None
         self._frame_number = 0
         self._prev_stamp: Optional[float] = None
+        self._last_rx_stamp: Optional[float] = None
         self._label_track: Dict[int, int] = {}
         self._last_viz_stamp: Optional[float] = None
         self._viz_clear = True
@@ -357,10 +373,20 @@ class LabelerNode(Node):
                 self._stats.bad_cloud_reason = reason
             self.get_logger().warning(f"bad cloud skipped: {reason}", throttle_duration_sec=2.0)
             return
-        frame = _Frame(xyz, ids, msg.header, _stamp_seconds(msg.header), t0,
-                       (time.perf_counter() - t0) * 1e3)
+        stamp = _stamp_seconds(msg.header)
+        # input gaps are judged on the RECEIVED stamps: frames dropped as stale while a slow
+        # search runs must not look like a gap (that would reset the window and force another
+        # slow cold search -- a reset spiral)
+        # (only clouds with points count: the labeler never sees the others either)
+        gap = 0.0
+        if xyz.shape[0] and np.isfinite(xyz).all(1).any():
+            if self._last_rx_stamp is not None and stamp - self._last_rx_stamp > self._values["max_gap_s"]:
+                gap = stamp - self._last_rx_stamp
+            self._last_rx_stamp = stamp
+        frame = _Frame(xyz, ids, msg.header, stamp, t0, (time.perf_counter() - t0) * 1e3, gap)
         with self._cond:
             if self._slot is not None:
+                frame.gap = max(frame.gap, self._slot.gap)
                 with self._stats_lock:
                     self._stats.skipped["stale"] += 1
             self._slot = frame
@@ -396,7 +422,7 @@ class LabelerNode(Node):
                         self._labeler.reset()
 
     def _set_model_now(self, model, path: str, settings) -> None:
-        self._labeler = StreamLabeler(model, settings) if model is not None else None
+        self._labeler = StreamLabeler(model, _engine_settings(settings)) if model is not None else None
         self._colors = label_colors(model.n_labels) if model is not None else np.zeros((0, 4))
         self._edges = sorted(model.structure.edges()) if model is not None else []
         self._label_track = {}
@@ -414,6 +440,7 @@ class LabelerNode(Node):
                 self._stats.resets["model_reload"] += 1
                 self._stats.last_reset = "model reload"
         else:
+            item = _engine_settings(item)
             if self._labeler is not None and not P.settings_equal(item, self._labeler.settings):
                 self._labeler.update_settings(item)
                 self._label_track = {}
@@ -433,16 +460,20 @@ class LabelerNode(Node):
         finite = np.isfinite(xyz).all(1)
         n_finite = int(finite.sum())
         t_lab0 = time.perf_counter()
+        gap_reason = ""
+        if f.gap > 0.0:
+            lab.reset()
+            gap_reason = f"gap of {f.gap:.2f} s"
         if n_finite == 0:
             # nothing to search: publish every point unlabelled (the labeler needs points)
             labels = np.full(n, -1, dtype=np.int64)
             conf = np.zeros(n)
             tracks = np.full(n, -1, dtype=np.int64)
-            loglik, reset, ignored, full = float("nan"), "", 0, False
+            loglik, reset, ignored, full = float("nan"), gap_reason, 0, False
         else:
             res = lab.process(xyz, f.stamp, f.ids)
             labels, conf, tracks = res.labels, res.confidence, res.track_ids
-            loglik, reset, ignored, full = res.log_likelihood, res.reset, res.n_ignored, res.full_search
+            loglik, reset, ignored, full = res.log_likelihood, gap_reason or res.reset, res.n_ignored, res.full_search
         t_lab1 = time.perf_counter()
         dup = False
         if 1 < n_finite <= 4096:
