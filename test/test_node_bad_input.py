@@ -234,3 +234,52 @@ def test_node_survived_and_sigterm_exits_cleanly(running):
     assert proc.alive()
     assert proc.stop(signal.SIGTERM) == 0
     assert "Traceback" not in proc.log()
+
+
+def test_labeler_exception_skips_the_frame_in_process():
+    """An exception inside the labeler (in-process node, no DDS peers): the frame is counted as
+    skipped 'error', the window is reset and the next frame is labelled."""
+    import time
+
+    import rclpy
+    from rclpy.parameter import Parameter
+    from std_msgs.msg import Header
+
+    from dtm_labeler.ros.node import LabelerNode
+    from dtm_labeler.ros.pointcloud import make_xyz_cloud
+    wm = H.walk_model()
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = LabelerNode(context=ctx, namespace="/t_inproc",
+                       parameter_overrides=[Parameter("model_path", value=str(wm.path))])
+    published = []
+    node._pub_labeled.publish = published.append
+    try:
+        lab = node._labeler
+        real = lab.process
+        calls = []
+
+        def flaky(*a, **k):
+            calls.append(1)
+            if len(calls) == 1:
+                raise FloatingPointError("injected")
+            return real(*a, **k)
+        lab.process = flaky
+        feed = H.FrameFeed(wm, seed=4)
+        for i in range(2):
+            xyz, truth, stamp = feed.next()
+            sec = int(stamp)
+            hdr = Header(frame_id="m")
+            hdr.stamp.sec, hdr.stamp.nanosec = sec, int((stamp - sec) * 1e9)
+            node._on_cloud(make_xyz_cloud(xyz, header=hdr))
+            end = time.monotonic() + 10
+            while len(published) + node._stats.skipped["error"] < i + 1 and time.monotonic() < end:
+                time.sleep(0.002)
+        assert node._stats.skipped["error"] == 1 and "injected" in node._stats.labeler_error
+        assert len(published) == 1
+        assert np.mean(labels_of(published[0]) == truth) > 0.9
+        vals = {kv.key: kv.value for st in node.diagnostics() for kv in st.values}
+        assert vals["frames_skipped_error"] == "1" and "FloatingPointError" in vals["last_error"]
+    finally:
+        node.destroy_node()
+        ctx.try_shutdown()

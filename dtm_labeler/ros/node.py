@@ -171,12 +171,14 @@ class LabelerNode(Node):
         self._model_path = ""
         self._model_status = "no model"
         self._model_error = ""
-        self._labeler: Optional[StreamLabeler] = None
+        self._labeler: Optional[StreamLabeler] = None     # worker-owned
+        self._model = None                                 # the model of the accepted configuration
         path = self._values["model_path"]
         if path:
             try:
                 model = self._load_checked(path, self._values["expected_labels"])
                 self._set_model_now(model, path, settings)
+                self._model = model
                 self.get_logger().info(f"model {path}: {model.n_labels} labels ({', '.join(model.labels)})")
             except ValueError as e:
                 self._model_status = "no model"
@@ -281,8 +283,8 @@ class LabelerNode(Node):
                     change = _ModelChange(self._load_checked(path, expected), path)
                 else:
                     change = _ModelChange(None, "")
-            elif expected != self._values["expected_labels"] and self._labeler is not None:
-                P.check_labels(self._labeler.model.labels, expected, where=f"running model {self._model_path}")
+            elif expected != self._values["expected_labels"] and self._model is not None:
+                P.check_labels(self._model.labels, expected, where=f"running model {self._model_path}")
         except (ValueError, OSError) as e:
             reason = f"model_path rejected, keeping {self._model_path or 'no model'}: {e}"
             with self._stats_lock:
@@ -316,6 +318,7 @@ class LabelerNode(Node):
         self._values = values
         with self._cond:
             if change is not None:
+                self._model = change.model
                 self._pending.append(change)
                 # report the new model right away (the worker swaps it before the next frame)
                 with self._stats_lock:
