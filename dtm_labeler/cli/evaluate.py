@@ -62,7 +62,7 @@ class Plan:
     seq_model: tuple = ("W1", "R1", "D1", "D2", "D3")       # tables12, structure
     seq_label: tuple = ("W1", "R1", "D1")                   # table3, occlusion, voting, generations
     occlusion_levels: tuple = (0, 1, 2, 3, 4, 5)
-    occlusion_greedy_seq: tuple = ("W1",)
+    occlusion_greedy_seq: tuple = ()
     noise_levels_mm: tuple = (0, 5, 10, 20, 40)
     noise_seq: str = "W1"
     windows: tuple = (1, 2, 3, 5, 8, 10, 15)
@@ -89,7 +89,7 @@ def make_plan(args) -> Plan:
                     noise_levels_mm=(0, 10, 40), windows=(1, 5), generation_frames=2, generations=60,
                     structure_generations=40, cross_folds=(("5", ("D3",)),), marker_files=("mct_walk1",),
                     marker_k_max=3, marker_train_frames=600)
-    n = n or 16
+    n = n or 12
     return Plan(quick=False, seed=args.seed, frames_per_test=n, stream_frames=8 * n, greedy_stream_frames=n)
 
 
@@ -193,7 +193,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="tiny budgets (about 1-2 minutes), for smoke tests")
     p.add_argument("--seed", type=int, default=0, help="seed of training, corruption and search")
     p.add_argument("--frames-per-test", type=int, default=None, metavar="N",
-                   help="test frames per single-mode cell (default 16, quick 3); stream cells use 8N frames "
+                   help="test frames per single-mode cell (default 12, quick 3); stream cells use 8N frames "
                         "(greedy stream cells N)")
     p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), metavar="J",
                    help="worker processes")
