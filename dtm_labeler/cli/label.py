@@ -38,7 +38,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="dtm-label", formatter_class=HelpFormatter, epilog=EPILOG,
                                 description="Label recordings (labels stripped, points shuffled per frame) "
                                             "with a trained triangulated model; score against their own labels.")
-    p.add_argument("model", metavar="MODEL", help="model file from dtm-train (.npz)")
+    p.add_argument("model", metavar="MODEL", nargs="?", default=None,
+                   help="model file from dtm-train (.npz); omitted with --bank")
     p.add_argument("inputs", nargs="+", metavar="INPUT",
                    help="labelled recordings (.bvh .amc .c3d .csv) or folders of them")
     p.add_argument("--method", choices=METHODS, default="cbga",
@@ -62,6 +63,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--track-ids", action="store_true",
                    help="give the labeler the simulated mocap track ids instead of letting its tracker associate")
     p.add_argument("--seed", type=int, default=0, help="seed of the corruption and of the search")
+    p.add_argument("--bank", default=None, metavar="DIR",
+                   help="label with a model bank (directory or single-file bank from dtm-train --action ... "
+                        "--bank DIR): one model per action used at once; JSON adds active_action_accuracy "
+                        "when the inputs' classes are bank actions")
+    p.add_argument("--bank-strategy", choices=("spread", "hard"), default="spread",
+                   help="spread: population over all action models with migration; hard: one model at a time")
     p.add_argument("--out", default=None, metavar="FILE.csv", help="write per-frame, per-point labels as CSV")
     p.add_argument("--json", action="store_true", help="print one JSON object with the scores")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -144,6 +151,13 @@ def _write_csv(path: str, runs: list[ClipRun], names: tuple[str, ...], multi: bo
 def _main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     settings = _settings(args)
+    if args.bank is not None:
+        if args.model is not None:
+            args.inputs = [args.model] + list(args.inputs)
+            args.model = None
+        return _bank_main(args, settings)
+    if args.model is None:
+        raise CliError("MODEL is required (or --bank DIR)")
     try:
         model = load_model(args.model)
     except (OSError, ValueError, KeyError) as e:
@@ -191,6 +205,72 @@ def _main(argv=None) -> int:
         print(json.dumps(out, indent=1))
         return 0
     _print_summary(args, model, pooled, runs)
+    return 0
+
+
+def _bank_main(args, settings) -> int:
+    from ..evaluation.switching import label_clip_bank
+    from ..labeling.bank_labeler import BankSettings
+    from ..model.bank import BankFileError, load_bank
+    if settings.method not in ("cbga", "tracker"):
+        raise CliError("--bank searches with the CBGA: use --method cbga or tracker")
+    try:
+        bank = load_bank(args.bank)
+    except (BankFileError, OSError) as e:
+        raise CliError(str(e)) from None
+    clips = _load(args, bank.labels)
+    total = sum(c.n_frames for c in clips)
+    bar = tqdm(total=total, desc="labeling", unit="frame", file=sys.stderr, disable=True if args.quiet else None,
+               leave=False)
+    runs: list[ClipRun] = []
+    done = 0
+    try:
+        for i, clip in enumerate(clips):
+            run = label_clip_bank(bank, clip, settings, BankSettings(strategy=args.bank_strategy),
+                                  occlude=args.occlude, clutter=args.clutter, noise_mm=args.noise_mm,
+                                  seed=args.seed + i, progress=lambda d, _t: bar.update(d - bar.n),
+                                  use_ids=args.track_ids, gap_frames=args.gap_frames,
+                                  keep_records=args.out is not None, done=done, total=total)
+            run.settings.update(frame_offset=clip.meta["frame_range"][0], rate=clip.rate,
+                                frame_range=clip.meta["frame_range"])
+            runs.append(run)
+            done += clip.n_frames
+    except ValueError as e:
+        raise CliError(str(e)) from None
+    finally:
+        bar.close()
+    pooled = MetricsAccumulator.merge(r.accumulator for r in runs).metrics()
+    if args.out:
+        _write_csv(args.out, runs, bank.labels, multi=len(runs) > 1)
+    known = [r for r in runs if r.settings["active_action_accuracy"] is not None]
+    agree = (sum(r.settings["active_action_accuracy"] * r.metrics.frames for r in known)
+             / sum(r.metrics.frames for r in known)) if known else None
+    out = {"method": args.method, "mode": args.mode, "bank": str(args.bank), "actions": bank.actions,
+           "bank_strategy": args.bank_strategy} | _metrics_json(pooled)
+    out |= {"active_action_accuracy": agree, "occlude": args.occlude, "clutter": args.clutter,
+            "noise_mm": args.noise_mm, "gap_frames": args.gap_frames, "window": args.window, "seed": args.seed,
+            "track_ids": args.track_ids,
+            "inputs": [{"source": r.source, "frame_range": r.settings["frame_range"],
+                        "true_class": r.settings["true_class"],
+                        "active_action_accuracy": r.settings["active_action_accuracy"],
+                        "active_action_frames": r.settings["active_action_frames"]} | _metrics_json(r.metrics)
+                       for r in runs]}
+    for item in out["inputs"]:
+        for k in ("per_label", "label_names", "labels"):
+            item.pop(k, None)
+    if args.out:
+        out["out"] = str(args.out)
+    if args.json:
+        print(json.dumps(out, indent=1))
+        return 0
+    print(f"bank           {args.bank} ({len(bank.actions)} actions: {', '.join(bank.actions)}; "
+          f"{args.bank_strategy})")
+    for r in runs:
+        fr = r.settings["active_action_frames"]
+        print(f"  {Path(r.source).name[:40]:40s} class {r.settings['true_class'] or '?':6s} active "
+              + ", ".join(f"{a} {c}" for a, c in fr.items() if c) + f"; agreement {_pct(r.settings['active_action_accuracy'])}")
+    args.model = args.bank
+    _print_summary(args, bank[bank.actions[0]], pooled, runs)
     return 0
 
 

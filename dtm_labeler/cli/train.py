@@ -15,6 +15,11 @@ EPILOG = """examples:
   dtm-train ../shared/data/cmu_skeletal/bvh_from_fbx --out walk_run_dance.npz
   dtm-train walk.bvh --frames 0:90% --structure greedy --mixture fixed --k-fixed 3 --out m.npz
   dtm-train capture.c3d --points all --out markers41.npz
+model bank (one model per action, Ukita L1-L3; the other actions' files are not touched):
+  dtm-train walk.bvh --action walk --bank bank/
+  dtm-train run.bvh --action run --bank bank/            # + synthesized walk<->run paths
+  dtm-train dance.bvh --action dance --bank bank/ --no-transitions
+  dtm-train dance.bvh --action dance --bank bank/ --retrain-neighbours   # paths into every model
 """
 
 
@@ -24,7 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
                                             "structure search + one Gaussian mixture per triangle.")
     p.add_argument("inputs", nargs="+", metavar="INPUT",
                    help="recordings (.bvh .amc .c3d .csv) or folders of them")
-    p.add_argument("--out", required=True, help="model file to write (.npz)")
+    p.add_argument("--out", default=None, help="model file to write (.npz); required unless --bank is given")
     p.add_argument("--points", default="body14",
                    help="body14 (the paper's 14 points), all (every labelled marker), or NAME,NAME,...")
     p.add_argument("--frames", default=None, help="frame range A:B, integers or percentages (0:90%%)")
@@ -40,6 +45,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--velocity-floor", type=float, default=0.2, metavar="MPS",
                    help="covariance floor for velocities (std, m/s)")
     p.add_argument("--seed", type=int, default=0)
+    b = p.add_argument_group("model bank (one model per action, Ukita sections 4.1-4.4)")
+    b.add_argument("--action", default=None, metavar="NAME",
+                   help="train the model of action NAME into --bank (added, or replaced if present)")
+    b.add_argument("--bank", default=None, metavar="DIR", help="bank directory (bank.json + one model per action)")
+    b.add_argument("--transitions", action=argparse.BooleanOptionalAction, default=True,
+                   help="train with paths synthesized between this action and every action already in the bank "
+                        "(L2: only the new model gets them unless --retrain-neighbours)")
+    b.add_argument("--retrain-neighbours", action="store_true",
+                   help="also retrain every other action with its recorded sources plus the paths to all actions "
+                        "(their files change)")
+    b.add_argument("--transition-distance", type=float, default=0.10, metavar="M",
+                   help="end points of transition paths: RMS pose distance per body point below M (or below "
+                        "1.25 x the pair's closest distance when larger)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -47,6 +65,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    if (args.action is None) != (args.bank is None):
+        raise CliError("--action and --bank go together")
+    if args.out is None and args.bank is None:
+        raise CliError("--out is required (or --action NAME --bank DIR)")
     config = TrainConfig(mixture=args.mixture, k_min=args.k_min, k_max=args.k_max, k_fixed=args.k_fixed,
                          structure=args.structure, seed=args.seed, position_floor_m=args.position_floor,
                          velocity_floor_mps=args.velocity_floor)
@@ -54,6 +76,8 @@ def _main(argv=None) -> int:
         config.check()
     except ValueError as e:
         raise CliError(str(e)) from None
+    if args.bank is not None:
+        return _bank_main(args, config)
     clips = load_inputs(args.inputs, point_spec(args.points), args.frames)
     bar = None if args.quiet or args.json else tqdm(total=1, desc="training", unit="step", file=sys.stderr)
 
@@ -86,6 +110,92 @@ def _main(argv=None) -> int:
           f"{s['structure_loglik_per_frame']:.2f} per frame (Gaussian)")
     print(f"msg len   {sum(s['message_length']):.0f} nats total over triangles")
     print(f"time      {s['seconds']:.1f} s")
+    return 0
+
+
+def _bank_sources(args):
+    """Training recordings as TransitionSources (body14 + local rotations when skeletal)."""
+    from ..motion.transitions import TransitionSource
+    from .common import expand_inputs, parse_frames
+    out = []
+    for path in expand_inputs(args.inputs):
+        try:
+            if args.points == "body14":
+                src = TransitionSource.load(path)
+            else:
+                src = TransitionSource(load_inputs([str(path)], point_spec(args.points))[0], None)
+        except (ValueError, KeyError, OSError) as e:
+            raise CliError(f"{path}: {e}") from None
+        a, b = parse_frames(args.frames, src.clip.n_frames)
+        if (a, b) != (0, src.clip.n_frames):
+            src = TransitionSource(src.clip.slice(a, b), src.skeletal.slice(a, b) if src.skeletal else None)
+        src.clip.meta["frame_range"] = [a, b]
+        out.append(src)
+    return out
+
+
+def _bank_main(args, config) -> int:
+    from ..model.bank import BankFileError, add_to_bank, check_action_name, load_bank, load_sources, train_action
+    from ..model.bank import BANK_JSON
+    from ..motion.transitions import TransitionSettings
+    from pathlib import Path
+    try:
+        check_action_name(args.action)
+    except BankFileError as e:
+        raise CliError(str(e)) from None
+    bank_dir = Path(args.bank)
+    if bank_dir.suffix.lower() == ".npz":
+        raise CliError("--bank must be a directory (single-file banks are written with dtm_labeler.model.bank.save_bank)")
+    try:
+        bank = load_bank(bank_dir) if (bank_dir / BANK_JSON).is_file() else None
+    except BankFileError as e:
+        raise CliError(str(e)) from None
+    if args.transitions and args.points != "body14":
+        raise CliError("--transitions synthesizes body14 poses; use --points body14 or --no-transitions")
+    try:
+        tset = TransitionSettings(max_distance_m=args.transition_distance) if args.transitions else None
+    except ValueError as e:
+        raise CliError(str(e)) from None
+    sources = _bank_sources(args)
+    others = {}
+    if bank is not None:
+        for a in bank.actions:
+            if a != args.action and (tset is not None):
+                others[a] = load_sources(bank.records.get(a, {}))
+                if not others[a]:
+                    print(f"warning: no training recording of action {a!r} found; no paths to it", file=sys.stderr)
+    results = []
+    try:
+        model, record, summary = train_action(args.action, sources, others, config, tset)
+        record["transition_mode"] = "L2" if tset is not None else "none"
+        bank = add_to_bank(bank_dir, args.action, model, record)
+        results.append((args.action, record, summary))
+        if args.out:
+            save_model(model, args.out)
+        if args.retrain_neighbours and tset is not None:
+            all_src = {a: (sources if a == args.action else load_sources(bank.records.get(a, {})))
+                       for a in bank.actions}
+            for a in bank.actions:
+                if a == args.action or not all_src[a]:
+                    continue
+                m2, r2, s2 = train_action(a, all_src[a], {b: v for b, v in all_src.items() if b != a}, config, tset)
+                r2["transition_mode"] = "retrained with all"
+                bank = add_to_bank(bank_dir, a, m2, r2)
+                results.append((a, r2, s2))
+    except (ValueError, BankFileError) as e:
+        raise CliError(str(e)) from None
+    out = {"bank": str(bank_dir), "actions": bank.actions,
+           "trained": [{"action": a, "synthesized_frames": r["synthesized_frames"],
+                        "transitions": [{k: v for k, v in t.items() if k != "paths_detail"} for t in r["transitions"]],
+                        "frames": r["frames"], "seconds": s.seconds, "components": s.components} for a, r, s in results]}
+    if args.json:
+        print(json.dumps(out, indent=1))
+        return 0
+    print(f"bank      {bank_dir} ({len(bank.actions)} actions: {', '.join(bank.actions)})")
+    for a, r, s in results:
+        tr = ", ".join(f"{t['with']}: {t['paths']} paths / {t['frames']} frames" for t in r["transitions"]) or "none"
+        print(f"{a:9s} {r['frames']} recorded + {r['synthesized_frames']} synthesized frames; transitions {tr}; "
+              f"{s.seconds:.1f} s")
     return 0
 
 

@@ -81,8 +81,9 @@ def join_clips(parts: Sequence[MotionClip], min_part: int = 60, search: int = 24
     switches = []
     for nxt in parts[1:]:
         start_cur = info[-1]["start"]
-        lo = max(start_cur + min_part, len(P) - search)
-        hi = min(search, nxt.n_frames - min_part)
+        cur_len = len(P) - start_cur
+        lo = max(start_cur + max(min_part, cur_len // 2), len(P) - search)
+        hi = min(search, nxt.n_frames - min_part, max(nxt.n_frames // 2, 1))
         if lo >= len(P) or hi <= 0:
             raise ValueError(f"{nxt.source}: parts too short to join with min_part={min_part}")
         Y1 = normalized_poses(P[lo:])
@@ -194,3 +195,275 @@ def pool_metrics(items: list[dict], runs: list[SequenceRun], window: int = 30) -
             "active_action_accuracy": float(np.mean(ag)) if ag else None,
             "frames": int(sum(len(r.points) for r in runs)), "switches": len(rec),
             "wall_s": float(sum(r.wall_s for r in runs))}
+
+
+# ==================================================================== the experiment
+DEFAULT_ACTIONS = {"walk": "cmu_skeletal/bvh_from_fbx/cmu_07_01_walk_s07.bvh",
+                   "run": "cmu_skeletal/bvh_from_fbx/cmu_09_11_run_s09.bvh",
+                   "dance": "cmu_skeletal/bvh_from_fbx/cmu_55_01_dance-whirl_s55.bvh"}
+DEFAULT_ORDERS = (("walk", "run", "dance", "walk"), ("dance", "walk", "run"), ("run", "walk", "dance"))
+
+
+@dataclass
+class ExperimentSettings:
+    train_fraction: float = 0.6           # first part of every recording trains, the rest tests
+    occlude: int = 2
+    clutter: int = 2
+    noise_mm: float = 2.0
+    gap_frames: float = 8.0
+    seeds: tuple[int, ...] = (1, 2, 3)
+    window: int = 30
+    recover_level: float = 0.95
+    recover_frames: int = 10
+    min_part: int = 30
+    max_dance_frames: int = 300           # the dance test part is long; keep sequences balanced
+    incremental: bool = True              # also run the L2-literal bank (paths only to earlier actions)
+
+
+def prepare(data_dir, actions: dict | None = None, fraction: float = 0.6, skeletal: bool = True):
+    """(training sources per action, held-out test clips per action)."""
+    from pathlib import Path
+    from ..motion.transitions import TransitionSource
+    actions = actions or DEFAULT_ACTIONS
+    src, test = {}, {}
+    for a, rel in actions.items():
+        p = Path(data_dir) / rel
+        full = TransitionSource.load(p, skeletal=False)
+        n = full.clip.n_frames
+        k = int(round(fraction * n))
+        src[a] = [TransitionSource.load(p, (0, k), skeletal=skeletal)]
+        t = full.clip.slice(k, None)
+        t.meta["frame_range"] = [k, n]
+        t.motion_class = a
+        test[a] = t
+    return src, test
+
+
+def build_configs(src: dict, config=None, transitions=None, incremental: bool = True, progress=print) -> dict:
+    """Models of the configurations: pooled model, banks without / with synthesized paths."""
+    from ..model.bank import build_bank
+    from ..model.training import TrainConfig, train_model
+    from ..motion.transitions import TransitionSettings
+    config = config or TrainConfig()
+    transitions = transitions or TransitionSettings()
+    t = time.perf_counter()
+    pooled, _ = train_model([s.clip for v in src.values() for s in v], config)
+    progress(f"pooled model {time.perf_counter() - t:.0f} s")
+    t = time.perf_counter()
+    plain = build_bank(src, config, None)
+    progress(f"bank without transitions {time.perf_counter() - t:.0f} s")
+    t = time.perf_counter()
+    trans = build_bank(src, config, transitions, mode="all")
+    progress(f"bank with transitions {time.perf_counter() - t:.0f} s")
+    out = {"pooled": pooled, "plain": plain, "trans": trans}
+    if incremental:
+        out["incremental"] = build_bank(src, config, transitions, mode="incremental")
+    return out
+
+
+def make_labeler(config: str, models: dict, settings=None):
+    from ..labeling.bank_labeler import BankLabeler, BankSettings
+    from ..labeling.stream import LabelerSettings, StreamLabeler
+    settings = settings or LabelerSettings()
+    if config == "pooled":
+        return StreamLabeler(models["pooled"], settings)
+    if config == "hard":
+        return BankLabeler(models["plain"], settings, BankSettings(strategy="hard"))
+    if config == "bank":
+        return BankLabeler(models["plain"], settings, BankSettings())
+    if config == "bank+transitions":
+        return BankLabeler(models["trans"], settings, BankSettings())
+    if config == "bank+transitions (L2 incremental)":
+        return BankLabeler(models["incremental"], settings, BankSettings())
+    raise ValueError(f"unknown configuration {config!r}")
+
+
+def run_experiment(data_dir, out_dir, settings: ExperimentSettings | None = None, progress=print) -> dict:
+    """Train, build sequences, label them with every configuration, write report.md/json/PNG."""
+    import json
+    from pathlib import Path
+    es = settings or ExperimentSettings()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t_all = time.perf_counter()
+    src, test = prepare(data_dir, fraction=es.train_fraction)
+    if "dance" in test and es.max_dance_frames:
+        d = test["dance"]
+        test["dance"] = d.slice(0, es.max_dance_frames)
+        test["dance"].meta["frame_range"] = [d.meta["frame_range"][0], d.meta["frame_range"][0] + es.max_dance_frames]
+    models = build_configs(src, incremental=es.incremental, progress=progress)
+    seqs = [join_clips([test[a] for a in order], min_part=es.min_part) for order in DEFAULT_ORDERS]
+    configs = list(CONFIGS) + (["bank+transitions (L2 incremental)"] if es.incremental else [])
+    results: dict = {c: {"runs": []} for c in configs}
+    runs_by: dict = {c: [] for c in configs}
+    example = {}
+    for si, seq in enumerate(seqs):
+        for seed in es.seeds:
+            for c in configs:
+                r = run_sequence(make_labeler(c, models), seq, c, es.occlude, es.clutter, es.noise_mm, seed,
+                                 es.gap_frames)
+                m = switch_metrics(r, es.window, es.recover_level, es.recover_frames)
+                m.update(sequence=seq.name, seed=seed)
+                results[c]["runs"].append(m)
+                runs_by[c].append(r)
+                if si == 0 and seed == es.seeds[0]:
+                    example[c] = r
+                progress(f"{c:34s} {seq.name:28s} seed {seed}: acc {m['accuracy']:.3f} window "
+                         f"{m['switch_window_accuracy']:.3f} recover {m['frames_to_recover']} active "
+                         f"{m['active_action_accuracy']}")
+    for c in configs:
+        results[c]["pooled"] = pool_metrics(results[c]["runs"], runs_by[c], es.window)
+    trans_info = {a: models["trans"].records[a]["transitions"] for a in models["trans"].actions}
+    for v in trans_info.values():
+        for t in v:
+            t.pop("paths_detail", None)
+    payload = {"settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in es.__dict__.items()},
+               "actions": {a: DEFAULT_ACTIONS[a] for a in src},
+               "train_frames": {a: src[a][0].clip.meta.get("frame_range") for a in src},
+               "sequences": [{"name": s.name, "frames": s.clip.n_frames, "switches": s.switches, "parts": s.parts}
+                             for s in seqs],
+               "transitions": trans_info,
+               "incremental_transitions": ({a: [{k: v for k, v in t.items() if k != "paths_detail"}
+                                                for t in models["incremental"].records[a]["transitions"]]
+                                            for a in models["incremental"].actions} if es.incremental else None),
+               "results": results, "wall_s": time.perf_counter() - t_all}
+    (out_dir / "results.json").write_text(json.dumps(payload, indent=1, default=_jsonable))
+    _plot(example, seqs[0], configs, results, out_dir / "switching.png")
+    (out_dir / "report.md").write_text(_report(payload, configs))
+    return payload
+
+
+def _jsonable(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    return str(o)
+
+
+def _plot(example: dict, seq: SwitchingSequence, configs, results, path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(len(configs) + 1, 1, figsize=(10, 1.6 * (len(configs) + 1) + 1), sharex=True)
+    acts = sorted(set(seq.classes))
+    ymap = {a: i for i, a in enumerate(acts)}
+    t = np.arange(seq.clip.n_frames) / seq.clip.rate
+    for ax, c in zip(axes[:-1], configs):
+        r = example[c]
+        ax.plot(t, r.frame_accuracy, lw=0.8, color="C0")
+        ax.set_ylim(-0.05, 1.05)
+        ax.set_ylabel("acc", fontsize=8)
+        ax.set_title(c, fontsize=9, loc="left")
+        for s in seq.switches:
+            ax.axvline(s / seq.clip.rate, color="k", ls=":", lw=0.8)
+        if any(r.active):
+            ax2 = ax.twinx()
+            ax2.plot(t, [ymap.get(a, np.nan) for a in r.active], color="C3", lw=1.0, drawstyle="steps-post")
+            ax2.set_yticks(range(len(acts)))
+            ax2.set_yticklabels(acts, fontsize=7)
+            ax2.set_ylim(-0.5, len(acts) - 0.5)
+    axes[-1].plot(t, [ymap[a] for a in seq.classes], color="k", drawstyle="steps-post")
+    axes[-1].set_yticks(range(len(acts)))
+    axes[-1].set_yticklabels(acts, fontsize=7)
+    axes[-1].set_title("true class", fontsize=9, loc="left")
+    axes[-1].set_xlabel("time (s)")
+    fig.suptitle(f"{seq.name}: frame accuracy (blue) and active action (red)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _f(x, spec=".3f"):
+    return "n/a" if x is None else format(x, spec)
+
+
+def _report(p: dict, configs) -> str:
+    s = p["settings"]
+    lines = ["# Action-model bank: switching sequences (Ukita 4.1-4.4 in the labeler)", "",
+             f"Actions and recordings: " + ", ".join(f"{a} = `{r}`" for a, r in p["actions"].items()) + ".",
+             f"Models train on the first {100 * s['train_fraction']:.0f} % of each recording "
+             f"({', '.join(f'{a} {fr}' for a, fr in p['train_frames'].items())}); the test sequences use "
+             "only the remaining frames (dance test part capped at "
+             f"{s['max_dance_frames']} frames), joined at their most similar poses "
+             "(`dtm_labeler.evaluation.switching.join_clips`). Walk, run and dance come from three "
+             "different subjects (CMU 7, 9, 55).", "",
+             f"Corruption per frame: {s['occlude']} hidden points (gaps of {s['gap_frames']:g} frames on "
+             f"average), {s['clutter']} ghost points, {s['noise_mm']:g} mm noise; points shuffled; labeler in "
+             f"stream mode with default settings. Seeds {s['seeds']} x {len(p['sequences'])} sequences.", "",
+             "Sequences: " + "; ".join(f"{q['name']} ({q['frames']} frames, switches at {q['switches']})"
+                                       for q in p["sequences"]) + ".", "",
+             "## Result (pooled over sequences and seeds)", "",
+             f"| configuration | accuracy | accuracy +-{s['window']} frames of a switch | frames to recover "
+             f"(mean / median) | active action = true class |",
+             "|---|---|---|---|---|"]
+    for c in configs:
+        m = p["results"][c]["pooled"]
+        lines.append(f"| {c} | {_f(m['accuracy'])} | {_f(m['switch_window_accuracy'])} | "
+                     f"{_f(m['mean_frames_to_recover'], '.1f')} / {_f(m['median_frames_to_recover'], '.0f')} | "
+                     f"{_f(m['active_action_accuracy'])} |")
+    lines += ["", f"Frames to recover: first frame after a switch from which the frame accuracy stays >= "
+              f"{100 * s['recover_level']:.0f} % for {s['recover_frames']} frames (never: frames to the next switch).",
+              "", "![switching](switching.png)", "",
+              "## Per sequence", "", "| configuration | sequence | seed | accuracy | window | recover | active |",
+              "|---|---|---|---|---|---|---|"]
+    for c in configs:
+        for m in p["results"][c]["runs"]:
+            lines.append(f"| {c} | {m['sequence']} | {m['seed']} | {_f(m['accuracy'])} | "
+                         f"{_f(m['switch_window_accuracy'])} | {m['frames_to_recover']} | "
+                         f"{_f(m['active_action_accuracy'])} |")
+    lines += ["", "## Synthesized transitions (bank+transitions, every model gets the paths to all others)", "",
+              "| action | with | accepted paths | synthesized frames | rejected (curvature) |", "|---|---|---|---|---|"]
+    for a, ts in p["transitions"].items():
+        for t in ts:
+            lines.append(f"| {a} | {t['with']} | {t['paths']} | {t['frames']} | {t['rejected']} |")
+    lines += ["", "Configurations: **pooled** = one model on all training data (StreamLabeler); **hard** = one "
+              "model per action, whole population in the active model, switched to the best-scoring model "
+              "after every frame; **bank** = BankLabeler (population spread over the models, migration, "
+              "sticky HMM active action) on models without synthesized paths; **bank+transitions** = the same "
+              "with every model trained on its data plus the synthesized paths to every other action; "
+              "**L2 incremental** = the paper's L1-L3 literally (action i gets the paths to actions j < i only; "
+              "order walk, run, dance).", "",
+              "No recording in the shared data changes activity with a known per-frame class, so all switching "
+              "sequences are joined recordings.", "", f"Wall time {p['wall_s']:.0f} s."]
+    return "\n".join(lines) + "\n"
+
+
+# ==================================================================== dtm-label --bank
+def label_clip_bank(bank, clip: MotionClip, settings=None, bank_settings=None, occlude: int = 0, clutter: int = 0,
+                    noise_mm: float = 0.0, seed: int = 0, progress=None, use_ids: bool = False,
+                    gap_frames: float = 1.0, keep_records: bool = True, done: int = 0, total: int | None = None):
+    """:func:`dtm_labeler.evaluation.pipeline.label_clip_run` with a :class:`BankLabeler`.
+    The run's ``settings`` add ``active_actions`` (per frame), ``true_class`` and
+    ``active_action_accuracy`` (None when the clip's class is not one of the bank's actions)."""
+    from ..evaluation.pipeline import ClipRun, FrameRecord, model_clip
+    from ..labeling.bank_labeler import BankLabeler
+    mc = model_clip(bank.labels, clip)
+    stream = corrupt_clip(mc, occlude=occlude, clutter=clutter, noise_mm=noise_mm, seed=seed, gap_frames=gap_frames)
+    labeler = BankLabeler(bank, settings, bank_settings)
+    acc = MetricsAccumulator(bank.labels, stream.rate)
+    records, active = [], []
+    total = len(stream) if total is None else total
+    t0 = time.perf_counter()
+    for i, f in enumerate(stream):
+        res = labeler.process(f.xyz, f.stamp, ids=f.ids if use_ids else None, truth=f.label_to_index)
+        acc.add_result(f.truth, res, valid=np.isfinite(f.xyz).all(1))
+        active.append(res.active_action)
+        if keep_records:
+            records.append(FrameRecord(
+                index=f.index, stamp=f.stamp, xyz=f.xyz, truth=f.truth, labels=res.labels,
+                confidence=res.confidence, track_ids=res.track_ids, search_labels=res.search_labels,
+                log_likelihood=res.log_likelihood, truth_fitness=res.truth_fitness, latency_ms=res.latency_ms,
+                full_search=res.full_search, generations=res.generations, evaluations=res.evaluations,
+                reset=res.reset))
+        if progress is not None:
+            progress(done + i + 1, total)
+    cls = clip.motion_class
+    agree = float(np.mean([a == cls for a in active])) if cls and cls in bank.actions and active else None
+    counts = {a: active.count(a) for a in bank.actions}
+    return ClipRun(source=stream.source, metrics=acc.metrics(), accumulator=acc, records=records,
+                   settings=dict(stream.settings, use_ids=use_ids, wall_s=time.perf_counter() - t0,
+                                 active_actions=active, true_class=cls, active_action_accuracy=agree,
+                                 active_action_frames=counts))
