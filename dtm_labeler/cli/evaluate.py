@@ -38,6 +38,7 @@ EPILOG = """examples:
   dtm-eval                                  full run into results/eval (about 15-25 minutes on 2 cores)
   dtm-eval --only tables12,structure        just the model tests
   dtm-eval --frames-per-test 30 --jobs 2    more test frames per cell
+  dtm-eval --only bank                      action-model bank on switching sequences (results/eval/bank)
 """
 
 MARKER_FILES = (
@@ -198,6 +199,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), metavar="J",
                    help="worker processes")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--bank", action="store_true",
+                   help="also run the action-model bank comparison (Ukita 4.1-4.4: pooled model, hard switching, "
+                        "bank without / with synthesized transitions on switching sequences) into OUT/bank/; "
+                        "--only bank runs just that")
     return p
 
 
@@ -213,7 +218,8 @@ def _sections(spec: str | None) -> list[str]:
 
 def _main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    sections = _sections(args.only)
+    args.only, bank_only = _split_bank(args)
+    sections = [] if bank_only else _sections(args.only)
     if args.frames_per_test is not None and args.frames_per_test < 1:
         raise CliError("--frames-per-test must be >= 1")
     if args.jobs < 1:
@@ -226,6 +232,10 @@ def _main(argv=None) -> int:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise CliError(f"--out {out_dir}: {e}") from None
+    if args.bank:
+        _bank_section(args, data_dir, out_dir)
+        if bank_only:
+            return 0
     plan = make_plan(args)
     t_start = time.perf_counter()
     runner = Runner(args.jobs, args.quiet)
@@ -444,6 +454,30 @@ def run_sections(sections, plan: Plan, data_dir: Path, runner: Runner, quiet: bo
                 "test_missing_fraction": float(np.isnan(m["test"].positions[..., 0]).mean())}
             for k, m in marker_clips.items()}
     return results
+
+
+# -- action-model bank (dtm_labeler.evaluation.switching; separate report in OUT/bank) ----------------------
+def _split_bank(args) -> tuple:
+    """``--only`` without the pseudo-section ``bank`` (which turns on ``--bank``); True when
+    only the bank section was asked for."""
+    if not args.only:
+        return args.only, False
+    parts = [s.strip() for s in args.only.split(",") if s.strip()]
+    if "bank" in parts:
+        args.bank = True
+        parts = [s for s in parts if s != "bank"]
+        return (",".join(parts) or None), not parts
+    return args.only, False
+
+
+def _bank_section(args, data_dir: Path, out_dir: Path) -> None:
+    from ..evaluation.switching import ExperimentSettings, run_experiment
+    es = ExperimentSettings(seeds=(args.seed + 1,), incremental=False, max_dance_frames=120) if args.quick else \
+        ExperimentSettings(seeds=(args.seed + 1, args.seed + 2))
+    t0 = time.perf_counter()
+    run_experiment(data_dir, out_dir / "bank", es, progress=(lambda m: None) if args.quiet else
+                   (lambda m: print(m, file=sys.stderr, flush=True)))
+    print(f"wrote {out_dir / 'bank' / 'report.md'} in {(time.perf_counter() - t0) / 60:.1f} min")
 
 
 def main(argv=None) -> int:
