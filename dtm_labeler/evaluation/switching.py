@@ -427,7 +427,34 @@ def _report(p: dict, configs) -> str:
               "**L2 incremental** = the paper's L1-L3 literally (action i gets the paths to actions j < i only; "
               "order walk, run, dance).", "",
               "No recording in the shared data changes activity with a known per-frame class, so all switching "
-              "sequences are joined recordings.", "", f"Wall time {p['wall_s']:.0f} s."]
+              "sequences are joined recordings.", "",
+              "## Readings of the paper used here", "",
+              "* **Scalability vs. shared transitions (L2).** `dtm-train --action NAME --bank DIR` follows L2 "
+              "literally: the *new* model is trained on its recordings plus the paths synthesized to every "
+              "action already in the bank; existing model files are not touched (byte-identical, tested). "
+              "`--retrain-neighbours` is the explicit opt-in that also retrains the others so the paths join "
+              "the training data of *both* models they connect; the batch builder "
+              "(`build_bank(mode='all')`, the **bank+transitions** row) does that for every pair. The "
+              "L2-literal bank (order walk, run, dance) is the last row: the first model gets no paths.",
+              "* **End points.** Local maxima of s(i,j) = -RMS distance per body point of root-centred, "
+              "heading-normalised body14 poses, over a 9x9 frame neighbourhood, above a threshold of 0.10 m "
+              "or 1.25 x the pair's closest distance (whichever is larger; walk and the whirl dance are never "
+              "closer than 0.28 m).",
+              "* **In-between count (P1-P2).** Fewest equal steps no longer than y_max; curvature = "
+              "|second difference of the angle between consecutive pose vectors| over the whole path "
+              "including two real frames each side; widen (i-1, j+1) up to 30 times, else drop the pair.",
+              "* **Interpolation.** cgspeed BVH recordings share one hierarchy, so local joint rotations are "
+              "slerped (bone vectors interpolated between the two subjects' skeletons, constant for one "
+              "skeleton), root by a cubic Hermite with the real root velocities (continuous velocity for the "
+              "eq. 12 features).",
+              "* **Migration.** p(m->n) = 1 / (1 + exp(-(f_n - f_m) / (tau k))) -- Ukita's "
+              "exp(-s_n^2) / (exp(-s_m^2) + exp(-s_n^2)) with the misfit s^2 = -f / (tau k), f the "
+              "fitness (log-likelihood relative to clutter) and k the labelled points; tau = 1 nat per point. "
+              "Every non-elite individual is a candidate after every generation (a GA individual has no "
+              "latent position to test 'nearest sample is synthesized'); each model keeps >= 4 individuals.",
+              "* **Active action.** Sticky HMM forward filter over the per-model best fitness tempered to "
+              "nats per labelled point / 4, switch rate 1 Hz; the published labeling is the best individual "
+              "over all models.", "", f"Wall time {p['wall_s']:.0f} s."]
     return "\n".join(lines) + "\n"
 
 
