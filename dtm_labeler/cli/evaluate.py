@@ -105,6 +105,8 @@ class Runner:
 
     def map(self, tasks: list[tuple], desc: str) -> list:
         """``tasks`` = [(label, fn, kwargs)]; results in order."""
+        if not self.quiet and not sys.stderr.isatty():      # no live bar in logs: one line per stage
+            print(f"dtm-eval: {desc}: {len(tasks)} tasks on {self.jobs} worker(s)", file=sys.stderr, flush=True)
         bar = tqdm(total=len(tasks), desc=desc, unit="task", file=sys.stderr, disable=True if self.quiet else None,
                    dynamic_ncols=True)
         out = [None] * len(tasks)

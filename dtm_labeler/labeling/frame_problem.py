@@ -88,12 +88,17 @@ class FrameProblem:
         self.states = np.vstack([states, np.full((1, STATE_DIM), np.nan)])       # row n = missing
         self.codes = observation_state(self.states)
         self._clean = np.nan_to_num(self.states, nan=0.0)
+        xyz = self.states[:, :3]
+        d = np.linalg.norm(xyz[:, None] - xyz[None], axis=-1)
+        d[-1, :] = d[:, -1] = 0.0                              # "missing" is never too far
+        self.dist = np.nan_to_num(d, nan=0.0)
+        self.bounds = model.distance_bounds
         self._rotated: dict[int, np.ndarray] = {}
         self.bins = model.heading_bins
         self.T = model.structure.n_triangles
         self.tri = model.triangles
         self.pairs = model.heading_pairs          # for the yaw of a candidate
-        self.mirror_pairs = model.mirror_pairs    # every left/right pair (mirror moves)
+        self.mirror_pairs = model.mirror_pairs    # every left/right pair (mirror moves, yaw fallback)
         b = background
         has_v = self.codes[:-1] == 2
         # gain of labelling point p (relative to it being clutter), before model terms
@@ -104,15 +109,22 @@ class FrameProblem:
 
     # -- heading -------------------------------------------------------------------------
     def yaw(self, pop: np.ndarray) -> np.ndarray:
-        """Facing yaw of each candidate from its labelled left/right pairs (hint if none)."""
-        if self.pairs.size == 0:
-            return np.full(pop.shape[0], self.heading_hint)
+        """Facing yaw of each candidate from its labelled left/right pairs: the stable
+        (heading) pairs where any is complete, else any left/right pair, else the hint."""
+        yaw = np.full(pop.shape[0], self.heading_hint)
+        todo = np.ones(pop.shape[0], dtype=bool)
         P = self.states[:, :2]
-        d = P[pop[:, self.pairs[:, 0]]] - P[pop[:, self.pairs[:, 1]]]            # (P, Q, 2)
-        ok = np.isfinite(d).all(-1)
-        d = np.where(ok[..., None], d, 0.0).sum(1)
-        yaw = np.arctan2(-d[:, 0], d[:, 1])
-        return np.where(ok.any(1), yaw, self.heading_hint)
+        for pairs in (self.pairs, self.mirror_pairs):
+            if pairs.size == 0 or not todo.any():
+                continue
+            d = P[pop[todo][:, pairs[:, 0]]] - P[pop[todo][:, pairs[:, 1]]]      # (k, Q, 2)
+            ok = np.isfinite(d).all(-1)
+            d = np.where(ok[..., None], d, 0.0).sum(1)
+            have = ok.any(1)
+            idx = np.flatnonzero(todo)[have]
+            yaw[idx] = np.arctan2(-d[have, 0], d[have, 1])
+            todo[idx] = False
+        return yaw
 
     def heading_bin(self, yaw: np.ndarray) -> np.ndarray:
         step = 2.0 * np.pi / self.bins
@@ -180,6 +192,21 @@ class FrameProblem:
         bins = self.heading_bin(self.yaw(pop))
         f = self.triangle_table(pop, bins).sum(1) + self.label_gain[pop].sum(1)
         return (f, bins) if return_bins else f
+
+    def plausible(self, pop: np.ndarray, labels: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """Whether giving ``labels[k]`` the point ``points[k]`` in row ``pop[k]`` keeps every
+        triangle neighbour of that label within the model's distance bound (the search's
+        domain constraint; see :attr:`TriangulatedModel.distance_bounds`)."""
+        d = self.dist[points[:, None], pop]                          # (K, M) to every label's point
+        return ~(d > self.bounds[labels]).any(axis=1)
+
+    def allowed(self, ind: np.ndarray) -> np.ndarray:
+        """(M, n+1): label ``l`` may take point ``p`` given the rest of ``ind`` (distance
+        bounds to its assigned triangle neighbours); "missing" always allowed."""
+        d = self.dist[:, ind]                                          # (n+1, M)
+        ok = ~(d[None, :, :] > self.bounds[:, None, :]).any(axis=2)    # (M, n+1)
+        ok[:, self.n] = True
+        return ok
 
     def empty_assignment(self) -> np.ndarray:
         return np.full(self.M, self.n, dtype=np.int64)

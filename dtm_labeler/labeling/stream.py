@@ -83,7 +83,7 @@ class StreamLabeler:
 
     def __init__(self, model: TriangulatedModel, settings: LabelerSettings | None = None):
         self.settings = settings or LabelerSettings()
-        self.model = model
+        self.model = model.warm_up()
         self._build()
 
     def _build(self) -> None:
@@ -102,13 +102,14 @@ class StreamLabeler:
         self.votes.reset()
         self.track_label: dict[int, int] = {}     # published label per track (last frame)
         self.level = None                          # running fitness per labelled point (EMA)
+        self._provisional = False
         self.last_stamp = None
         self.heading = None
         self.centre = None
 
     def set_model(self, model: TriangulatedModel) -> None:
         """Swap the model (hot reload); window and tracks restart."""
-        self.model = model
+        self.model = model.warm_up()
         self._build()
 
     def update_settings(self, settings: LabelerSettings) -> None:
@@ -155,7 +156,9 @@ class StreamLabeler:
         problem = FrameProblem(self.model, upd.states, s.background, self.heading)
         n, M = problem.n, problem.M
 
-        seeds = self._seeds(upd.track_ids, n, M) if s.mode == "stream" else None
+        velocity_known = bool((problem.codes[:-1] == 2).any())
+        seeds = self._seeds(upd.track_ids, n, M) if s.mode == "stream" and not self._provisional else None
+        self._provisional = not velocity_known     # a labeling without velocities is re-searched next frame
         full = True
         outcome = None
         if seeds is not None:
@@ -180,7 +183,14 @@ class StreamLabeler:
             tr = np.asarray(truth, dtype=np.int64)
             truth_f = float(problem.fitness(np.where(tr < 0, n, pos[np.where(tr < 0, n_in, tr)])[None])[0])
         per_point = f / max(int((outcome.assignment < n).sum()), 1)
-        self.level = per_point if self.level is None or full else 0.8 * self.level + 0.2 * per_point
+        if self.level is None:
+            self.level = self._initial_level(problem)
+        if self._provisional:
+            pass                                   # no velocities yet: do not learn from it
+        elif f >= self._expected(outcome.assignment, n) - s.accept_drop:
+            self.level = 0.8 * self.level + 0.2 * per_point
+        else:                                      # a subject that fits worse than training: adapt slowly
+            self.level = 0.95 * self.level + 0.05 * per_point
 
         assign = np.where(outcome.assignment >= n, -1, outcome.assignment)
         search_labels = np.full(n, -1, dtype=np.int64)
@@ -250,6 +260,14 @@ class StreamLabeler:
         d = np.linalg.norm(p[:, None] - p[None], axis=-1)
         i, j = np.nonzero(np.triu(d < self.settings.swap_radius_m, 1))
         return np.stack([have[i], have[j]], axis=1)
+
+    def _initial_level(self, problem: FrameProblem) -> float:
+        """Typical fitness per labelled point: the model's training log-likelihood per label
+        plus the per-label gain of the background model (see FrameProblem)."""
+        ll = float(self.model.settings.get("loglik_per_label", 0.0))
+        full_gain = problem.label_gain[:-1][problem.codes[:-1] == 2]
+        gain = float(full_gain.mean()) if full_gain.size else float(np.median(problem.label_gain[:-1]))
+        return ll + gain
 
     def _expected(self, assignment: np.ndarray, n: int) -> float:
         """Running fitness level scaled to this frame's number of labelled points."""

@@ -269,6 +269,48 @@ class TriangulatedModel:
     def heading_bins(self) -> int:
         return int(self.settings.get("heading_bins", 720))
 
+    def warm_up(self) -> "TriangulatedModel":
+        """Build every observation pattern's densities, the batched terms and the distance
+        bounds now (model load / hot reload) instead of on the first frame that needs them."""
+        for term in self.terms:
+            for pid in range(N_PATTERNS):
+                term.pattern(pid)
+        _ = self.batched_full, self.distance_bounds
+        return self
+
+    @property
+    def distance_bounds(self) -> np.ndarray:
+        """(M, M) largest plausible distance (m) between labels that share a triangle, inf
+        otherwise: per component, |mean| + 5 sd (largest eigenvalue) of their relative
+        position under the triangle's mixture; the max over components and triangles.
+        A search constraint: candidates farther apart are never evaluated."""
+        if getattr(self, "_bounds", None) is None:
+            M = self.n_labels
+            D = np.full((M, M), np.inf)
+            best = np.zeros((M, M))
+            seen = np.zeros((M, M), dtype=bool)
+            # eq. 12 rows of pB - pA and pC - pA
+            rows = {(1, 0): [9, 11, 13], (2, 0): [10, 12, 14]}
+            for t, tri in enumerate(self.triangles):
+                mix = self.mixtures[t]
+                mu, cov = np.asarray(mix.means), np.asarray(mix.covariances)
+                maps = {}
+                for (i, j), r in rows.items():
+                    A = np.zeros((3, 15))
+                    A[np.arange(3), r] = 1.0
+                    maps[(i, j)] = A
+                maps[(2, 1)] = maps[(2, 0)] - maps[(1, 0)]
+                for (i, j), A in maps.items():
+                    m = mu @ A.T
+                    c = np.einsum("ij,kjl,ml->kim", A, cov, A)
+                    b = float(np.max(np.linalg.norm(m, axis=1) + 5.0 * np.sqrt(np.linalg.eigvalsh(c)[:, -1])))
+                    u, v = int(tri[i]), int(tri[j])
+                    best[u, v] = best[v, u] = max(best[u, v], b)
+                    seen[u, v] = seen[v, u] = True
+            D[seen] = best[seen]
+            self._bounds = D
+        return self._bounds
+
     @property
     def batched_full(self) -> BatchedFullTerms:
         if getattr(self, "_batched_full", None) is None:

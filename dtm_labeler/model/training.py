@@ -229,6 +229,8 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
                     "sources": [c.source for c in clips], "frames": int(states.shape[0]),
                     "rates_hz": sorted({float(c.rate) for c in clips})})
     ll = model.frame_log_likelihood(states[complete]) if complete.any() else np.array([np.nan])
+    # the typical model log-likelihood per labelled point: the stream labeler's starting level
+    model.settings["loglik_per_label"] = float(np.median(ll) / len(labels)) if complete.any() else 0.0
     summary = TrainSummary(
         labels=labels, frames_total=int(states.shape[0]), frames_complete=int(complete.sum()),
         structure=structure.names(labels), structure_method=config.structure,

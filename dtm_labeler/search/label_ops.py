@@ -126,20 +126,26 @@ def mirror(pop: np.ndarray, pairs: np.ndarray) -> np.ndarray:
 
 
 def neighbourhood(ind: np.ndarray, n: int, with_missing: bool = True,
-                  pairs: np.ndarray | None = None) -> np.ndarray:
+                  pairs: np.ndarray | None = None, allowed: np.ndarray | None = None) -> np.ndarray:
     """Every individual one move away from ``ind``: all label swaps, every label given every
     point (swapping with its holder) and, optionally, every label made missing."""
     M = ind.shape[0]
     i, j = np.triu_indices(M, 1)
+    if allowed is not None:       # (M, n+1): label may take point (domain constraint)
+        keep = allowed[i, ind[j]] & allowed[j, ind[i]]
+        i, j = i[keep], j[keep]
     swaps = np.repeat(ind[None], i.size, 0)
     swaps[np.arange(i.size), i], swaps[np.arange(i.size), j] = ind[j], ind[i]
     lab, pt = np.meshgrid(np.arange(M), np.arange(n), indexing="ij")
     lab, pt = lab.ravel(), pt.ravel()
     keep = ind[lab] != pt
-    lab, pt = lab[keep], pt[keep]
-    moves = np.repeat(ind[None], lab.size, 0)
     holder = np.full(n + 1, -1)
     holder[ind[ind < n]] = np.flatnonzero(ind < n)
+    if allowed is not None:
+        hh = holder[pt]
+        keep &= allowed[lab, pt] & ((hh < 0) | allowed[np.maximum(hh, 0), ind[lab]])
+    lab, pt = lab[keep], pt[keep]
+    moves = np.repeat(ind[None], lab.size, 0)
     h = holder[pt]
     r = np.arange(lab.size)
     moves[r[h >= 0], h[h >= 0]] = ind[lab[h >= 0]]

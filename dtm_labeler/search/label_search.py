@@ -136,19 +136,22 @@ def guided_sample(problem: FrameProblem, P: int, rng: np.random.Generator,
         bins = np.full(P, problem.heading_bin(np.array([problem.heading_hint]))[0])
         todo_mask = np.ones((P, M), dtype=bool)
     steps = [(int(v), 0) for v in tri[0]] + [(int(tri[t][0]), t) for t in range(1, T)]
-    choices = np.arange(n + 1)
     for v, t in steps:
         todo = np.flatnonzero(todo_mask[:, v])
         if todo.size == 0:
             continue
         sub = pop[todo]
-        cand = np.repeat(sub, n + 1, axis=0)
-        cand[:, v] = np.tile(choices, todo.size)
-        val = problem.triangle_table(cand, np.repeat(bins[todo], n + 1), [t])[:, 0].reshape(todo.size, n + 1)
-        val = val + gain[None, :]
-        taken = np.zeros((todo.size, n + 1), dtype=bool)
-        taken[:, :n] = ops.used_mask(sub, n)
-        val = np.where(taken, -np.inf, val)
+        # candidates: unused points within the distance bounds of the labels already placed
+        ok = np.ones((todo.size, n + 1), dtype=bool)
+        ok[:, :n] = ~ops.used_mask(sub, n)
+        near = problem.dist[:, sub].transpose(1, 0, 2) > problem.bounds[v][None, None, :]   # (k, n+1, M)
+        ok &= ~near.any(axis=2)
+        ok[:, n] = True
+        r, c = np.nonzero(ok)
+        cand = sub[r].copy()
+        cand[:, v] = c
+        val = np.full((todo.size, n + 1), -np.inf)
+        val[r, c] = problem.triangle_table(cand, bins[todo][r], [t])[:, 0] + gain[c]
         pop[todo, v] = np.argmax(val / temp[todo, None] + rng.gumbel(size=val.shape), axis=1)
     # a candidate built on a pair read the wrong way round is the mirror of a good one
     if base is None and len(problem.mirror_pairs):
@@ -189,7 +192,7 @@ def polish(problem: FrameProblem, ind: np.ndarray, fit: float, rounds: int,
     for _ in range(rounds):
         if deadline is not None and time.perf_counter() > deadline:
             break
-        cand = ops.neighbourhood(ind, problem.n, pairs=problem.mirror_pairs)
+        cand = ops.neighbourhood(ind, problem.n, pairs=problem.mirror_pairs, allowed=problem.allowed(ind))
         f = problem.fitness(cand)
         evals += len(cand)
         i = int(np.argmax(f))
@@ -267,19 +270,14 @@ class _GABase(LabelSearch):
 def ruin_and_recreate(problem: FrameProblem, pop: np.ndarray, rng: np.random.Generator,
                       rate: float, temperature: float = 3.0) -> np.ndarray:
     """Model-guided mutation: for a fraction ``rate`` of individuals, clear the labels of one
-    random triangle (or of 2-4 random labels) and redraw them with :func:`guided_sample`
-    given the rest. Reaches multi-label moves (a chain of shifted labels) no swap reaches."""
+    triangle (the same random triangle for all of them this generation, so the redraw costs
+    three vectorised sampling steps) and redraw them with :func:`guided_sample` given the
+    rest. Reaches multi-label moves (a chain of shifted labels) that no swap reaches."""
     hit = np.flatnonzero(rng.random(pop.shape[0]) < rate)
     if hit.size == 0:
         return pop
-    M = pop.shape[1]
-    free = np.zeros((hit.size, M), dtype=bool)
-    by_tri = rng.random(hit.size) < 0.5
-    tri = problem.tri[rng.integers(problem.T, size=hit.size)]
-    free[np.flatnonzero(by_tri)[:, None], tri[by_tri]] = True
-    k = rng.integers(2, 5, size=hit.size)
-    rnd = np.argsort(rng.random((hit.size, M)), axis=1) < k[:, None]
-    free[~by_tri] = rnd[~by_tri]
+    free = np.zeros((hit.size, pop.shape[1]), dtype=bool)
+    free[:, problem.tri[rng.integers(problem.T)]] = True
     out = pop.copy()
     out[hit] = guided_sample(problem, hit.size, rng, temperature, base=pop[hit], free=free)
     return out
