@@ -109,3 +109,66 @@ def test_hard_switching_and_bank_off(data):
         BankSettings(strategy="nope")
     with pytest.raises(KeyError):
         BankLabeler(bank, LabelerSettings(), BankSettings(use_bank=False, default_action="swim"))
+
+
+def test_node_uses_the_bank(tmp_path, data):
+    """Node parameters use_bank / bank_path (in-process node, no DDS peers): the bank loads, the
+    active action is published in LabeledMarkerArray.active_model and /diagnostics, a bad bank is
+    rejected at runtime and the running one kept, use_bank=false goes back to model_path."""
+    import time
+
+    rclpy = pytest.importorskip("rclpy")
+    from rclpy.parameter import Parameter
+    from std_msgs.msg import Header
+
+    from dtm_labeler.model.bank import save_bank
+    from dtm_labeler.model.io import save_model
+    from dtm_labeler.ros.node import LabelerNode, _Frame
+    bank, tw, tr = data
+    save_bank(bank, tmp_path / "bank")
+    save_model(bank["walk"], tmp_path / "walk.npz")
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = LabelerNode(context=ctx, namespace="/t_bank", start_worker=False, parameter_overrides=[
+        Parameter("use_bank", value=True), Parameter("bank_path", value=str(tmp_path / "bank")),
+        Parameter("model_path", value=str(tmp_path / "walk.npz"))])
+    published = []
+    node._pub_labeled.publish = published.append
+
+    def diag():
+        st = {s.name.rsplit(": ", 1)[1]: s for s in node.diagnostics()}
+        return {kv.key: kv.value for kv in st["model"].values}
+
+    def feed(clip, n, t0):
+        rng = np.random.default_rng(0)
+        for k in range(n):
+            xyz = clip.positions[k][rng.permutation(14)]
+            node._label(_Frame(xyz, None, Header(), t0 + k / clip.rate, time.perf_counter(), 0.0))
+
+    try:
+        assert isinstance(node._labeler, BankLabeler)
+        d = diag()
+        assert d["model_status"] == "loaded" and d["use_bank"] == "True" and d["bank_actions"] == "walk,run"
+        feed(tr, 40, 0.0)
+        assert published[-1].active_model == "run" and diag()["active_model"] == "run"
+        assert sum(m.label != "" for m in published[-1].markers) >= 12
+        # a damaged bank is rejected; the running bank stays
+        (tmp_path / "bad").mkdir()
+        (tmp_path / "bad" / "bank.json").write_text("{")
+        r = node.set_parameters([Parameter("bank_path", value=str(tmp_path / "bad"))])[0]
+        assert not r.successful and "corrupt" in r.reason
+        assert isinstance(node._labeler, BankLabeler)
+        # bank off: back to the single model at model_path (applied by the worker; run it here)
+        r = node.set_parameters([Parameter("use_bank", value=False)])[0]
+        assert r.successful
+        pending, node._pending = node._pending, []
+        for item in pending:
+            node._apply(item)
+        assert not isinstance(node._labeler, BankLabeler) and node._labeler.model.labels == bank.labels
+        feed(tw, 3, 10.0)
+        assert published[-1].active_model == "" and diag()["use_bank"] == "False"
+        r = node.set_parameters([Parameter("use_bank", value=True), Parameter("bank_path", value="")])
+        assert not all(x.successful for x in r)
+    finally:
+        node.destroy_node()
+        ctx.try_shutdown()

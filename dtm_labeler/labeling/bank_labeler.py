@@ -50,6 +50,8 @@ time, as in switching GPDMs): the whole population lives in the active model; af
 the labeling is scored under every model and the active model becomes the arg max at once.
 
 ``use_bank=False`` labels with one model only (``default_action``, else the first).
+The search is always the multi-model CBGA (``method='tracker'`` keeps its meaning: carried
+labels, search only to start); other ``method`` values are treated as ``cbga``.
 """
 from __future__ import annotations
 
@@ -141,8 +143,8 @@ class BankLabeler:
     # -- set-up ------------------------------------------------------------------------
     def _build(self) -> None:
         s, b = self.settings, self.bank_settings
-        if s.method not in ("cbga", "tracker"):
-            raise ValueError("the bank labeler searches with the CBGA (method cbga or tracker)")
+        # the bank searches with its own multi-model CBGA; 'tracker' keeps its meaning (carry labels,
+        # search only to start); any other method name (sga, greedy, exhaustive) also uses the CBGA
         acts = self.bank.actions
         if not b.use_bank:
             one = b.default_action or acts[0]

@@ -82,6 +82,10 @@ class ModelBank:
             return ()
         return next(iter(self.models.values())).labels
 
+    @property
+    def n_labels(self) -> int:
+        return len(self.labels)
+
     def __len__(self) -> int:
         return len(self.models)
 

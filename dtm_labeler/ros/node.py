@@ -59,7 +59,9 @@ from visualization_msgs.msg import MarkerArray
 
 from dtm_labeler_msgs.msg import LabeledMarker, LabeledMarkerArray
 
+from ..labeling.bank_labeler import BankLabeler
 from ..labeling.stream import StreamLabeler
+from ..model.bank import ModelBank, load_bank
 from ..model.io import load_model
 from . import params as P
 from .pointcloud import PointCloudError, make_labeled_cloud, read_points_xyz
@@ -173,10 +175,10 @@ class LabelerNode(Node):
         self._model_error = ""
         self._labeler: Optional[StreamLabeler] = None     # worker-owned
         self._model = None                                 # the model of the accepted configuration
-        path = self._values["model_path"]
-        if path:
+        path = self._values["bank_path"] if self._values["use_bank"] else self._values["model_path"]
+        if path or self._values["use_bank"]:
             try:
-                model = self._load_checked(path, self._values["expected_labels"])
+                model, path = self._load_engine(self._values)
                 self._set_model_now(model, path, settings)
                 self._model = model
                 self.get_logger().info(f"model {path}: {model.n_labels} labels ({', '.join(model.labels)})")
@@ -260,6 +262,20 @@ class LabelerNode(Node):
         P.check_labels(model.labels, expected, where=f"model {path}")
         return model
 
+    @staticmethod
+    def _load_engine(values: Dict[str, Any]):
+        """(model or bank, path) of a configuration: the bank at ``bank_path`` when ``use_bank``,
+        else the model at ``model_path`` ((None, '') when that is empty)."""
+        if values["use_bank"]:
+            path = values["bank_path"]
+            if not path:
+                raise ValueError("use_bank is true but bank_path is empty")
+            bank = load_bank(path)        # BankFileError (a ValueError) with the reason
+            P.check_labels(bank.labels, values["expected_labels"], where=f"bank {path}")
+            return bank, path
+        path = values["model_path"]
+        return (LabelerNode._load_checked(path, values["expected_labels"]), path) if path else (None, "")
+
     def _on_set_parameters(self, params: List[Parameter]) -> SetParametersResult:
         """Validate the WHOLE resulting configuration; stage it for the post-set callback."""
         self._staged = None
@@ -277,12 +293,10 @@ class LabelerNode(Node):
         path = values["model_path"]
         expected = values["expected_labels"]
         try:
-            if any(p.name == "model_path" for p in params):
+            engine_keys = {"use_bank", "bank_path" if values["use_bank"] else "model_path"}
+            if any(p.name in engine_keys for p in params):
                 # an explicit set reloads (even the same path: a retrained file in place)
-                if path:
-                    change = _ModelChange(self._load_checked(path, expected), path)
-                else:
-                    change = _ModelChange(None, "")
+                change = _ModelChange(*self._load_engine(values))
             elif expected != self._values["expected_labels"] and self._model is not None:
                 P.check_labels(self._model.labels, expected, where=f"running model {self._model_path}")
         except (ValueError, OSError) as e:
@@ -425,7 +439,11 @@ class LabelerNode(Node):
                         self._labeler.reset()
 
     def _set_model_now(self, model, path: str, settings) -> None:
-        self._labeler = StreamLabeler(model, _engine_settings(settings)) if model is not None else None
+        if isinstance(model, ModelBank):       # use_bank: every action model at once
+            self._labeler = BankLabeler(model, _engine_settings(settings))
+            model = model[model.actions[0]]     # same labels in every model: colours, edges
+        else:
+            self._labeler = StreamLabeler(model, _engine_settings(settings)) if model is not None else None
         self._colors = label_colors(model.n_labels) if model is not None else np.zeros((0, 4))
         self._edges = sorted(model.structure.edges()) if model is not None else []
         self._label_track = {}
@@ -489,7 +507,7 @@ class LabelerNode(Node):
         out.frame_number = self._frame_number
         out.label_names = names
         out.log_likelihood = float(loglik)
-        out.active_model = values["model_name"]
+        out.active_model = getattr(lab, "active_action", "") or values["model_name"]
         markers = []
         pos = xyz.tolist()
         for p, l, c, t in zip(pos, labels.tolist(), np.asarray(conf, dtype=float).tolist(), tracks.tolist()):
@@ -672,7 +690,9 @@ class LabelerNode(Node):
         sm.values = [KeyValue(key=k, value=str(x)) for k, x in [
             ("model_status", model_status), ("model_path", model_path), ("model_error", model_error),
             ("labels", ",".join(labels)), ("n_labels", len(labels)),
-            ("expected_labels", ",".join(v["expected_labels"])), ("active_model", v["model_name"]),
+            ("expected_labels", ",".join(v["expected_labels"])),
+            ("active_model", getattr(lab, "active_action", "") or v["model_name"]),
+            ("use_bank", v["use_bank"]), ("bank_actions", ",".join(getattr(lab, "actions", []))),
             ("reloads_ok", snap["reloads_ok"]), ("reloads_failed", snap["reloads_failed"])]]
         return [st, sm]
 

@@ -70,6 +70,11 @@ PARAMS: Tuple[ParamSpec, ...] = (
               "model. A model whose labels differ is rejected."),
     ParamSpec("model_name", "", "Name published as LabeledMarkerArray.active_model (e.g. 'walk'); "
               "empty for a single-model labeler."),
+    ParamSpec("bank_path", "", "Model bank (directory with bank.json, or single-file bank .npz, from "
+              "dtm-train --action NAME --bank DIR): one model per action, all used at once (Ukita). "
+              "Loaded when use_bank is true; setting it at runtime hot-reloads the bank."),
+    ParamSpec("use_bank", False, "Label with the model bank at bank_path instead of model_path; the "
+              "active action is published as LabeledMarkerArray.active_model and in /diagnostics."),
     # -- search ------------------------------------------------------------------------------
     ParamSpec("method", _D.method, "Label search: cbga (constraint-based GA, the paper's), sga "
               "(simple GA), greedy (DP over the DTM), exhaustive (tiny models only), tracker "
