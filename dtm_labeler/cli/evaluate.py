@@ -205,6 +205,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also run the action-model bank comparison (Ukita 4.1-4.4: pooled model, hard switching, "
                         "bank without / with synthesized transitions on switching sequences) into OUT/bank/; "
                         "--only bank runs just that")
+    p.add_argument("--rebuild", action="store_true",
+                   help="only rewrite report.md and the figures from the results.json already in --out")
     return p
 
 
@@ -234,6 +236,15 @@ def _main(argv=None) -> int:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise CliError(f"--out {out_dir}: {e}") from None
+    if args.rebuild:
+        try:
+            saved = json.loads((out_dir / "results.json").read_text(encoding="utf-8"))
+        except (OSError, ValueError) as e:
+            raise CliError(f"--rebuild: cannot read {out_dir / 'results.json'}: {e}") from None
+        from ..evaluation.report import write_report
+        paths = write_report(out_dir, saved["results"], saved["meta"])
+        print(f"rewrote {paths['report']} ({len(paths['figures'])} figures) from results.json")
+        return 0
     if args.bank:
         _bank_section(args, data_dir, out_dir)
         if bank_only:
