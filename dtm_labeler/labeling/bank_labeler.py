@@ -43,7 +43,10 @@ labelled point / temperature) and filtered by a sticky HMM forward recursion::
     eps = 1 - exp(-switch_rate_hz * dt)
 
 The active action is ``argmax alpha``. The published labeling is the best individual over all
-models (joint MAP over model and labeling), as the issue asks.
+models (joint MAP over model and labeling), as the issue asks. When the active action changes,
+the next frame skips the fast path and runs the full multi-model GA (seeded with the carried
+labels): the carried labeling was accepted under the old model's fitness level, and a wrong
+labeling adopted at the switch would otherwise become the new normal.
 
 **Hard switching** (``strategy='hard'``, the comparison baseline: one motion hypothesis at a
 time, as in switching GPDMs): the whole population lives in the active model; after each frame
@@ -81,6 +84,7 @@ class BankSettings:
     score_temperature: float = 4.0         # evidence tempering (nats per labelled point)
     switch_rate_hz: float = 1.0            # prior rate of action changes (HMM stickiness)
     default_action: str | None = None
+    search_on_switch: bool = True          # full search in the frame after the active action changes
 
     def __post_init__(self) -> None:
         if self.strategy not in STRATEGIES:
@@ -175,6 +179,7 @@ class BankLabeler:
         self.last_stamp = None
         self.heading = None
         self.centre = None
+        self._switched = False
 
     def set_bank(self, bank: ModelBank) -> None:
         self.bank = bank
@@ -236,7 +241,12 @@ class BankLabeler:
         cands: dict[int, tuple[np.ndarray, float]] = {}
         gens = evals = 0
         full = True
-        if seeds is not None:
+        switched, self._switched = self._switched, False
+        if seeds is not None and switched and bs.search_on_switch:
+            # the motion hypothesis changed last frame: the carried labeling was chosen under
+            # the old model, so this frame gets a full search (seeded with it) under all models
+            pass
+        elif seeds is not None:
             if s.method == "tracker":
                 for m in searched:
                     cands[m] = (seeds[0], float(problems[m].fitness(seeds[0][None])[0]))
@@ -329,6 +339,11 @@ class BankLabeler:
 
     # -- action belief ---------------------------------------------------------------------
     def _update_action(self, g: np.ndarray, k: int, dt: float | None) -> None:
+        before = self.active
+        self._update_belief(g, k, dt)
+        self._switched = self.active != before
+
+    def _update_belief(self, g: np.ndarray, k: int, dt: float | None) -> None:
         K = len(self.actions)
         if self.bank_settings.strategy == "hard":
             self.active = int(np.argmax(g))
