@@ -326,11 +326,23 @@ def run_experiment(data_dir, out_dir, settings: ExperimentSettings | None = None
                "incremental_transitions": ({a: [{k: v for k, v in t.items() if k != "paths_detail"}
                                                 for t in models["incremental"].records[a]["transitions"]]
                                             for a in models["incremental"].actions} if es.incremental else None),
-               "results": results, "wall_s": time.perf_counter() - t_all}
+               "results": results, "wall_s": time.perf_counter() - t_all, "code": _code_version()}
     (out_dir / "results.json").write_text(json.dumps(payload, indent=1, default=_jsonable))
     _plot(example, seqs[0], configs, results, out_dir / "switching.png")
     (out_dir / "report.md").write_text(_report(payload, configs))
     return payload
+
+
+def _code_version() -> str:
+    import os
+    import subprocess
+    if os.environ.get("DTM_CODE_COMMIT"):
+        return os.environ["DTM_CODE_COMMIT"]
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5,
+                              cwd=os.path.dirname(__file__)).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return ""
 
 
 def _jsonable(o):
@@ -454,7 +466,8 @@ def _report(p: dict, configs) -> str:
               "latent position to test 'nearest sample is synthesized'); each model keeps >= 4 individuals.",
               "* **Active action.** Sticky HMM forward filter over the per-model best fitness tempered to "
               "nats per labelled point / 4, switch rate 1 Hz; the published labeling is the best individual "
-              "over all models.", "", f"Wall time {p['wall_s']:.0f} s."]
+              "over all models; the frame after the active action changes gets a full search.", "",
+              f"Wall time {p['wall_s']:.0f} s; code {p.get('code') or 'unknown'}."]
     return "\n".join(lines) + "\n"
 
 
