@@ -485,7 +485,8 @@ def _split_bank(args) -> tuple:
 
 def _bank_section(args, data_dir: Path, out_dir: Path) -> None:
     from ..evaluation.switching import ExperimentSettings, run_experiment
-    es = ExperimentSettings(seeds=(args.seed + 1,), incremental=False, max_dance_frames=120) if args.quick else \
+    es = ExperimentSettings(seeds=(args.seed + 1,), incremental=False, max_dance_frames=120,
+                            train=dict(mixture="fixed", k_fixed=2, structure="given")) if args.quick else \
         ExperimentSettings(seeds=(args.seed + 1, args.seed + 2))
     t0 = time.perf_counter()
     run_experiment(data_dir, out_dir / "bank", es, progress=(lambda m: None) if args.quiet else

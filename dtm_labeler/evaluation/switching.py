@@ -218,6 +218,7 @@ class ExperimentSettings:
     min_part: int = 30
     max_dance_frames: int = 300           # the dance test part is long; keep sequences balanced
     incremental: bool = True              # also run the L2-literal bank (paths only to earlier actions)
+    train: dict | None = None             # TrainConfig keywords (None: the dtm-train defaults)
 
 
 def prepare(data_dir, actions: dict | None = None, fraction: float = 0.6, skeletal: bool = True):
@@ -291,7 +292,8 @@ def run_experiment(data_dir, out_dir, settings: ExperimentSettings | None = None
         d = test["dance"]
         test["dance"] = d.slice(0, es.max_dance_frames)
         test["dance"].meta["frame_range"] = [d.meta["frame_range"][0], d.meta["frame_range"][0] + es.max_dance_frames]
-    models = build_configs(src, incremental=es.incremental, progress=progress)
+    from ..model.training import TrainConfig
+    models = build_configs(src, TrainConfig(**(es.train or {})), incremental=es.incremental, progress=progress)
     seqs = [join_clips([test[a] for a in order], min_part=es.min_part) for order in DEFAULT_ORDERS]
     configs = list(CONFIGS) + (["bank+transitions (L2 incremental)"] if es.incremental else [])
     results: dict = {c: {"runs": []} for c in configs}
