@@ -86,15 +86,34 @@ def _pair_triangles(problem: FrameProblem) -> list[tuple[int, int, int]]:
     return out
 
 
+def _root_triangles(problem: FrameProblem, lft: int, rgt: int, t: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every plausible assignment of the triangle ``t`` holding the left/right pair: point
+    pairs within the pair's distance bound, the third vertex within the bounds of both (or
+    missing). Returns (candidates (K, M), heading bins (K,))."""
+    n, M = problem.n, problem.M
+    third = [int(v) for v in problem.tri[t] if v not in (lft, rgt)][0]
+    d = problem.dist[:n, :n]
+    I, J = np.nonzero((d <= problem.bounds[lft, rgt]) & ~np.eye(n, dtype=bool))
+    ok = (problem.dist[I] <= problem.bounds[third, lft]) & (problem.dist[J] <= problem.bounds[third, rgt])
+    ok[np.arange(I.size), I] = False
+    ok[np.arange(I.size), J] = False
+    ok[:, n] = True
+    r, k = np.nonzero(ok)
+    cand = np.full((r.size, M), n, dtype=np.int64)
+    cand[:, lft], cand[:, rgt], cand[:, third] = I[r], J[r], k
+    return cand, problem.heading_bin(problem.yaw(cand))
+
+
 def guided_sample(problem: FrameProblem, P: int, rng: np.random.Generator,
                   temperature: float | np.ndarray = 1.0, base: np.ndarray | None = None,
                   free: np.ndarray | None = None) -> np.ndarray:
     """Constraint-respecting, model-guided initialisation (eq. 15-17 with the model as guide).
 
     1. Heading: each candidate picks one of the model's left/right pairs (that share a
-       triangle) at random and draws its two points jointly, with probability proportional
-       to ``exp(term / temperature)`` of that triangle at the heading the two points imply.
-       Different candidates lean on different pairs, so an occluded pair does not doom all.
+       triangle) at random and draws that whole triangle's three points jointly (among the
+       plausible ones, :func:`_root_triangles`), with probability proportional to
+       ``exp(term / temperature)`` at the heading the pair implies. Different candidates
+       lean on different pairs, so an occluded pair does not doom all.
     2. The other labels follow the structure's insertion order; each draws its point from
        the unused points or "missing" with probability proportional to ``exp(term / T)`` --
        the triangle's conditional given what is already placed (ancestral sampling from the
@@ -118,18 +137,14 @@ def guided_sample(problem: FrameProblem, P: int, rng: np.random.Generator,
         pop = np.full((P, M), n, dtype=np.int64)
         todo_mask = None
     if base is None and pairs and n >= 2:
-        I, J = np.nonzero(~np.eye(n, dtype=bool))
         which = rng.integers(len(pairs), size=P)
         bins = np.empty(P, dtype=np.int64)
         for q in np.unique(which):
-            lft, rgt, t = pairs[q]
             rows = np.flatnonzero(which == q)
-            cand = np.full((I.size, M), n, dtype=np.int64)
-            cand[:, lft], cand[:, rgt] = I, J
-            cbins = problem.heading_bin(problem.yaw(cand))
-            val = problem.triangle_table(cand, cbins, [t])[:, 0] + gain[I] + gain[J]
-            pick = np.argmax(val[None, :] / temp[rows, None] + rng.gumbel(size=(rows.size, I.size)), axis=1)
-            pop[rows, lft], pop[rows, rgt] = I[pick], J[pick]
+            cand, cbins = _root_triangles(problem, *pairs[q])
+            val = problem.triangle_table(cand, cbins, [pairs[q][2]])[:, 0] + gain[cand].sum(1) - gain[n] * (M - 3)
+            pick = np.argmax(val[None, :] / temp[rows, None] + rng.gumbel(size=(rows.size, val.size)), axis=1)
+            pop[rows] = cand[pick]
             bins[rows] = cbins[pick]
         todo_mask = pop == n
     elif base is None:
