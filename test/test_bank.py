@@ -134,3 +134,18 @@ def test_add_to_bank_checks_labels(tmp_path, models, clips):
         add_to_bank(tmp_path / "b", "odd", sub)
     assert (tmp_path / "b" / "bank.json").read_bytes() == before
     assert not (tmp_path / "b" / "odd.npz").exists()
+
+
+def test_dtm_label_with_a_bank(tmp_path, data_dir, models, capsys):
+    from dtm_labeler.cli.label import main as label_main
+    save_bank(ModelBank(dict(models)), tmp_path / "b")
+    rc = label_main(["--bank", str(tmp_path / "b"), str(data_dir / WALK), str(data_dir / RUN), "--frames", "70%:80%",
+                     "--json", "--quiet"])
+    assert rc == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["actions"] == ["walk", "run"] and out["bank_strategy"] == "spread"
+    assert out["accuracy"] > 0.9 and 0.0 <= out["active_action_accuracy"] <= 1.0
+    assert [i["true_class"] for i in out["inputs"]] == ["walk", "run"]
+    assert all(sum(i["active_action_frames"].values()) == i["frames"] for i in out["inputs"])
+    # errors: missing bank, damaged bank
+    assert label_main(["--bank", str(tmp_path / "nope"), str(data_dir / WALK), "--quiet"]) == 2
