@@ -99,8 +99,8 @@ def _root_triangles(problem: FrameProblem, lft: int, rgt: int, t: int) -> tuple[
     ok[np.arange(I.size), J] = False
     ok[:, n] = True
     r, k = np.nonzero(ok)
-    cand = np.full((r.size, M), n, dtype=np.int64)
-    cand[:, lft], cand[:, rgt], cand[:, third] = I[r], J[r], k
+    cand = np.full((r.size + 1, M), n, dtype=np.int64)      # last row: the pair not seen
+    cand[:-1, lft], cand[:-1, rgt], cand[:-1, third] = I[r], J[r], k
     return cand, problem.heading_bin(problem.yaw(cand))
 
 
