@@ -410,12 +410,14 @@ def _report(p: dict, configs) -> str:
              "Sequences: " + "; ".join(f"{q['name']} ({q['frames']} frames, switches at {q['switches']})"
                                        for q in p["sequences"]) + ".", "",
              "## Result (pooled over sequences and seeds)", "",
-             f"| configuration | accuracy | accuracy +-{s['window']} frames of a switch | frames to recover "
+             f"| configuration | accuracy (sd, min over runs) | accuracy +-{s['window']} frames of a switch | frames to recover "
              f"(mean / median) | active action = true class |",
              "|---|---|---|---|---|"]
     for c in configs:
         m = p["results"][c]["pooled"]
-        lines.append(f"| {c} | {_f(m['accuracy'])} | {_f(m['switch_window_accuracy'])} | "
+        per = [r["accuracy"] for r in p["results"][c]["runs"] if r["accuracy"] is not None]
+        sd = f" (sd {np.std(per, ddof=1):.3f}, min {min(per):.3f})" if len(per) > 1 else ""
+        lines.append(f"| {c} | {_f(m['accuracy'])}{sd} | {_f(m['switch_window_accuracy'])} | "
                      f"{_f(m['mean_frames_to_recover'], '.1f')} / {_f(m['median_frames_to_recover'], '.0f')} | "
                      f"{_f(m['active_action_accuracy'])} |")
     lines += ["", f"Frames to recover: first frame after a switch from which the frame accuracy stays >= "
