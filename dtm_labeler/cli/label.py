@@ -51,6 +51,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--occlude", type=int, default=0, metavar="K", help="hide K true points per frame")
     p.add_argument("--clutter", type=int, default=0, metavar="K", help="add K ghost points per frame")
     p.add_argument("--noise-mm", type=float, default=0.0, metavar="S", help="Gaussian noise, std per coordinate (mm)")
+    p.add_argument("--assume-noise-mm", type=float, default=None, metavar="S",
+                   help="measurement noise the labeler is told about (widens the model); default: --noise-mm")
     p.add_argument("--gap-frames", type=float, default=1.0, metavar="G",
                    help="mean length of a simulated occlusion in frames (1: new hidden set every frame)")
     p.add_argument("--window", type=int, default=LabelerSettings.window, metavar="W",
@@ -89,7 +91,9 @@ def _settings(args) -> LabelerSettings:
             if args.generations is not None:
                 kw["max_generations"] = args.generations
             full = GASettings(**kw)
-        return LabelerSettings(method=args.method, mode=args.mode, window=args.window, full=full, seed=args.seed)
+        assumed = args.noise_mm if args.assume_noise_mm is None else args.assume_noise_mm
+        return LabelerSettings(method=args.method, mode=args.mode, window=args.window, full=full, seed=args.seed,
+                               noise_mm=assumed)
     except ValueError as e:
         raise CliError(str(e)) from None
 

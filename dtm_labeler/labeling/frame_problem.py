@@ -65,10 +65,10 @@ class TermCache:
         return np.where(found, self.vals[idx_c] if self.keys.size else 0.0, np.nan), found
 
     def insert(self, k: np.ndarray, v: np.ndarray) -> None:
-        keys = np.concatenate([self.keys, k])
-        vals = np.concatenate([self.vals, v])
-        order = np.argsort(keys, kind="stable")
-        self.keys, self.vals = keys[order], vals[order]
+        """Merge sorted, new (absent) keys: one searchsorted and one copy, no re-sort."""
+        pos = np.searchsorted(self.keys, k)
+        self.keys = np.insert(self.keys, pos, k)
+        self.vals = np.insert(self.vals, pos, v)
 
     def __len__(self) -> int:
         return self.keys.size

@@ -46,6 +46,7 @@ class LabelerSettings:
     fast_rounds: int = 4                 # hill-climbing rounds of the fast path
     swap_radius_m: float = 0.15          # fast path also tries swapping labels this close
     max_gap_s: float = 0.5               # longer input gaps reset window and tracks
+    noise_mm: float = 0.0                # measurement noise (sd per coordinate) the model is widened by
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -55,6 +56,8 @@ class LabelerSettings:
             raise ValueError(f"mode must be one of {', '.join(MODES)}")
         if self.window < 1:
             raise ValueError("window must be >= 1")
+        if not 0.0 <= self.noise_mm <= 500.0:
+            raise ValueError("noise_mm must be in [0, 500]")
         if self.max_points < 0 or self.refit_drop <= 0 or self.max_gap_s <= 0 or self.accept_drop <= 0:
             raise ValueError("max_points >= 0 and refit_drop, accept_drop, max_gap_s > 0 required")
 
@@ -83,8 +86,7 @@ class StreamLabeler:
 
     def __init__(self, model: TriangulatedModel, settings: LabelerSettings | None = None):
         self.settings = settings or LabelerSettings()
-        self.model = model.warm_up()
-        self._build()
+        self.set_model(model)
 
     def _build(self) -> None:
         s = self.settings
@@ -109,16 +111,20 @@ class StreamLabeler:
 
     def set_model(self, model: TriangulatedModel) -> None:
         """Swap the model (hot reload); window and tracks restart."""
-        self.model = model.warm_up()
+        self.base_model = model
+        self.model = model.with_noise(self.settings.noise_mm * 1e-3).warm_up()
         self._build()
 
     def update_settings(self, settings: LabelerSettings) -> None:
-        keep_tracks = (settings.tracker == self.settings.tracker and settings.window == self.settings.window
-                       and settings.mode == self.settings.mode and settings.method == self.settings.method)
-        self.settings = settings
-        if keep_tracks:
-            self.full_search.settings = settings.full if hasattr(self.full_search, "settings") else None
-            self.warm_search.settings = settings.warm if hasattr(self.warm_search, "settings") else None
+        """Apply new settings between frames: search budgets take effect at once; a new
+        measurement noise rebuilds the model; tracker, window, mode or method restart the stream."""
+        old, self.settings = self.settings, settings
+        if settings.noise_mm != old.noise_mm:
+            self.set_model(self.base_model)
+        elif (settings.tracker, settings.window, settings.mode, settings.method) == \
+                (old.tracker, old.window, old.mode, old.method):
+            self.full_search.settings = settings.full
+            self.warm_search.settings = settings.warm
         else:
             self._build()
 

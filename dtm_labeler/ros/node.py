@@ -636,7 +636,10 @@ class LabelerNode(Node):
             return f"{np.percentile(a, q):.3f}" if a.size else "nan"
 
         lab = self._labeler
-        labels = list(lab.model.labels) if lab is not None else []
+        accepted = self._model                   # the accepted model (the worker swaps it in before the next frame)
+        if isinstance(accepted, ModelBank):
+            accepted = accepted[accepted.actions[0]]
+        labels = list(accepted.labels) if accepted is not None else []
         kv = [
             ("input_rate_hz", f"{in_rate:.2f}"), ("output_rate_hz", f"{out_rate:.2f}"),
             ("frames_received", snap["received"]), ("frames_labelled", snap["labelled"]),

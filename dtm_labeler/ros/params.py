@@ -119,6 +119,10 @@ PARAMS: Tuple[ParamSpec, ...] = (
     # -- input bounds ------------------------------------------------------------------------------
     ParamSpec("max_points", _D.max_points, "At most this many points (nearest the body) enter the "
               "search; the rest are published unlabelled. 0 = 2 x labels + 8.", range=(0, 1000000)),
+    ParamSpec("noise_mm", _D.noise_mm, "Measurement noise of the capture system (sd per coordinate, "
+              "mm). The model is widened by it (relative positions and velocities); 0 = the model's "
+              "own floor only. Set it for noisy systems: 10 mm undeclared makes true labelings look "
+              "impossible.", range=(0.0, 500.0)),
     ParamSpec("max_gap_s", _D.max_gap_s, "An input gap (header stamps) longer than this resets the "
               "window and tracks.", range=(0.001, 1e6)),
     # -- I/O --------------------------------------------------------------------------------
@@ -155,7 +159,7 @@ LABELER_KEYS = frozenset({
     "method", "mode", "window", "population", "max_generations", "stagnation", "time_budget_ms",
     "warm_population", "warm_generations", "warm_stagnation", "refit_drop", "accept_drop", "seed",
     "gate_m", "gate_speed_factor", "max_misses", "clutter_volume_m3", "clutter_max_speed_mps",
-    "detection_probability", "max_points", "max_gap_s"})
+    "detection_probability", "max_points", "max_gap_s", "noise_mm"})
 INPUT_QOS_KEYS = frozenset({"input_qos", "input_depth"})
 
 
@@ -228,7 +232,7 @@ def settings_from_params(values: Mapping[str, Any]) -> LabelerSettings:
         tracker=TrackerSettings(gate_m=v["gate_m"], gate_speed_factor=v["gate_speed_factor"],
                                 max_misses=v["max_misses"]),
         max_points=v["max_points"], refit_drop=v["refit_drop"], accept_drop=v["accept_drop"],
-        max_gap_s=v["max_gap_s"], seed=v["seed"])
+        max_gap_s=v["max_gap_s"], noise_mm=v["noise_mm"], seed=v["seed"])
 
 
 def settings_equal(a: Any, b: Any) -> bool:

@@ -170,9 +170,21 @@ def crossover_plain(pa: np.ndarray, pb: np.ndarray, rng: np.random.Generator) ->
     return np.where(mask, pb, pa)
 
 
-def mutate_plain(pop: np.ndarray, n: int, rng: np.random.Generator, p_gene: float) -> np.ndarray:
+def mutate_plain(pop: np.ndarray, n: int, rng: np.random.Generator, p_gene: float,
+                 swap: bool = False) -> np.ndarray:
+    """The simple GA's mutation: random genes get random values (no repair). With ``swap``,
+    half of the mutated genes exchange values with another random gene instead -- the
+    textbook permutation mutation, valid by itself -- so the baseline is not crippled by
+    the death penalty when every point is in use."""
     pop = pop.copy()
     hit = rng.random(pop.shape) < p_gene
+    if swap:
+        r, c = np.nonzero(hit)
+        do = rng.random(r.size) < 0.5
+        other = rng.integers(0, pop.shape[1], size=int(do.sum()))
+        a, b = pop[r[do], c[do]].copy(), pop[r[do], other].copy()
+        pop[r[do], c[do]], pop[r[do], other] = b, a
+        hit[r[do], c[do]] = False
     pop[hit] = rng.integers(0, n + 1, size=int(hit.sum()))
     return pop
 

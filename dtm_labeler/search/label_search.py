@@ -323,7 +323,7 @@ class SimpleGASearch(_GABase):
     def _operators(self, problem, rng):
         n, M = problem.n, problem.M
         return (lambda a, b: ops.crossover_plain(a, b, rng),
-                lambda p: ops.mutate_plain(p, n, rng, self.settings.p_mutation / max(M, 1) * 2),
+                lambda p: ops.mutate_plain(p, n, rng, self.settings.p_mutation / max(M, 1) * 2, swap=True),
                 lambda p: ops.is_valid(p, n))
 
 
@@ -363,7 +363,7 @@ class GreedySearch(LabelSearch):
         for t in range(problem.T):
             pop = np.full((grid.shape[0], M), n1 - 1)
             pop[:, tri[t]] = grid
-            vals = problem.triangle_table(pop, np.full(grid.shape[0], b))[:, t]
+            vals = problem.triangle_table(pop, np.full(grid.shape[0], b), [t])[:, 0]
             new = [0, 1, 2] if t == 0 else [0]
             vals = vals + gain[grid[:, new]].sum(1)
             tables.append(np.where(ok, vals, -np.inf).reshape(n1, n1, n1))
