@@ -65,7 +65,9 @@ class TermCache:
         return np.where(found, self.vals[idx_c] if self.keys.size else 0.0, np.nan), found
 
     def insert(self, k: np.ndarray, v: np.ndarray) -> None:
-        """Merge sorted, new (absent) keys: one searchsorted and one copy, no re-sort."""
+        """Merge new (absent) keys: sort the small batch, one searchsorted, one copy."""
+        order = np.argsort(k, kind="stable")
+        k, v = k[order], v[order]
         pos = np.searchsorted(self.keys, k)
         self.keys = np.insert(self.keys, pos, k)
         self.vals = np.insert(self.vals, pos, v)
