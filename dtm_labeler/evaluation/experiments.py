@@ -82,7 +82,7 @@ def label_single(model: TriangulatedModel, clip: MotionClip, frames: Sequence[in
     mc = model_clip(model, clip)
     stream = corrupt_clip(mc, occlude=occlude, clutter=clutter, noise_mm=noise_mm, seed=seed)
     base = settings or settings_for(method, "single", seed=seed)
-    base = dataclasses.replace(base, method=method, mode="single")
+    base = dataclasses.replace(base, method=method, mode="single", noise_mm=noise_mm)   # a known system noise
     acc = MetricsAccumulator(model.labels, stream.rate)
     for i in frames:
         i = int(i)
@@ -103,7 +103,7 @@ def label_stream(model: TriangulatedModel, clip: MotionClip, method: str, window
     """Stream-mode metrics over all frames of ``clip`` (one labeler, as ``dtm-label``)."""
     t0 = time.perf_counter()
     base = settings or settings_for(method, "stream", window, seed)
-    base = dataclasses.replace(base, method=method, mode="stream", window=window, seed=seed)
+    base = dataclasses.replace(base, method=method, mode="stream", window=window, seed=seed, noise_mm=noise_mm)
     run = label_clip_run(model, clip, base, occlude=occlude, clutter=clutter, noise_mm=noise_mm, seed=seed,
                          gap_frames=gap_frames, keep_records=False)
     out = _summary(run.accumulator, time.perf_counter() - t0)

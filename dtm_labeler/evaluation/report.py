@@ -334,7 +334,8 @@ def _noise(res: dict, meta: dict, out: Path, figures: list) -> list[str]:
     return ["## Fig. 14: measurement noise", "",
             f"Single mode on {seq}; i.i.d. Gaussian noise added to every coordinate of every point (test only; "
             f"the models were trained on clean data). At 120 Hz, noise also enters the velocities "
-            f"(σ_v = √2·σ·120 per axis, e.g. 1.7 m/s at 10 mm).", "",
+            f"(σ_v = √2·σ·120 per axis, e.g. 1.7 m/s at 10 mm). The labeler is told the noise level "
+            f"(`noise_mm`, as a user sets it for a known system), which widens the model by it.", "",
             md_table(["method"] + [f"{k:g} mm" for k in levels], rows), "", f"![Fig. 14]({name})", ""]
 
 
