@@ -66,10 +66,11 @@ import numpy as np
 from ..model.bank import ModelBank
 from ..search import label_ops as ops
 from ..search.ga import elite_indices, rank_select
-from ..search.label_search import GASettings, guided_sample, polish, ruin_and_recreate, targeted_moves
+from ..search.label_search import GASettings, guided_sample, polish, ruin_and_recreate
 from .frame_problem import FrameProblem
 from .stream import FrameResult, LabelerSettings
 from .tracker import Tracker
+from .tracked import TrackedLabeler, scatter
 from .voting import VoteBook
 
 STRATEGIES = ("spread", "hard")
@@ -132,7 +133,7 @@ class _Sub:
     fit: np.ndarray
 
 
-class BankLabeler:
+class BankLabeler(TrackedLabeler):
     """Labels a point-cloud stream with every model of a :class:`ModelBank` at once."""
 
     def __init__(self, bank: ModelBank, settings: LabelerSettings | None = None,
@@ -172,13 +173,8 @@ class BankLabeler:
     def reset(self) -> None:
         """Forget tracks, votes and levels (the action belief is kept: a short gap does not
         change what the person is doing)."""
-        self.tracker.reset()
-        self.votes.reset()
-        self.track_label: dict[int, int] = {}
+        self._reset_stream()
         self.level = np.full(len(self.actions), np.nan)
-        self.last_stamp = None
-        self.heading = None
-        self.centre = None
         self._switched = False
 
     def set_bank(self, bank: ModelBank) -> None:
@@ -205,59 +201,30 @@ class BankLabeler:
                 truth: np.ndarray | None = None) -> BankFrameResult:
         t0 = time.perf_counter()
         s, bs = self.settings, self.bank_settings
-        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-        n_in = xyz.shape[0]
-        finite = np.isfinite(xyz).all(1)
-        reason = ""
-        dt = None
-        if self.last_stamp is not None:
-            dt = stamp - self.last_stamp
-            if stamp < self.last_stamp:
-                reason = "time went backwards"
-            elif dt > s.max_gap_s:
-                reason = f"gap of {dt:.2f} s"
-            elif stamp == self.last_stamp:
-                reason = "repeated stamp"
-        if reason:
-            self.reset()
-        self.last_stamp = stamp
-        keep = np.flatnonzero(finite)
-        max_pts = s.max_points or 2 * self.M + 8
-        n_ignored = 0
-        if keep.size > max_pts:
-            ref = self.centre if self.centre is not None else np.median(xyz[keep], axis=0)
-            d = np.linalg.norm(xyz[keep] - ref, axis=1)
-            n_ignored = keep.size - max_pts
-            keep = np.sort(keep[np.argsort(d)[:max_pts]])
-        pts = xyz[keep]
-        upd = self.tracker.update(pts, stamp, None if ids is None else np.asarray(ids)[keep])
+        inp = self._begin(xyz, stamp, ids, self.M)
+        upd, dt = inp.upd, inp.dt
         problems = [FrameProblem(m, upd.states, s.background, self.heading) for m in self.models]
         n = problems[0].n
         K = len(self.actions)
         hard = bs.strategy == "hard"
         searched = [self.active] if hard else list(range(K))
 
-        seeds = self._seeds(upd.track_ids, n) if s.mode == "stream" else None
+        seeds = self._seeds(upd.track_ids, n, self.M) if s.mode == "stream" else None
         cands: dict[int, tuple[np.ndarray, float]] = {}
         gens = evals = 0
         full = True
         switched, self._switched = self._switched, False
-        if seeds is not None and switched and bs.search_on_switch:
-            # the motion hypothesis changed last frame: the carried labeling was chosen under
-            # the old model, so this frame gets a full search (seeded with it) under all models
-            pass
-        elif seeds is not None:
+        # when the motion hypothesis changed last frame, the carried labeling was chosen under the
+        # old model: that frame gets a full search (seeded with it) under all models
+        if seeds is not None and not (switched and bs.search_on_switch):
             if s.method == "tracker":
                 for m in searched:
                     cands[m] = (seeds[0], float(problems[m].fitness(seeds[0][None])[0]))
                 full = False
             else:
-                fast = {m: self._fast_path(problems[m], seeds[0]) for m in searched}
-                ok = {m: c for m, c in fast.items()
-                      if c is not None and c[1] >= self._expected(m, c[0], n) - s.accept_drop}
-                if ok:
+                fast = {m: self._hill_climb(problems[m], seeds[0])[:2] for m in searched}
+                if any(c[1] >= self._expected(m, c[0], n) - s.accept_drop for m, c in fast.items()):
                     cands, full = fast, False
-                    cands = {m: c for m, c in fast.items() if c is not None}
                     evals += len(cands)
                 else:
                     res, g, e = self._bank_ga(problems, searched, s.warm, seeds)
@@ -288,38 +255,10 @@ class BankLabeler:
         if not full and not hard:
             self._mean_field_shares(g, k_lab)
 
-        truth_f = float("nan")
-        if truth is not None:
-            pos = np.full(n_in + 1, n, dtype=np.int64)
-            pos[keep] = np.arange(keep.size)
-            tr = np.asarray(truth, dtype=np.int64)
-            truth_f = float(problems[m_pub].fitness(np.where(tr < 0, n, pos[np.where(tr < 0, n_in, tr)])[None])[0])
-
-        assign = np.where(assign_n >= n, -1, assign_n)
-        search_labels = np.full(n, -1, dtype=np.int64)
+        truth_f = self._truth_fitness(problems[m_pub], truth, inp)
+        assign, search_labels, pub, conf = self._publish(problems[m_pub], assign_n, inp)
+        keep, n_in = inp.keep, inp.n_in
         present = assign >= 0
-        search_labels[assign[present]] = np.flatnonzero(present)
-        self.votes.add(upd.track_ids, search_labels)
-        if s.mode == "stream":
-            pub, conf = self.votes.publish(upd.track_ids, search_labels)
-        else:
-            pub, conf = search_labels.copy(), (search_labels >= 0).astype(float)
-        published = {int(t): int(lab) for t, lab in zip(upd.track_ids, pub) if lab >= 0}
-        taken = set(published.values())
-        seen = set(int(t) for t in upd.track_ids)
-        lost = set(int(t) for t in upd.lost)
-        self.track_label = {t: lab for t, lab in self.track_label.items()
-                            if t not in seen and t not in lost and lab not in taken}
-        self.track_label.update(published)
-        if present.any():
-            self.centre = pts[assign[present]].mean(0)
-            self.heading = float(problems[m_pub].yaw(np.where(assign < 0, n, assign)[None])[0])
-
-        def scatter(v, fill):
-            out = np.full(n_in, fill, dtype=np.asarray(v).dtype)
-            out[keep] = v
-            return out
-
         a_in = np.full(assign.shape, -1, dtype=np.int64)
         a_in[present] = keep[assign[present]]
         post = np.exp(self.log_alpha - self.log_alpha.max())
@@ -327,10 +266,11 @@ class BankLabeler:
         sizes = allocate(s.full.population, self.shares, bs.min_share) if not hard else \
             np.where(np.arange(K) == self.active, s.full.population, 0)
         return BankFrameResult(
-            labels=scatter(pub, -1), confidence=scatter(conf, 0.0), track_ids=scatter(upd.track_ids, -1),
-            search_labels=scatter(search_labels, -1), assignment=a_in, log_likelihood=f,
+            labels=scatter(pub, keep, n_in, -1), confidence=scatter(conf, keep, n_in, 0.0),
+            track_ids=scatter(upd.track_ids, keep, n_in, -1), search_labels=scatter(search_labels, keep, n_in, -1),
+            assignment=a_in, log_likelihood=f,
             latency_ms=(time.perf_counter() - t0) * 1e3, full_search=full, generations=gens, evaluations=evals,
-            n_dropped=int((~finite).sum()), n_ignored=n_ignored, reset=reason,
+            n_dropped=int((~inp.finite).sum()), n_ignored=inp.n_ignored, reset=inp.reason,
             heading=self.heading if self.heading is not None else float("nan"), truth_fitness=truth_f,
             active_action=self.active_action, labeled_by=self.actions[m_pub],
             action_scores={a: float(g[i]) for i, a in enumerate(self.actions)},
@@ -381,43 +321,6 @@ class BankLabeler:
         if np.isnan(lvl):
             return -np.inf
         return lvl * max(int((assignment < n).sum()), 1)
-
-    def _fast_path(self, problem: FrameProblem, seed: np.ndarray):
-        """Hill-climb the carried labeling over the targeted moves under one model."""
-        n = problem.n
-        ind = seed
-        f = float(problem.fitness(ind[None])[0])
-        close = self._close_label_pairs(problem, ind)
-        for _ in range(self.settings.fast_rounds):
-            free = np.flatnonzero(~ops.used_mask(ind[None], n)[0])
-            cand = targeted_moves(ind, n, problem.mirror_pairs, free, close)
-            fc = problem.fitness(cand)
-            i = int(np.argmax(fc))
-            if fc[i] <= f + 1e-9:
-                break
-            ind, f = cand[i], float(fc[i])
-        return ind, f
-
-    def _close_label_pairs(self, problem: FrameProblem, ind: np.ndarray) -> np.ndarray:
-        have = np.flatnonzero(ind < problem.n)
-        p = problem.states[ind[have], :3]
-        d = np.linalg.norm(p[:, None] - p[None], axis=-1)
-        i, j = np.nonzero(np.triu(d < self.settings.swap_radius_m, 1))
-        return np.stack([have[i], have[j]], axis=1)
-
-    def _seeds(self, track_ids: np.ndarray, n: int) -> np.ndarray | None:
-        if not self.track_label:
-            return None
-        seed = np.full(self.M, n, dtype=np.int64)
-        tids = np.fromiter(self.track_label.keys(), dtype=np.int64, count=len(self.track_label))
-        labs = np.fromiter(self.track_label.values(), dtype=np.int64, count=len(self.track_label))
-        order = np.argsort(tids)
-        pos = np.minimum(np.searchsorted(tids[order], track_ids), tids.size - 1)
-        hit = tids[order][pos] == track_ids
-        seed[labs[order][pos[hit]]] = np.flatnonzero(hit)
-        if self.settings.method == "tracker":
-            return seed[None]
-        return ops.repair(seed[None], n, self.rng, fill=False)
 
     def _initial(self, problem: FrameProblem, size: int, seeds: np.ndarray | None, ga: GASettings) -> np.ndarray:
         M, n = problem.M, problem.n

@@ -18,10 +18,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..model.dtm import TriangulatedModel
-from ..search import label_ops
-from ..search.label_search import GASettings, LabelSearch, make_search, targeted_moves
+from ..search.label_search import GASettings, LabelSearch, make_search
 from .frame_problem import Background, FrameProblem
 from .tracker import Tracker, TrackerSettings
+from .tracked import TrackedLabeler, scatter
 from .voting import VoteBook
 
 METHODS = ("cbga", "sga", "greedy", "exhaustive", "tracker")
@@ -81,7 +81,7 @@ class FrameResult:
     truth_fitness: float = float("nan")   # fitness of the true labeling (evaluation only)
 
 
-class StreamLabeler:
+class StreamLabeler(TrackedLabeler):
     """Labels a stream of unlabeled point clouds with a trained :class:`TriangulatedModel`."""
 
     def __init__(self, model: TriangulatedModel, settings: LabelerSettings | None = None):
@@ -100,14 +100,9 @@ class StreamLabeler:
 
     # -- state -------------------------------------------------------------------------------
     def reset(self) -> None:
-        self.tracker.reset()
-        self.votes.reset()
-        self.track_label: dict[int, int] = {}     # published label per track (last frame)
+        self._reset_stream()
         self.level = None                          # running fitness per labelled point (EMA)
         self._provisional = False
-        self.last_stamp = None
-        self.heading = None
-        self.centre = None
 
     def set_model(self, model: TriangulatedModel) -> None:
         """Swap the model (hot reload); window and tracks restart."""
@@ -135,30 +130,8 @@ class StreamLabeler:
         only for evaluation: its fitness on the same problem is returned (search errors)."""
         t0 = time.perf_counter()
         s = self.settings
-        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-        n_in = xyz.shape[0]
-        finite = np.isfinite(xyz).all(1)
-        reason = ""
-        if self.last_stamp is not None:
-            if stamp < self.last_stamp:
-                reason = "time went backwards"
-            elif stamp - self.last_stamp > s.max_gap_s:
-                reason = f"gap of {stamp - self.last_stamp:.2f} s"
-            elif stamp == self.last_stamp:
-                reason = "repeated stamp"
-        if reason:
-            self.reset()
-        self.last_stamp = stamp
-        keep = np.flatnonzero(finite)
-        max_pts = s.max_points or 2 * self.model.n_labels + 8
-        n_ignored = 0
-        if keep.size > max_pts:
-            ref = self.centre if self.centre is not None else np.median(xyz[keep], axis=0)
-            d = np.linalg.norm(xyz[keep] - ref, axis=1)
-            n_ignored = keep.size - max_pts
-            keep = np.sort(keep[np.argsort(d)[:max_pts]])
-        pts = xyz[keep]
-        upd = self.tracker.update(pts, stamp, None if ids is None else np.asarray(ids)[keep])
+        inp = self._begin(xyz, stamp, ids, self.model.n_labels)
+        upd = inp.upd
         problem = FrameProblem(self.model, upd.states, s.background, self.heading)
         n, M = problem.n, problem.M
 
@@ -182,90 +155,36 @@ class StreamLabeler:
             if outcome is None or best.fitness >= outcome.fitness:
                 outcome = best
         f = float(outcome.fitness)
-        truth_f = float("nan")
-        if truth is not None:
-            pos = np.full(n_in + 1, n, dtype=np.int64)
-            pos[keep] = np.arange(keep.size)
-            tr = np.asarray(truth, dtype=np.int64)
-            truth_f = float(problem.fitness(np.where(tr < 0, n, pos[np.where(tr < 0, n_in, tr)])[None])[0])
+        truth_f = self._truth_fitness(problem, truth, inp)
         per_point = f / max(int((outcome.assignment < n).sum()), 1)
         if self.level is None:
             self.level = self._initial_level(problem)
-        if self._provisional:
-            pass                                   # no velocities yet: do not learn from it
-        elif f >= self._expected(outcome.assignment, n) - s.accept_drop:
-            self.level = 0.8 * self.level + 0.2 * per_point
-        else:                                      # a subject that fits worse than training: adapt slowly
-            self.level = 0.95 * self.level + 0.05 * per_point
+        if not self._provisional:                  # no velocities yet: do not learn from it
+            fits = f >= self._expected(outcome.assignment, n) - s.accept_drop
+            rate = 0.2 if fits else 0.05           # a subject that fits worse than training: adapt slowly
+            self.level = (1 - rate) * self.level + rate * per_point
 
-        assign = np.where(outcome.assignment >= n, -1, outcome.assignment)
-        search_labels = np.full(n, -1, dtype=np.int64)
-        present = assign >= 0
-        search_labels[assign[present]] = np.flatnonzero(present)
-        self.votes.add(upd.track_ids, search_labels)
-        if s.mode == "stream":
-            pub, conf = self.votes.publish(upd.track_ids, search_labels)
-        else:
-            pub, conf = search_labels.copy(), (search_labels >= 0).astype(float)
-        # labels stay with their tracks while they coast (occluded for a few frames)
-        published = {int(t): int(lab) for t, lab in zip(upd.track_ids, pub) if lab >= 0}
-        taken = set(published.values())
-        seen = set(int(t) for t in upd.track_ids)
-        lost = set(int(t) for t in upd.lost)
-        self.track_label = {t: lab for t, lab in self.track_label.items()
-                            if t not in seen and t not in lost and lab not in taken}
-        self.track_label.update(published)
-        if present.any():
-            self.centre = pts[assign[present]].mean(0)
-            yaw = problem.yaw(np.where(assign < 0, n, assign)[None])[0]
-            self.heading = float(yaw)
-
-        def scatter(v, fill):
-            out = np.full(n_in, fill, dtype=np.asarray(v).dtype)
-            out[keep] = v
-            return out
-
+        assign, search_labels, pub, conf = self._publish(problem, outcome.assignment, inp)
+        keep, n_in = inp.keep, inp.n_in
         return FrameResult(
-            labels=scatter(pub, -1), confidence=scatter(conf, 0.0), track_ids=scatter(upd.track_ids, -1),
-            search_labels=scatter(search_labels, -1),
+            labels=scatter(pub, keep, n_in, -1), confidence=scatter(conf, keep, n_in, 0.0),
+            track_ids=scatter(upd.track_ids, keep, n_in, -1), search_labels=scatter(search_labels, keep, n_in, -1),
             assignment=_input_index(assign, keep),
             log_likelihood=f, latency_ms=(time.perf_counter() - t0) * 1e3, full_search=full,
             generations=outcome.generations, evaluations=outcome.evaluations,
-            n_dropped=int((~finite).sum()), n_ignored=n_ignored, reset=reason,
+            n_dropped=int((~inp.finite).sum()), n_ignored=inp.n_ignored, reset=inp.reason,
             heading=self.heading if self.heading is not None else float("nan"), truth_fitness=truth_f)
 
     def _fast_path(self, problem: FrameProblem, seed: np.ndarray):
         """Accept the carried-over labeling after hill-climbing its targeted neighbourhood
-        (mirror, left/right swaps, missing labels onto free points) when it fits as well per
-        labelled point as recent frames did; None sends the frame to the GA."""
+        (:meth:`_hill_climb`) when it fits as well per labelled point as recent frames did;
+        None sends the frame to the GA."""
         if self.level is None or self.settings.method != "cbga":
             return None
-        n = problem.n
-        ind = seed
-        f = float(problem.fitness(ind[None])[0])
-        evals = 1
-        close = self._close_label_pairs(problem, ind)
-        for _ in range(self.settings.fast_rounds):
-            free = np.flatnonzero(~label_ops.used_mask(ind[None], n)[0])
-            cand = targeted_moves(ind, n, self.model.mirror_pairs, free, close)
-            fc = problem.fitness(cand)
-            evals += len(cand)
-            i = int(np.argmax(fc))
-            if fc[i] <= f + 1e-9:
-                break
-            ind, f = cand[i], float(fc[i])
-        if f < self._expected(ind, n) - self.settings.accept_drop:
+        ind, f, evals = self._hill_climb(problem, seed)
+        if f < self._expected(ind, problem.n) - self.settings.accept_drop:
             return None
         return _Outcome(ind, f, 0, evals)
-
-    def _close_label_pairs(self, problem: FrameProblem, ind: np.ndarray) -> np.ndarray:
-        """Pairs of labels whose points are closer than ``swap_radius_m`` (where the tracker
-        may have swapped two markers that passed each other)."""
-        have = np.flatnonzero(ind < problem.n)
-        p = problem.states[ind[have], :3]
-        d = np.linalg.norm(p[:, None] - p[None], axis=-1)
-        i, j = np.nonzero(np.triu(d < self.settings.swap_radius_m, 1))
-        return np.stack([have[i], have[j]], axis=1)
 
     def _initial_level(self, problem: FrameProblem) -> float:
         """Typical fitness per labelled point: the model's training log-likelihood per label
@@ -278,22 +197,6 @@ class StreamLabeler:
     def _expected(self, assignment: np.ndarray, n: int) -> float:
         """Running fitness level scaled to this frame's number of labelled points."""
         return self.level * max(int((assignment < n).sum()), 1)
-
-    def _seeds(self, track_ids: np.ndarray, n: int, M: int) -> np.ndarray | None:
-        """Warm start: last frame's published labels carried by the tracks."""
-        if not self.track_label:
-            return None
-        seed = np.full(M, n, dtype=np.int64)
-        tids = np.fromiter(self.track_label.keys(), dtype=np.int64, count=len(self.track_label))
-        labs = np.fromiter(self.track_label.values(), dtype=np.int64, count=len(self.track_label))
-        order = np.argsort(tids)
-        pos = np.searchsorted(tids[order], track_ids)
-        pos = np.minimum(pos, tids.size - 1)
-        hit = tids[order][pos] == track_ids
-        seed[labs[order][pos[hit]]] = np.flatnonzero(hit)
-        if self.settings.method == "tracker":
-            return seed[None]
-        return label_ops.repair(seed[None], n, self.rng, fill=False)
 
 
 def _input_index(assign: np.ndarray, keep: np.ndarray) -> np.ndarray:

@@ -1,0 +1,164 @@
+"""What every stream labeler shares: the per-frame input handling around the search.
+
+:class:`TrackedLabeler` holds the stream state (tracker, vote book, the label each track
+carries, last stamp, body centre and heading) and the steps before and after a search:
+sanitising the cloud, time checks, bounding the points, tracking (:meth:`_begin`); warm-start
+seeds from the tracks (:meth:`_seeds`); the targeted hill-climb of a carried-over labeling
+(:meth:`_hill_climb`); the fitness of the true labeling for evaluation
+(:meth:`_truth_fitness`); votes and bookkeeping after the search (:meth:`_publish`).
+:class:`~dtm_labeler.labeling.stream.StreamLabeler` (one model) and
+:class:`~dtm_labeler.labeling.bank_labeler.BankLabeler` (one model per action) differ only
+in how they search and when they accept.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..search import label_ops
+from ..search.label_search import targeted_moves
+from .frame_problem import FrameProblem
+from .tracker import TrackUpdate
+
+
+@dataclass
+class FrameInput:
+    """One cloud after sanitising and tracking."""
+
+    n_in: int                 # points received
+    finite: np.ndarray        # (n_in,) bool
+    keep: np.ndarray          # input indices that enter the search
+    pts: np.ndarray           # (n, 3) their positions
+    upd: TrackUpdate          # track ids and states of the kept points
+    reason: str               # why the window was reset, if it was
+    n_ignored: int            # finite points beyond max_points
+    dt: float | None          # seconds since the previous frame
+
+
+def scatter(values: np.ndarray, keep: np.ndarray, n_in: int, fill) -> np.ndarray:
+    """Per-kept-point values back to input order (``fill`` for dropped points)."""
+    out = np.full(n_in, fill, dtype=np.asarray(values).dtype)
+    out[keep] = values
+    return out
+
+
+class TrackedLabeler:
+    """Base of the stream labelers (see the module doc); subclasses set ``settings``,
+    ``tracker`` and ``votes`` and implement ``process``."""
+
+    def _reset_stream(self) -> None:
+        self.tracker.reset()
+        self.votes.reset()
+        self.track_label: dict[int, int] = {}      # label each track carries (also while coasting)
+        self.last_stamp = None
+        self.heading = None
+        self.centre = None
+
+    def _begin(self, xyz: np.ndarray, stamp: float, ids: np.ndarray | None, n_labels: int) -> FrameInput:
+        s = self.settings
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        finite = np.isfinite(xyz).all(1)
+        reason, dt = "", None
+        if self.last_stamp is not None:
+            dt = stamp - self.last_stamp
+            if stamp < self.last_stamp:
+                reason = "time went backwards"
+            elif dt > s.max_gap_s:
+                reason = f"gap of {dt:.2f} s"
+            elif stamp == self.last_stamp:
+                reason = "repeated stamp"
+        if reason:
+            self.reset()
+        self.last_stamp = stamp
+        keep = np.flatnonzero(finite)
+        max_pts = s.max_points or 2 * n_labels + 8
+        n_ignored = 0
+        if keep.size > max_pts:        # bounded work: the points nearest the body's last centre
+            ref = self.centre if self.centre is not None else np.median(xyz[keep], axis=0)
+            d = np.linalg.norm(xyz[keep] - ref, axis=1)
+            n_ignored = keep.size - max_pts
+            keep = np.sort(keep[np.argsort(d)[:max_pts]])
+        pts = xyz[keep]
+        upd = self.tracker.update(pts, stamp, None if ids is None else np.asarray(ids)[keep])
+        return FrameInput(xyz.shape[0], finite, keep, pts, upd, reason, n_ignored, dt)
+
+    def _seeds(self, track_ids: np.ndarray, n: int, M: int) -> np.ndarray | None:
+        """Warm start: last frame's published labels carried by the tracks (vectorised lookup)."""
+        if not self.track_label:
+            return None
+        seed = np.full(M, n, dtype=np.int64)
+        tids = np.fromiter(self.track_label.keys(), dtype=np.int64, count=len(self.track_label))
+        labs = np.fromiter(self.track_label.values(), dtype=np.int64, count=len(self.track_label))
+        order = np.argsort(tids)
+        pos = np.minimum(np.searchsorted(tids[order], track_ids), tids.size - 1)
+        hit = tids[order][pos] == track_ids
+        seed[labs[order][pos[hit]]] = np.flatnonzero(hit)
+        if self.settings.method == "tracker":
+            return seed[None]
+        return label_ops.repair(seed[None], n, self.rng, fill=False)
+
+    def _close_label_pairs(self, problem: FrameProblem, ind: np.ndarray) -> np.ndarray:
+        """Pairs of labels whose points are closer than ``swap_radius_m`` (where the tracker
+        may have swapped two markers that passed each other)."""
+        have = np.flatnonzero(ind < problem.n)
+        d = problem.dist[np.ix_(ind[have], ind[have])]
+        i, j = np.nonzero(np.triu(d < self.settings.swap_radius_m, 1))
+        return np.stack([have[i], have[j]], axis=1)
+
+    def _hill_climb(self, problem: FrameProblem, seed: np.ndarray) -> tuple[np.ndarray, float, int]:
+        """Steepest ascent of a carried-over labeling over its targeted moves (mirror,
+        left/right and close-pair swaps, labels onto free points)."""
+        n = problem.n
+        ind = seed
+        f = float(problem.fitness(ind[None])[0])
+        evals = 1
+        close = self._close_label_pairs(problem, ind)
+        for _ in range(self.settings.fast_rounds):
+            free = np.flatnonzero(~label_ops.used_mask(ind[None], n)[0])
+            cand = targeted_moves(ind, n, problem.mirror_pairs, free, close)
+            fc = problem.fitness(cand)
+            evals += len(cand)
+            i = int(np.argmax(fc))
+            if fc[i] <= f + 1e-9:
+                break
+            ind, f = cand[i], float(fc[i])
+        return ind, f, evals
+
+    @staticmethod
+    def _truth_fitness(problem: FrameProblem, truth: np.ndarray | None, inp: FrameInput) -> float:
+        """Fitness of the true labeling (``truth``: input index per label, -1 missing)."""
+        if truth is None:
+            return float("nan")
+        n = problem.n
+        pos = np.full(inp.n_in + 1, n, dtype=np.int64)
+        pos[inp.keep] = np.arange(inp.keep.size)
+        tr = np.asarray(truth, dtype=np.int64)
+        return float(problem.fitness(np.where(tr < 0, n, pos[np.where(tr < 0, inp.n_in, tr)])[None])[0])
+
+    def _publish(self, problem: FrameProblem, assignment: np.ndarray, inp: FrameInput):
+        """Votes (eq. 32) and bookkeeping after the search. Returns (assignment with -1 for
+        missing, this frame's search labels per point, published labels, confidences)."""
+        n = problem.n
+        assign = np.where(assignment >= n, -1, assignment)
+        search_labels = np.full(n, -1, dtype=np.int64)
+        present = assign >= 0
+        search_labels[assign[present]] = np.flatnonzero(present)
+        upd = inp.upd
+        self.votes.add(upd.track_ids, search_labels)
+        if self.settings.mode == "stream":
+            pub, conf = self.votes.publish(upd.track_ids, search_labels)
+        else:
+            pub, conf = search_labels.copy(), (search_labels >= 0).astype(float)
+        # labels stay with their tracks while they coast (occluded for a few frames)
+        published = {int(t): int(lab) for t, lab in zip(upd.track_ids, pub) if lab >= 0}
+        taken = set(published.values())
+        seen = set(int(t) for t in upd.track_ids)
+        lost = set(int(t) for t in upd.lost)
+        self.track_label = {t: lab for t, lab in self.track_label.items()
+                            if t not in seen and t not in lost and lab not in taken}
+        self.track_label.update(published)
+        if present.any():
+            self.centre = inp.pts[assign[present]].mean(0)
+            self.heading = float(problem.yaw(np.where(assign < 0, n, assign)[None])[0])
+        return assign, search_labels, pub, conf
