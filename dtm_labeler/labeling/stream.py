@@ -37,7 +37,8 @@ class LabelerSettings:
                                                                 stagnation=10))
     warm: GASettings = field(default_factory=lambda: GASettings(population=24, max_generations=10,
                                                                 stagnation=3, polish=True, polish_rounds=1,
-                                                                p_recreate=0.15))
+                                                                p_recreate=0.15,
+                                                                fresh_fraction=0.0))
     background: Background = field(default_factory=Background)
     tracker: TrackerSettings = field(default_factory=TrackerSettings)
     max_points: int = 0                  # 0 = 2 x labels + 8
@@ -149,18 +150,18 @@ class StreamLabeler(TrackedLabeler):
                 outcome = self._fast_path(problem, seeds[0])
                 if outcome is None:
                     outcome = self.warm_search.search(problem, self.rng, seeds)
-                full = self.level is not None and outcome.fitness < self._expected(outcome.assignment, n) - s.refit_drop
+                full = self.level is not None and outcome.fitness < self._expected(outcome.assignment, problem) - s.refit_drop
         if full:
             best = self.full_search.search(problem, self.rng, seeds)
             if outcome is None or best.fitness >= outcome.fitness:
                 outcome = best
         f = float(outcome.fitness)
         truth_f = self._truth_fitness(problem, truth, inp)
-        per_point = f / max(int((outcome.assignment < n).sum()), 1)
+        per_point = f / _label_weight(outcome.assignment, problem)
         if self.level is None:
             self.level = self._initial_level(problem)
         if not self._provisional:                  # no velocities yet: do not learn from it
-            fits = f >= self._expected(outcome.assignment, n) - s.accept_drop
+            fits = f >= self._expected(outcome.assignment, problem) - s.accept_drop
             rate = 0.2 if fits else 0.05           # a subject that fits worse than training: adapt slowly
             self.level = (1 - rate) * self.level + rate * per_point
 
@@ -182,7 +183,7 @@ class StreamLabeler(TrackedLabeler):
         if self.level is None or self.settings.method != "cbga":
             return None
         ind, f, evals = self._hill_climb(problem, seed)
-        if f < self._expected(ind, problem.n) - self.settings.accept_drop:
+        if f < self._expected(ind, problem) - self.settings.accept_drop:
             return None
         return _Outcome(ind, f, 0, evals)
 
@@ -194,9 +195,16 @@ class StreamLabeler(TrackedLabeler):
         gain = float(full_gain.mean()) if full_gain.size else float(np.median(problem.label_gain[:-1]))
         return ll + gain
 
-    def _expected(self, assignment: np.ndarray, n: int) -> float:
-        """Running fitness level scaled to this frame's number of labelled points."""
-        return self.level * max(int((assignment < n).sum()), 1)
+    def _expected(self, assignment: np.ndarray, problem: FrameProblem) -> float:
+        """Running fitness level scaled to this frame's labelled points."""
+        return self.level * _label_weight(assignment, problem)
+
+
+def _label_weight(assignment: np.ndarray, problem: FrameProblem) -> float:
+    """How many labelled points, a point without a velocity (just reappeared) counting half:
+    it carries 3 observed dimensions instead of 6, and about half the fitness."""
+    codes = problem.codes[assignment[assignment < problem.n]]
+    return max(float((codes == 2).sum() + 0.5 * (codes == 1).sum()), 1.0)
 
 
 def _input_index(assign: np.ndarray, keep: np.ndarray) -> np.ndarray:

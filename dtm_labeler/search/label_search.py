@@ -52,6 +52,7 @@ class GASettings:
     polish_rounds: int = 12
     temperatures: np.ndarray = field(default_factory=lambda: np.array([1.0, 3.0, 10.0]))
     p_recreate: float = 0.25
+    fresh_fraction: float = 0.25        # share of a seeded population drawn fresh (guided sampling)
 
     def __post_init__(self) -> None:
         if self.population < 4:
@@ -232,10 +233,10 @@ class _GABase(LabelSearch):
         M, n = problem.M, problem.n
         deadline = None if s.time_budget_s is None else time.perf_counter() + s.time_budget_s
         if seeds is not None and len(seeds):
-            # warm start: the seeds, mutants of the first seed, and a quarter of fresh samples
+            # warm start: the seeds, mutants of the first seed, and a share of fresh samples
             seeds = ops.repair(np.asarray(seeds, dtype=np.int64).reshape(-1, M), n, rng)
             k = min(len(seeds), s.population)
-            fresh = (s.population - k) // 4
+            fresh = int((s.population - k) * s.fresh_fraction)
             pop = np.concatenate([seeds[:k], ops.mutate(np.repeat(seeds[:1], s.population - k - fresh, 0), n, rng, 1.0),
                                   self._initial(problem, fresh, rng) if fresh else np.zeros((0, M), np.int64)])
         else:
