@@ -8,7 +8,7 @@ from scipy.special import logsumexp
 from scipy.stats import multivariate_normal
 
 from dtm_labeler.model.dtm import LinearMixtureDensity, TriangleTerms, TriangulatedModel
-from dtm_labeler.model.features import (FEATURE_MATRIX, FULL, MISSING, POSITION_ONLY, STATE_DIM,
+from dtm_labeler.model.features import (FEATURE_MATRIX, FULL, MISSING, POSITION_ONLY,
                                         observed_map, pattern_codes, pattern_id, triangle_features)
 from dtm_labeler.model.mixture import GaussianMixture
 from dtm_labeler.model.structure import Structure

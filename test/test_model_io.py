@@ -1,5 +1,4 @@
 """Model files: round trip, no pickle, and every kind of corruption gives ModelFileError."""
-import io
 import json
 import zipfile
 
@@ -9,7 +8,6 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 
 from dtm_labeler.model import io as mio
 from dtm_labeler.model.io import ModelFileError, load_model, model_from_arrays, model_to_bytes, save_model
-from dtm_labeler.model.features import point_states
 from dtm_labeler.model.training import TrainConfig, canonical_states, train_model
 from dtm_labeler.motion.synthetic import synthesize
 

@@ -307,7 +307,7 @@ def _main(argv=None) -> int:
                                   topics=("markers/labeled", "/diagnostics")):
                 raise CliError(f"the node did not come up (exit status {node.poll()}):\n{tail(log_path)}")
             # wait for a diagnostics message: the node is spinning (model loaded)
-            d = mon.wait_diag(lambda d: True, timeout=5.0)
+            mon.wait_diag(lambda d: True, timeout=5.0)
             say(f"node      up after {time.perf_counter() - t_start:.1f} s (pid {node.pid}); playing")
             player = start_player(bag, env, ["--restamp", "--wait-for", "markers/unlabeled", "markers/ground_truth",
                                              "--start-delay", "0.3", "--wait-timeout", "20"])

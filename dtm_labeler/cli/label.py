@@ -297,7 +297,7 @@ def _print_summary(args, model, m: Metrics, runs: list[ClipRun]) -> None:
     print(f"frames         {m.frames} ({m.duration_s:.1f} s of recording)")
     print(f"accuracy       {_pct(m.accuracy)} of {m.points} visible markers; all right in "
           f"{_pct(m.frame_accuracy)} of frames; search alone {_pct(m.search_accuracy)}")
-    print(f"ghosts         " + (f"{_pct(m.ghost_rejection)} of {m.ghosts} left unlabelled" if m.ghosts else "none"))
+    print("ghosts         " + (f"{_pct(m.ghost_rejection)} of {m.ghosts} left unlabelled" if m.ghosts else "none"))
     print(f"swaps          {m.swaps} ({_fmt(m.swaps_per_min)} per min)")
     print(f"search errors  {m.search_errors} of {m.search_checked} frames ({_pct(m.search_error_rate)})")
     print(f"latency        p50 {_fmt(lat['p50'])} ms, p99 {_fmt(lat['p99'])} ms, max {_fmt(lat['max'])} ms; "

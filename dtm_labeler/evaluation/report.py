@@ -8,6 +8,7 @@ import numpy as np
 
 from .experiments import PAPER_TABLE3, TABLE3_ROWS
 from .model_tests import KIND_NAMES, MIXTURE_KINDS, PAPER_TABLE1, PAPER_TABLE2
+from ..jsonable import json_default
 
 COLORS = {"JMGW": "tab:red", "JMG": "tab:green", "JG": "tab:blue"}
 
@@ -31,18 +32,6 @@ def md_table(header: list[str], rows: list[list[str]]) -> str:
     out = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
     return "\n".join(out)
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, (np.floating,)):
-        return float(o)
-    if isinstance(o, tuple):
-        return list(o)
-    return str(o)
 
 
 def _paper(table: dict, row: str, key: str) -> str:
@@ -127,7 +116,6 @@ def _tables12(res: dict, out: Path, figures: list) -> list[str]:
              "* The paper's literal alternative for method 1 (\"the triangle with the maximum probability from 12 "
              "different triangles for the given model\", candidates = only the 12 true triples) is reported as "
              "Table 1b; it is much easier than Table 1.", ""]
-    paper_keys = {"W1": "W1", "R1": "R1", "D1": "D1"}
     for title, key, paper in (("Table 1 — method 1 (all ordered triples as candidates)", "mean_method1", PAPER_TABLE1),
                               ("Table 1b — method 1, candidates = the 12 true triples", "mean_method1_12", None),
                               ("Table 2 — method 2 (which of the 12 models fits the triple best)", "mean_method2",
@@ -235,7 +223,7 @@ def _table3(res: dict, seqs_info: dict, out: Path, figures: list) -> list[str]:
     fr = res["frames"]
     seqs = list(fr["single"])
     lines = ["## Table 3: labeling accuracy (section V.B-C, Fig. 11)", "",
-             f"Within-sequence protocol (train first 9/10, test last 1/10). Single mode: "
+             "Within-sequence protocol (train first 9/10, test last 1/10). Single mode: "
              + ", ".join(f"{s} {fr['single'][s]} frames" for s in seqs) + "; stream mode: "
              + ", ".join(f"{s} {fr['stream'][s]} frames (greedy {fr['stream_greedy'][s]})" for s in seqs) +
              ". Paper columns are the paper's Table 3 (its W2 has no counterpart here).", ""]
@@ -432,7 +420,6 @@ def _markers(res: dict, out: Path) -> list[str]:
                      "n/a" if not cl else f"{num(cl['latency_ms']['p50'], '.0f')} / {num(cl['latency_ms']['p99'], '.0f')}",
                      "n/a" if not sg else f"{num(sg['latency_ms']['p50'], '.0f')}",
                      "n/a" if not cl else f"{num(cl['swaps_per_min'], '.0f')}"])
-    any_f = next(iter(files.values()), None)
     return ["## Marker recordings at all markers", "",
             "Models over every labelled marker (`--points all`, structure by CBGA, MDL mixtures with K ≤ "
             "4 to bound training time) trained on the frames before the held-out last tenth (at most the last "
@@ -475,5 +462,5 @@ def write_report(out_dir: Path, results: dict, meta: dict) -> dict:
     report = out_dir / "report.md"
     report.write_text("\n".join(lines) + "\n", encoding="utf-8")
     (out_dir / "results.json").write_text(json.dumps({"meta": meta, "results": results}, indent=1,
-                                                     default=_json_default) + "\n", encoding="utf-8")
+                                                     default=json_default) + "\n", encoding="utf-8")
     return {"report": report, "figures": figures}

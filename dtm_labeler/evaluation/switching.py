@@ -39,6 +39,7 @@ from ..labeling.metrics import MetricsAccumulator
 from ..model.features import lateral_yaw, rotation_z
 from ..motion.clip import MotionClip
 from ..motion.transitions import TRUNK_PAIRS, HIPS, normalized_poses, similarity_matrix
+from ..jsonable import json_default
 
 CONFIGS = ("pooled", "hard", "bank", "bank+transitions")
 
@@ -329,7 +330,7 @@ def run_experiment(data_dir, out_dir, settings: ExperimentSettings | None = None
                                                 for t in models["incremental"].records[a]["transitions"]]
                                             for a in models["incremental"].actions} if es.incremental else None),
                "results": results, "wall_s": time.perf_counter() - t_all, "code": _code_version()}
-    (out_dir / "results.json").write_text(json.dumps(payload, indent=1, default=_jsonable))
+    (out_dir / "results.json").write_text(json.dumps(payload, indent=1, default=json_default))
     _plot(example, seqs[0], configs, results, out_dir / "switching.png")
     (out_dir / "report.md").write_text(_report(payload, configs))
     return payload
@@ -345,16 +346,6 @@ def _code_version() -> str:
                               cwd=os.path.dirname(__file__)).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return ""
-
-
-def _jsonable(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, (np.floating,)):
-        return float(o)
-    return str(o)
 
 
 def _plot(example: dict, seq: SwitchingSequence, configs, results, path) -> None:
@@ -397,7 +388,7 @@ def _f(x, spec=".3f"):
 def _report(p: dict, configs) -> str:
     s = p["settings"]
     lines = ["# Action-model bank: switching sequences (Ukita 4.1-4.4 in the labeler)", "",
-             f"Actions and recordings: " + ", ".join(f"{a} = `{r}`" for a, r in p["actions"].items()) + ".",
+             "Actions and recordings: " + ", ".join(f"{a} = `{r}`" for a, r in p["actions"].items()) + ".",
              f"Models train on the first {100 * s['train_fraction']:.0f} % of each recording "
              f"({', '.join(f'{a} {fr}' for a, fr in p['train_frames'].items())}); the test sequences use "
              "only the remaining frames (dance test part capped at "

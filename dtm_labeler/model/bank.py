@@ -36,6 +36,7 @@ import numpy as np
 
 from .dtm import TriangulatedModel
 from .io import ModelFileError, load_model, model_from_arrays, model_to_bytes
+from ..jsonable import json_default
 
 BANK_FORMAT = "dtm_labeler.bank"
 BANK_VERSION = 1
@@ -139,18 +140,6 @@ def _write_atomic(path: Path, data: bytes) -> None:
     os.replace(tmp, path)
 
 
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, (np.floating,)):
-        return float(o)
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-
 def save_bank(bank: ModelBank, path: str | os.PathLike, only: list[str] | None = None) -> Path:
     """Write a bank. ``path`` ending in ``.npz``: single file; otherwise a directory.
 
@@ -178,7 +167,7 @@ def save_bank(bank: ModelBank, path: str | os.PathLike, only: list[str] | None =
         entry["file"] = fname
         entry["sha256"] = _sha(data)
         bank.records[a] = {k: v for k, v in entry.items() if k != "name"}
-    _write_atomic(path / BANK_JSON, json.dumps(header, indent=1, default=_json_default).encode())
+    _write_atomic(path / BANK_JSON, json.dumps(header, indent=1, default=json_default).encode())
     return path
 
 
@@ -265,7 +254,7 @@ def _save_single(bank: ModelBank, path: Path) -> Path:
         e["file"] = f"model_{e['name']}"
         e["sha256"] = _sha(data)
         arrays[e["file"]] = np.frombuffer(data, dtype=np.uint8)
-    arrays["bank_json"] = np.frombuffer(json.dumps(header, indent=1, default=_json_default).encode(), dtype=np.uint8)
+    arrays["bank_json"] = np.frombuffer(json.dumps(header, indent=1, default=json_default).encode(), dtype=np.uint8)
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     _write_atomic(path, buf.getvalue())

@@ -201,7 +201,7 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
 
     # -- mixtures per triangle ------------------------------------------------------------
     rng = np.random.default_rng(config.seed)
-    mixtures, lengths, total_ll, total_n = [], [], 0.0, 0
+    mixtures, lengths = [], []
     for t, tri in enumerate(structure.triangles):
         step("mixtures", t, structure.n_triangles)
         ok = (train_codes[:, list(tri)] == FULL).all(axis=1)

@@ -290,7 +290,6 @@ class LabelerNode(Node):
         except ValueError as e:
             return SetParametersResult(successful=False, reason=str(e))
         change = None
-        path = values["model_path"]
         expected = values["expected_labels"]
         try:
             engine_keys = {"use_bank", "bank_path" if values["use_bank"] else "model_path"}
