@@ -191,9 +191,11 @@ class StreamLabeler(TrackedLabeler):
         """Typical fitness per labelled point: the model's training log-likelihood per label
         plus the per-label gain of the background model (see FrameProblem)."""
         ll = float(self.model.settings.get("loglik_per_label", 0.0))
-        full_gain = problem.label_gain[:-1][problem.codes[:-1] == 2]
-        gain = float(full_gain.mean()) if full_gain.size else float(np.median(problem.label_gain[:-1]))
-        return ll + gain
+        gains = problem.label_gain[:-1]
+        if gains.size == 0:                        # no points this frame: nothing to calibrate on
+            return ll
+        full_gain = gains[problem.codes[:-1] == 2]
+        return ll + float(full_gain.mean() if full_gain.size else np.median(gains))
 
     def _expected(self, assignment: np.ndarray, problem: FrameProblem) -> float:
         """Running fitness level scaled to this frame's labelled points."""
