@@ -108,4 +108,4 @@ def run_main(main_body, argv=None) -> int:
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    pass
+    """--help with every default shown and the examples epilog kept as written."""
