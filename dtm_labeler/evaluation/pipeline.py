@@ -84,14 +84,24 @@ def run_stream(model: TriangulatedModel, stream: CorruptedStream, settings: Labe
     """Feed a corrupted stream (label index = model label index) to a fresh labeler."""
     if tuple(stream.names) != tuple(model.labels):
         raise ValueError("stream label names differ from the model's labels")
-    labeler = StreamLabeler(model, settings or LabelerSettings())
-    acc = MetricsAccumulator(model.labels, stream.rate)
+    return run_labeler(StreamLabeler(model, settings or LabelerSettings()), model.labels, stream, use_ids,
+                       keep_records, progress, done, total)
+
+
+def run_labeler(labeler, labels: Sequence[str], stream: CorruptedStream, use_ids: bool = False,
+                keep_records: bool = True, progress: Progress | None = None, done: int = 0,
+                total: int | None = None, on_frame=None) -> ClipRun:
+    """Run any labeler with the ``process`` interface (StreamLabeler, BankLabeler) over a
+    corrupted stream and score it; ``on_frame(result)`` sees every frame's result."""
+    acc = MetricsAccumulator(labels, stream.rate)
     records: list[FrameRecord] = []
     total = len(stream) if total is None else total
     t_wall = time.perf_counter()
     for i, f in enumerate(stream):
         res = labeler.process(f.xyz, f.stamp, ids=f.ids if use_ids else None, truth=f.label_to_index)
         acc.add_result(f.truth, res, valid=np.isfinite(f.xyz).all(1))
+        if on_frame is not None:
+            on_frame(res)
         if keep_records:
             records.append(FrameRecord(
                 index=f.index, stamp=f.stamp, xyz=f.xyz, truth=f.truth, labels=res.labels,

@@ -473,32 +473,15 @@ def label_clip_bank(bank, clip: MotionClip, settings=None, bank_settings=None, o
     """:func:`dtm_labeler.evaluation.pipeline.label_clip_run` with a :class:`BankLabeler`.
     The run's ``settings`` add ``active_actions`` (per frame), ``true_class`` and
     ``active_action_accuracy`` (None when the clip's class is not one of the bank's actions)."""
-    from ..evaluation.pipeline import ClipRun, FrameRecord, model_clip
+    from ..evaluation.pipeline import model_clip, run_labeler
     from ..labeling.bank_labeler import BankLabeler
     mc = model_clip(bank.labels, clip)
     stream = corrupt_clip(mc, occlude=occlude, clutter=clutter, noise_mm=noise_mm, seed=seed, gap_frames=gap_frames)
-    labeler = BankLabeler(bank, settings, bank_settings)
-    acc = MetricsAccumulator(bank.labels, stream.rate)
-    records, active = [], []
-    total = len(stream) if total is None else total
-    t0 = time.perf_counter()
-    for i, f in enumerate(stream):
-        res = labeler.process(f.xyz, f.stamp, ids=f.ids if use_ids else None, truth=f.label_to_index)
-        acc.add_result(f.truth, res, valid=np.isfinite(f.xyz).all(1))
-        active.append(res.active_action)
-        if keep_records:
-            records.append(FrameRecord(
-                index=f.index, stamp=f.stamp, xyz=f.xyz, truth=f.truth, labels=res.labels,
-                confidence=res.confidence, track_ids=res.track_ids, search_labels=res.search_labels,
-                log_likelihood=res.log_likelihood, truth_fitness=res.truth_fitness, latency_ms=res.latency_ms,
-                full_search=res.full_search, generations=res.generations, evaluations=res.evaluations,
-                reset=res.reset))
-        if progress is not None:
-            progress(done + i + 1, total)
+    active = []
+    run = run_labeler(BankLabeler(bank, settings, bank_settings), bank.labels, stream, use_ids, keep_records,
+                      progress, done, total, on_frame=lambda res: active.append(res.active_action))
     cls = clip.motion_class
     agree = float(np.mean([a == cls for a in active])) if cls and cls in bank.actions and active else None
-    counts = {a: active.count(a) for a in bank.actions}
-    return ClipRun(source=stream.source, metrics=acc.metrics(), accumulator=acc, records=records,
-                   settings=dict(stream.settings, use_ids=use_ids, wall_s=time.perf_counter() - t0,
-                                 active_actions=active, true_class=cls, active_action_accuracy=agree,
-                                 active_action_frames=counts))
+    run.settings.update(active_actions=active, true_class=cls, active_action_accuracy=agree,
+                        active_action_frames={a: active.count(a) for a in bank.actions})
+    return run
