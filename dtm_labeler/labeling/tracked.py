@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..search import label_ops
-from ..search.label_search import targeted_moves
+from ..search.label_search import polish, targeted_moves
 from .frame_problem import FrameProblem
 from .tracker import TrackUpdate
 
@@ -110,20 +110,15 @@ class TrackedLabeler:
         """Steepest ascent of a carried-over labeling over its targeted moves (mirror,
         left/right and close-pair swaps, labels onto free points)."""
         n = problem.n
-        ind = seed
-        f = float(problem.fitness(ind[None])[0])
-        evals = 1
-        close = self._close_label_pairs(problem, ind)
-        for _ in range(self.settings.fast_rounds):
+        close = self._close_label_pairs(problem, seed)
+
+        def moves(ind):
             free = np.flatnonzero(~label_ops.used_mask(ind[None], n)[0])
-            cand = targeted_moves(ind, n, problem.mirror_pairs, free, close)
-            fc = problem.fitness(cand)
-            evals += len(cand)
-            i = int(np.argmax(fc))
-            if fc[i] <= f + 1e-9:
-                break
-            ind, f = cand[i], float(fc[i])
-        return ind, f, evals
+            return targeted_moves(ind, n, problem.mirror_pairs, free, close)
+
+        ind, f, evals = polish(problem, seed, float(problem.fitness(seed[None])[0]), self.settings.fast_rounds,
+                               neighbours=moves)
+        return ind, f, evals + 1
 
     @staticmethod
     def _truth_fitness(problem: FrameProblem, truth: np.ndarray | None, inp: FrameInput) -> float:

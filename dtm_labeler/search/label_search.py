@@ -202,13 +202,17 @@ def targeted_moves(ind: np.ndarray, n: int, mirror_pairs: np.ndarray, free_point
 
 
 def polish(problem: FrameProblem, ind: np.ndarray, fit: float, rounds: int,
-           deadline: float | None = None) -> tuple[np.ndarray, float, int]:
-    """Steepest ascent over :func:`label_ops.neighbourhood` (at most ``rounds`` moves)."""
+           deadline: float | None = None, neighbours=None) -> tuple[np.ndarray, float, int]:
+    """Steepest ascent (at most ``rounds`` moves) over ``neighbours(ind)``; by default the
+    full one-move :func:`label_ops.neighbourhood` within the distance bounds."""
+    if neighbours is None:
+        def neighbours(x):
+            return ops.neighbourhood(x, problem.n, pairs=problem.mirror_pairs, allowed=problem.allowed(x))
     evals = 0
     for _ in range(rounds):
         if deadline is not None and time.perf_counter() > deadline:
             break
-        cand = ops.neighbourhood(ind, problem.n, pairs=problem.mirror_pairs, allowed=problem.allowed(ind))
+        cand = neighbours(ind)
         f = problem.fitness(cand)
         evals += len(cand)
         i = int(np.argmax(f))
