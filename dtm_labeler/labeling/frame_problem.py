@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..model.dtm import TriangulatedModel
-from ..model.features import STATE_DIM, observation_state, rotation_z
+from ..model.features import STATE_DIM, observation_state, pattern_id, rotation_z
 
 
 @dataclass(frozen=True)
@@ -135,10 +135,16 @@ class FrameProblem:
     # -- fitness -------------------------------------------------------------------------
     def triangle_table(self, pop: np.ndarray, bins: np.ndarray, triangles=None) -> np.ndarray:
         """(P, len(triangles)) terms (roots included) for assignments ``pop`` at heading ``bins``."""
-        n1 = self.n + 1
         ts = np.arange(self.T) if triangles is None else np.atleast_1d(np.asarray(triangles, dtype=np.int64))
         idx = pop[:, self.tri[ts]]                                              # (P, t, 3)
-        keys = (((bins[:, None] * self.T + ts[None, :]) * n1 + idx[..., 0]) * n1 + idx[..., 1]) * n1 + idx[..., 2]
+        return self.triple_terms(bins[:, None], ts[None, :], idx[..., 0], idx[..., 1], idx[..., 2])
+
+    def triple_terms(self, bins, ts, i, j, k) -> np.ndarray:
+        """Terms of triangles ``ts`` with points ``(i, j, k)`` (``n`` = missing) at heading
+        ``bins``; broadcast arrays, cached for the frame. What :meth:`triangle_table` and the
+        max-product DP (:mod:`dtm_labeler.search.dtm_dp`) evaluate."""
+        n1 = self.n + 1
+        keys = (((np.asarray(bins) * self.T + ts) * n1 + i) * n1 + j) * n1 + k
         vals, found = self.cache.lookup(keys)
         if not found.all():
             new_keys = np.unique(keys[~found])
@@ -146,6 +152,36 @@ class FrameProblem:
             self.cache.insert(new_keys, new_vals)
             vals[~found] = new_vals[np.searchsorted(new_keys, keys[~found])]
         return vals
+
+    def grid_terms(self, heading_bin: int, grids: list[tuple]) -> list[np.ndarray]:
+        """Terms over candidate grids at one heading bin: for each ``(t, ca, cb, cc, mask)``
+        the (|ca|, |cb|, |cc|) terms of triangle ``t`` for every combination of candidate
+        points (``n`` = missing). Fully observed combinations come from one broadcast per
+        grid (:meth:`BatchedTerms.grid`); the others (a missing point or velocity) from
+        one :meth:`triple_terms` call for all grids; only where ``mask`` is true (elsewhere
+        -inf)."""
+        rot = self.canonical_states([heading_bin])[0]
+        full = self.codes == 2
+        batched = self.model.batched_full
+        out, idx = [], []
+        for t, ca, cb, cc, mask in grids:
+            g = np.full(mask.shape, -np.inf)
+            whole = full[ca][:, None, None] & full[cb][None, :, None] & full[cc][None, None, :]
+            ia, ib, ic = np.nonzero(whole & mask)
+            if ia.size:
+                g[ia, ib, ic] = batched.grid(t, rot[ca], rot[cb], rot[cc], ia, ib, ic) + \
+                    (self.background.log_position if t == 0 else 0.0)
+            self.evaluations += ia.size
+            out.append(g)
+            idx.append(np.nonzero(~whole & mask))
+        counts = [w[0].size for w in idx]
+        if sum(counts):
+            ts = np.repeat([g[0] for g in grids], counts)
+            pts = [np.concatenate([grids[q][1 + r][idx[q][r]] for q in range(len(grids))]) for r in range(3)]
+            vals = np.split(self.triple_terms(heading_bin, ts, *pts), np.cumsum(counts)[:-1])
+            for g, w, v in zip(out, idx, vals):
+                g[w] = v
+        return out
 
     def canonical_states(self, bins: np.ndarray) -> np.ndarray:
         """(B, n+1, 6) frame states rotated by ``-bin * step`` about z, one copy per bin
@@ -171,18 +207,13 @@ class FrameProblem:
         rot = self.canonical_states(ub)                                          # (B, n+1, 6)
         trip = np.stack([i, j, k], axis=1)
         s = rot[binv[:, None], trip].reshape(-1, 3 * STATE_DIM)                  # (m, 18)
-        codes = self.codes[trip]
+        pids = pattern_id(self.codes[trip])
         out = np.empty(keys.size)
-        full = (codes == 2).all(axis=1)
-        if full.any():                         # the common case: one batched call for all triangles
-            sel = np.flatnonzero(full)
-            out[sel] = self.model.batched_full(s[sel], t[sel])
-            out[sel[t[sel] == 0]] += self.background.log_position        # the first triangle is a root
-        rest = np.flatnonzero(~full)
-        for tt in np.unique(t[rest]):
-            sel = rest[t[rest] == tt]
-            val, roots = self.model.triangle_terms(int(tt), s[sel], codes[sel], finite=True)
-            out[sel] = val + roots * self.background.log_position
+        # one batched call per observation pattern (mostly just the fully observed one)
+        for pid in np.unique(pids):
+            sel = np.flatnonzero(pids == pid) if pids.size and pids.min() != pids.max() else slice(None)
+            terms = self.model.batched(int(pid))
+            out[sel] = terms(s[sel], t[sel]) + terms.root[t[sel]] * self.background.log_position
         self.evaluations += keys.size
         return out
 

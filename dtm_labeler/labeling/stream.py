@@ -46,6 +46,8 @@ class LabelerSettings:
     accept_drop: float = 30.0            # carried-over labeling accepted without GA within this
     fast_rounds: int = 4                 # hill-climbing rounds of the fast path
     swap_radius_m: float = 0.15          # fast path also tries swapping labels this close
+    region_checks: int = 1               # body regions relabelled exactly (DP) per frame on the fast path
+    region_size: int = 8                 # labels per region (see search.dtm_dp.model_regions)
     max_gap_s: float = 0.5               # longer input gaps reset window and tracks
     noise_mm: float = 0.0                # measurement noise (sd per coordinate) the model is widened by
     seed: int = 0

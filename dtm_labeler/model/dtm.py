@@ -163,21 +163,26 @@ class TriangleTerms:
 FULL_PATTERN = 26          # all three vertices with position and velocity (2 + 3*2 + 9*2)
 
 
-class BatchedFullTerms:
-    """Every triangle's fully observed term in one vectorised call.
+class BatchedTerms:
+    """Every triangle's term for one observation pattern in one vectorised call.
 
-    The common case on the hot path is a batch of triples from *different* triangles, all with
-    positions and velocities. Per-triangle calls would cost one Python round trip each; here
-    the whitening matrices of all triangles are zero-padded to a common width and gathered
-    per row, so the whole batch is three einsums and two masked log-sum-exps.
+    The common case on the hot path is a batch of triples from *different* triangles with
+    the same observation pattern (mostly: all three points with position and velocity).
+    Per-triangle calls would cost one Python round trip each; here the whitening matrices
+    of all triangles are zero-padded to a common width and gathered per row, so the whole
+    batch is three einsums and two masked log-sum-exps. A triangle whose term vanishes for
+    the pattern (vertex A unobserved) has all-zero matrices and an empty mixture: term 0.
+    ``root[t]``: the pattern leaves triangle ``t``'s absolute position unmodelled.
     """
 
-    def __init__(self, terms: "list[TriangleTerms]"):
-        parts = [t.pattern(FULL_PATTERN) for t in terms]
+    def __init__(self, terms: "list[TriangleTerms]", pid: int = FULL_PATTERN):
+        parts = [t.pattern(pid) for t in terms]
+        parts = [None if p is None or p.empty else p for p in parts]
         T = len(parts)
-        R = max(p.W.shape[1] for p in parts)
-        kj = max(p.joint.K for p in parts)
-        kp = max((p.parents.K if p.parents is not None else 1) for p in parts)
+        live = [p for p in parts if p is not None]
+        R = max([p.W.shape[1] for p in live], default=1)
+        kj = max([p.joint.K for p in live], default=1)
+        kp = max([(p.parents.K if p.parents is not None and p.parents.dim > 0 else 1) for p in live], default=1)
         self.W = np.zeros((T, 18, R))
         self.c = np.zeros((T, R))
         self.Sj = np.zeros((T, R, kj))
@@ -185,7 +190,12 @@ class BatchedFullTerms:
         self.cj = np.full((T, kj), -np.inf)
         self.cp = np.full((T, kp), -np.inf)
         self.has_parent = np.zeros(T, dtype=bool)
+        self.root = np.array([p is not None and p.root for p in parts], dtype=bool)
+        dead = np.array([p is None for p in parts], dtype=bool)
+        self.cj[dead, 0] = 0.0                       # log-sum-exp of one zero component: term 0
         for t, p in enumerate(parts):
+            if p is None:
+                continue
             r = p.W.shape[1]
             self.W[t, :, :r] = p.W
             self.c[t, :r] = p.c
@@ -193,7 +203,7 @@ class BatchedFullTerms:
             rows_j = p.joint.K * p.joint.dim
             self.Sj[t, :rows_j, :b - a] = p.S[:rows_j, a:b]
             self.cj[t, :p.joint.K] = p.joint.logconst
-            if p.parents is not None:
+            if len(p.splits) > 1:
                 a2, b2 = p.splits[1]
                 self.Sp[t, rows_j:r, :b2 - a2] = p.S[rows_j:r, a2:b2]
                 self.cp[t, :p.parents.K] = p.parents.logconst
@@ -228,6 +238,25 @@ class BatchedFullTerms:
         if hp.any():
             out[hp] -= self._lse(self.cp[tri[hp]] - 0.5 * qp[hp])
         return out
+
+    def grid(self, t: int, sa: np.ndarray, sb: np.ndarray, sc: np.ndarray,
+             ia: np.ndarray, ib: np.ndarray, ic: np.ndarray) -> np.ndarray:
+        """Fully observed terms of triangle ``t`` for the triples ``(sa[ia], sb[ib], sc[ic])``
+        of candidate states ``sa`` (ka, 6), ``sb`` (kb, 6), ``sc`` (kc, 6). The whitening is
+        linear in the stacked state, so each candidate's share is projected once
+        (``k x 6 @ 6 x R``) and the triples only add rows: no 18-wide matmul per triple."""
+        W = self.W[t]
+        z = (sa @ W[0:6])[ia] + (sb @ W[6:12])[ib] + (sc @ W[12:18])[ic] - self.c[t]    # (m, R)
+        zz = z * z
+        out = _lse_last(self.cj[t] - 0.5 * (zz @ self.Sj[t]))
+        if self.has_parent[t]:
+            out -= _lse_last(self.cp[t] - 0.5 * (zz @ self.Sp[t]))
+        return out
+
+
+def _lse_last(x: np.ndarray) -> np.ndarray:
+    m = x.max(axis=-1)
+    return m + np.log(np.exp(x - m[..., None]).sum(axis=-1))
 
 
 @dataclass
@@ -327,10 +356,20 @@ class TriangulatedModel:
         return self._bounds
 
     @property
-    def batched_full(self) -> BatchedFullTerms:
+    def batched_full(self) -> BatchedTerms:
+        """:class:`BatchedTerms` of the fully observed pattern (the hot path)."""
         if getattr(self, "_batched_full", None) is None:
-            self._batched_full = BatchedFullTerms(self.terms)
+            self._batched_full = BatchedTerms(self.terms, FULL_PATTERN)
         return self._batched_full
+
+    def batched(self, pid: int) -> BatchedTerms:
+        """:class:`BatchedTerms` of observation pattern ``pid`` (built on first use)."""
+        if pid == FULL_PATTERN:
+            return self.batched_full
+        cache = self.__dict__.setdefault("_batched_patterns", {})
+        if pid not in cache:
+            cache[pid] = BatchedTerms(self.terms, pid)
+        return cache[pid]
 
     def triangle_terms(self, t: int, s: np.ndarray, codes: np.ndarray,
                        finite: bool = False) -> tuple[np.ndarray, np.ndarray]:

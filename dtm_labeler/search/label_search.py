@@ -8,8 +8,8 @@
 * :class:`SimpleGASearch` -- the same budget and selection with plain operators (no
   repair); invalid offspring get the death penalty.
 * :class:`GreedySearch` -- Song et al.'s dynamic programming over the elimination order
-  (max-product on the DTM, exclusion enforced inside each clique only), conflicts then
-  resolved greedily; run at a few heading hypotheses.
+  (max-product on the DTM, :mod:`.dtm_dp`; exclusion enforced inside each clique only),
+  conflicts then resolved by fitness; run at a few heading hypotheses.
 * :class:`ExhaustiveSearch` -- every injective assignment, for small problems (counts
   search errors exactly).
 """
@@ -25,6 +25,7 @@ import numpy as np
 
 from ..labeling.frame_problem import FrameProblem
 from . import label_ops as ops
+from .dtm_dp import max_product
 from .ga import Termination, elite_indices, rank_select
 
 
@@ -355,51 +356,10 @@ class GreedySearch(LabelSearch):
                 best = (ind, f)
         return SearchOutcome(best[0], best[1], 0, evals, [best[1]], "complete")
 
-    def _dp(self, problem: FrameProblem, b: int) -> np.ndarray:
-        n1 = problem.n + 1
-        tri = problem.tri
-        M = problem.M
-        grid = np.stack(np.meshgrid(np.arange(n1), np.arange(n1), np.arange(n1), indexing="ij"), -1).reshape(-1, 3)
-        ok = ((grid[:, 0] != grid[:, 1]) | (grid[:, 0] == n1 - 1)) & \
-             ((grid[:, 0] != grid[:, 2]) | (grid[:, 0] == n1 - 1)) & \
-             ((grid[:, 1] != grid[:, 2]) | (grid[:, 1] == n1 - 1))
-        gain = problem.label_gain
-        tables = []
-        for t in range(problem.T):
-            pop = np.full((grid.shape[0], M), n1 - 1)
-            pop[:, tri[t]] = grid
-            vals = problem.triangle_table(pop, np.full(grid.shape[0], b), [t])[:, 0]
-            new = [0, 1, 2] if t == 0 else [0]
-            vals = vals + gain[grid[:, new]].sum(1)
-            tables.append(np.where(ok, vals, -np.inf).reshape(n1, n1, n1))
-        msgs: dict[tuple[int, int], np.ndarray] = {}      # edge (u < v) -> table [x_u, x_v]
-
-        def msg(u, v):
-            m = msgs.get((min(u, v), max(u, v)))
-            if m is None:
-                return np.zeros((n1, n1))
-            return m if u < v else m.T
-
-        def send(u, v, table):                              # table indexed [x_u, x_v]
-            key = (min(u, v), max(u, v))
-            msgs[key] = msgs.get(key, 0.0) + (table if u < v else table.T)
-
-        argbest = {}
-        for t in range(problem.T - 1, 0, -1):               # eliminate A_t (free in its clique)
-            a, bb, c = (int(x) for x in tri[t])
-            tot = tables[t] + msg(a, bb)[:, :, None] + msg(a, c)[:, None, :]
-            argbest[t] = tot.argmax(0)
-            send(bb, c, tot.max(0))
-        a, bb, c = (int(x) for x in tri[0])
-        tot = tables[0] + msg(a, bb)[:, :, None] + msg(a, c)[:, None, :] + msg(bb, c)[None]
-        xa, xb, xc = np.unravel_index(int(np.argmax(tot)), tot.shape)
-        assign = np.full(M, n1 - 1, dtype=np.int64)
-        assign[[a, bb, c]] = (xa, xb, xc)
-        for t in range(1, problem.T):
-            a, bb, c = (int(x) for x in tri[t])
-            assign[a] = argbest[t][assign[bb], assign[c]]
-        # the DP ignores exclusion across cliques: later duplicates become missing / unused points
-        return ops.repair(assign[None], problem.n, np.random.default_rng(0), fill=False)[0]
+    @staticmethod
+    def _dp(problem: FrameProblem, b: int) -> np.ndarray:
+        """Every point (and "missing") a candidate for every label: :func:`dtm_dp.max_product`."""
+        return max_product(problem, [np.arange(problem.n + 1)] * problem.M, b)
 
 
 class ExhaustiveSearch(LabelSearch):

@@ -1,0 +1,187 @@
+"""Max-product dynamic programming over the DTM's elimination order (Song et al.).
+
+A decomposable triangulated model factorises the labeling likelihood over triangles whose
+first vertex ``A_t`` (t > 0) appears in no earlier triangle and whose other two vertices form
+an edge of the model built so far (eq. 15). Eliminating ``A_T, ..., A_1`` in turn, each step
+maximises its triangle's table plus the messages already sent to the edges ``(A_t, B_t)``
+and ``(A_t, C_t)`` over ``A_t`` and sends the result to ``(B_t, C_t)``; the first triangle
+collects everything, and a forward pass reads the arg maxima back. With every point a
+candidate for every label this is the exact MAP of the tree-structured part of the fitness
+at one heading (Song, Goncalves and Perona's greedy/DP labeling); the one-point-one-label
+constraint is only enforced inside each triangle, so duplicates across triangles are
+resolved afterwards (:func:`resolve_duplicates`).
+
+Restricting each label to a few candidate points (:func:`local_candidates`: the point it
+has now, its nearest neighbours, its mirror partner's point, "missing") turns the same DP
+into a cheap large-neighbourhood move: the best labeling among ``prod_l |C_l|`` candidates
+in ``sum_t |C_A| |C_B| |C_C|`` term evaluations. It reaches what single swaps cannot -- a
+chain of labels shifted one marker along a limb is corrected in one step.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..labeling.frame_problem import FrameProblem
+from . import label_ops as ops
+
+
+def max_product(problem: FrameProblem, candidates: list[np.ndarray], heading_bin: int) -> np.ndarray:
+    """The assignment maximising the sum of triangle terms and label gains over
+    ``candidates[l]`` (point indices, ``problem.n`` = missing) at one heading bin,
+    duplicates across triangles resolved. Returns (M,) point indices."""
+    n, M, tri = problem.n, problem.M, problem.tri
+    cand = [np.unique(np.asarray(c, dtype=np.int64)) for c in candidates]
+    if any(c.size == 0 for c in cand):
+        raise ValueError("every label needs at least one candidate (n = missing)")
+    if len(cand) != M:
+        raise ValueError(f"{len(cand)} candidate lists for {M} labels")
+    gain = problem.label_gain
+    dist, bounds = problem.dist, problem.bounds
+    # a triangle whose three labels have one candidate each only adds a constant: skipped
+    sizes = np.array([c.size for c in cand])
+    active = [t for t in range(problem.T) if t == 0 or (sizes[tri[t]] > 1).any()]
+    # each active triangle's table over its candidate grid (one broadcast per triangle);
+    # triples beyond the distance bounds or using a point twice are excluded
+    specs = []
+    for t in active:
+        a, b, c = (int(x) for x in tri[t])
+        ca, cb, cc = cand[a], cand[b], cand[c]
+        ab = (dist[np.ix_(ca, cb)] <= bounds[a, b]) & ((ca[:, None] != cb[None]) | (ca[:, None] == n))
+        ac = (dist[np.ix_(ca, cc)] <= bounds[a, c]) & ((ca[:, None] != cc[None]) | (ca[:, None] == n))
+        bc = (dist[np.ix_(cb, cc)] <= bounds[b, c]) & ((cb[:, None] != cc[None]) | (cb[:, None] == n))
+        specs.append((t, ca, cb, cc, ab[:, :, None] & ac[:, None, :] & bc[None, :, :]))
+    tables = {}
+    for (t, ca, cb, cc, ok), val in zip(specs, problem.grid_terms(heading_bin, specs)):
+        val += gain[ca][:, None, None]
+        if t == 0:
+            val += gain[cb][None, :, None] + gain[cc][None, None, :]
+        tables[t] = np.where(ok, val, -np.inf)
+
+    msgs: dict[tuple[int, int], np.ndarray] = {}          # edge (u < v) -> table [x_u, x_v]
+
+    def msg(u: int, v: int) -> np.ndarray:
+        m = msgs.get((min(u, v), max(u, v)))
+        if m is None:
+            return np.zeros((sizes[u], sizes[v]))
+        return m if u < v else m.T
+
+    def send(u: int, v: int, table: np.ndarray) -> None:
+        key = (min(u, v), max(u, v))
+        msgs[key] = msgs.get(key, 0.0) + (table if u < v else table.T)
+
+    argbest = {}
+    for t in reversed(active[1:]):                       # eliminate A_t (free in its clique)
+        a, b, c = (int(x) for x in tri[t])
+        tot = tables[t] + msg(a, b)[:, :, None] + msg(a, c)[:, None, :]
+        argbest[t] = tot.argmax(0)
+        send(b, c, tot.max(0))
+    a, b, c = (int(x) for x in tri[0])
+    tot = tables[0] + msg(a, b)[:, :, None] + msg(a, c)[:, None, :] + msg(b, c)[None]
+    if not np.isfinite(tot).any():
+        raise ValueError("no candidate labeling satisfies the distance bounds")
+    xa, xb, xc = np.unravel_index(int(np.argmax(tot)), tot.shape)
+    pick = np.zeros(M, dtype=np.int64)
+    pick[[a, b, c]] = (xa, xb, xc)
+    for t in active[1:]:
+        a, b, c = (int(x) for x in tri[t])
+        pick[a] = argbest[t][pick[b], pick[c]]
+    assign = np.array([cand[lab][pick[lab]] for lab in range(M)], dtype=np.int64)
+    return resolve_duplicates(problem, assign)
+
+
+def resolve_duplicates(problem: FrameProblem, assign: np.ndarray) -> np.ndarray:
+    """One label per point: where the DP gave a point to several labels (it enforces
+    exclusion inside each triangle only), the claimant whose keeping it gives the best
+    fitness keeps it and the others become missing (one conflict at a time)."""
+    n = problem.n
+    assign = np.asarray(assign, dtype=np.int64).copy()
+    while True:
+        vals, counts = np.unique(assign[assign < n], return_counts=True)
+        if not (counts > 1).any():
+            return assign
+        labs = np.flatnonzero(assign == vals[np.argmax(counts > 1)])
+        options = np.repeat(assign[None], labs.size, 0)
+        options[:, labs] = n
+        options[np.arange(labs.size), labs] = assign[labs]
+        assign = options[int(np.argmax(problem.fitness(options)))]
+
+
+def local_candidates(problem: FrameProblem, ind: np.ndarray, k_near: int = 3,
+                     with_missing: bool = False) -> list[np.ndarray]:
+    """Candidate points per label around the labeling ``ind``: the label's point and its
+    ``k_near - 1`` nearest points (labelled or not), the point of its mirror partner, and
+    "missing". A missing label gets the ``k_near`` free points within its distance bounds
+    that are nearest (relative to those bounds) to its labelled triangle neighbours."""
+    n, M = problem.n, problem.M
+    out = [np.array([n])] * M
+    if n == 0:
+        return out
+    k = min(k_near, n)
+    d = problem.dist[:n, :n]
+    nearest = np.argpartition(d, k - 1, axis=1)[:, :k] if k < n else np.tile(np.arange(n), (n, 1))
+    partner = np.full(M, -1, dtype=np.int64)
+    mp = problem.mirror_pairs
+    if len(mp):
+        partner[mp[:, 0]], partner[mp[:, 1]] = mp[:, 1], mp[:, 0]
+    used = ops.used_mask(ind[None], n)[0]
+    free = np.flatnonzero(~used)
+    allowed = problem.allowed(ind) if free.size else None
+    bounds = problem.bounds
+    for lab in range(M):
+        p = int(ind[lab])
+        extra = [] if p < n and not with_missing else [n]
+        if partner[lab] >= 0 and ind[partner[lab]] < n:
+            extra.append(int(ind[partner[lab]]))
+        if p < n:
+            out[lab] = np.concatenate([nearest[p], extra])
+        elif free.size:
+            ok = free[allowed[lab, free]]
+            nb = np.flatnonzero(np.isfinite(bounds[lab]) & (ind < n))
+            if ok.size > k and nb.size:
+                score = (problem.dist[np.ix_(ok, ind[nb])] / bounds[lab, nb]).sum(1)
+                ok = ok[np.argsort(score)[:k]]
+            out[lab] = np.concatenate([ok[:max(k, 0)] if nb.size else ok[:k], extra])
+        else:
+            out[lab] = np.array(extra)
+    return out
+
+
+def region_candidates(problem: FrameProblem, ind: np.ndarray, free: np.ndarray) -> list[np.ndarray]:
+    """Candidates for relabelling the region ``free`` (M,) bool of ``ind`` with the other
+    labels kept: a free label may take any point not held by a kept label, or be missing;
+    a kept label has its own point only. :func:`max_product` over these is the exact best
+    relabelling of the region (at one heading) given the rest of the body."""
+    n = problem.n
+    kept = np.where(free, n, ind)
+    pool = np.append(np.flatnonzero(~ops.used_mask(kept[None], n)[0]), n)
+    return [pool if free[lab] else np.array([ind[lab]]) for lab in range(problem.M)]
+
+
+def model_regions(model, max_size: int = 8) -> list[np.ndarray]:
+    """One body region per label, grown from it through the DTM: repeatedly add the label
+    sharing the most triangles with the region so far, and with it its left/right mirror
+    partner (so that a limb swapped with its mirror image is repaired in one relabelling),
+    until ``max_size`` labels. Regions of the model, computed once per model."""
+    M = model.n_labels
+    shared = np.zeros((M, M), dtype=np.int64)
+    for a, b, c in model.triangles:
+        for u, v in ((a, b), (a, c), (b, c)):
+            shared[u, v] += 1
+            shared[v, u] += 1
+    partner = np.full(M, -1, dtype=np.int64)
+    mp = np.asarray(model.mirror_pairs, dtype=np.int64).reshape(-1, 2)
+    partner[mp[:, 0]], partner[mp[:, 1]] = mp[:, 1], mp[:, 0]
+    regions = []
+    for lab in range(M):
+        inside = np.zeros(M, dtype=bool)
+        inside[lab] = True
+        while inside.sum() < max_size:
+            score = np.where(inside, -1, shared[:, inside].sum(1))
+            nxt = int(np.argmax(score))
+            if score[nxt] <= 0:
+                break
+            inside[nxt] = True
+            if partner[nxt] >= 0 and inside.sum() < max_size:
+                inside[partner[nxt]] = True
+        regions.append(np.flatnonzero(inside))
+    return regions

@@ -1,0 +1,158 @@
+"""Max-product DP over the DTM (Song et al.) and its uses: exactness against brute force,
+the grid and per-pattern batched term evaluators against the per-triple path, body regions,
+and the region checks that put a wrongly carried labeling right in the stream."""
+import itertools
+
+import numpy as np
+import pytest
+
+from dtm_labeler.labeling.frame_problem import Background, FrameProblem
+from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
+from dtm_labeler.model.features import point_states
+from dtm_labeler.model.training import TrainConfig, train_model
+from dtm_labeler.motion.synthetic import synthesize
+from dtm_labeler.search import label_ops as ops
+from dtm_labeler.search.dtm_dp import max_product, model_regions, region_candidates, resolve_duplicates
+
+NAMES = ("neck", "lshoulder", "rshoulder", "lhip", "rhip", "lknee", "rknee", "lankle", "rankle")
+
+
+@pytest.fixture(scope="module")
+def model():
+    clips = [synthesize(duration=2.0, seed=s, heading=h, noise_mm=2).select(NAMES)
+             for s, h in [(0, 0.0), (1, 1.0), (2, 2.5)]]
+    m, _ = train_model(clips, TrainConfig(mixture="fixed", k_fixed=2, structure_generations=60))
+    return m
+
+
+@pytest.fixture(scope="module")
+def frame(model):
+    """A shuffled frame with one clutter point and one point without velocity; truth."""
+    clip = synthesize(duration=1.0, seed=9, heading=-1.3, noise_mm=2, start_xy=(0.5, 1.0)).select(NAMES)
+    st = point_states(clip.positions, clip.rate)[40]
+    perm = np.random.default_rng(0).permutation(len(NAMES))
+    clutter = np.r_[st[0, :3] + [0.3, 0.4, 0.2], 0.5, 0.0, 0.0]
+    states = np.vstack([st[perm], clutter])
+    return states, np.argsort(perm)
+
+
+def _objective(p: FrameProblem, pop: np.ndarray, b: int) -> np.ndarray:
+    """What the DP maximises: triangle terms at one heading bin plus label gains."""
+    return p.triangle_table(pop, np.full(len(pop), b)).sum(1) + p.label_gain[pop].sum(1)
+
+
+def test_grid_terms_match_triple_terms(model, frame):
+    states = frame[0].copy()
+    states[2, 3:] = np.nan                                   # a point seen for the first time
+    p = FrameProblem(model, states, Background())
+    rng = np.random.default_rng(1)
+    specs = []
+    for t in (0, 1, p.T - 1):
+        ca, cb, cc = (np.append(rng.choice(p.n, 4, replace=False), p.n) for _ in range(3))
+        specs.append((t, ca, cb, cc, np.ones((5, 5, 5), dtype=bool)))
+    ref = FrameProblem(model, states, Background())
+    for (t, ca, cb, cc, _), g in zip(specs, p.grid_terms(7, specs)):
+        A, B, C = np.meshgrid(ca, cb, cc, indexing="ij")
+        np.testing.assert_allclose(g, ref.triple_terms(7, t, A, B, C), rtol=1e-10, atol=1e-9)
+
+
+@pytest.mark.parametrize("pid", [26, 25, 23, 17, 8, 20, 2])
+def test_batched_pattern_terms_match_each_triangle(model, pid):
+    """The per-pattern batch (all triangles in one call) equals the per-triangle terms."""
+    from dtm_labeler.model.features import pattern_codes
+    rng = np.random.default_rng(pid)
+    s = rng.normal(scale=0.3, size=(40, 18))
+    codes = np.array(pattern_codes(pid))
+    for v in range(3):                                       # zero what the pattern does not observe
+        if codes[v] == 0:
+            s[:, 6 * v:6 * v + 6] = 0.0
+        elif codes[v] == 1:
+            s[:, 6 * v + 3:6 * v + 6] = 0.0
+    tri = rng.integers(model.structure.n_triangles, size=40)
+    batch = model.batched(pid)
+    got = batch(s, tri) + batch.root[tri] * -4.0
+    for t in np.unique(tri):
+        sel = tri == t
+        val, roots = model.triangle_terms(int(t), s[sel], np.tile(codes, (sel.sum(), 1)), finite=True)
+        np.testing.assert_allclose(got[sel], val + roots * -4.0, rtol=1e-10, atol=1e-9)
+
+
+def test_max_product_is_exact_over_its_candidates(model, frame):
+    """Labels restricted to {true point, the clutter point, missing}: the DP's choice scores
+    the brute-force maximum of the objective over every injective combination."""
+    states, truth = frame
+    p = FrameProblem(model, states, Background())
+    b = int(p.heading_bin(p.yaw(truth[None]))[0])
+    cands = [np.array([truth[lab], p.n - 1, p.n]) for lab in range(p.M)]
+    combos = np.array(list(itertools.product(*cands)), dtype=np.int64)
+    combos = combos[ops.is_valid(combos, p.n)]
+    within = np.array([not (p.dist[np.ix_(c, c)] > p.bounds).any() for c in combos])
+    best = _objective(p, combos[within], b).max()
+    got = max_product(p, cands, b)
+    assert ops.is_valid(got[None], p.n).all()
+    assert _objective(p, got[None], b)[0] == pytest.approx(best, abs=1e-6)
+
+
+def test_region_relabelling_repairs_a_shifted_chain(model, frame):
+    states, truth = frame
+    p = FrameProblem(model, states, Background())
+    b = int(p.heading_bin(p.yaw(truth[None]))[0])
+    regions = model_regions(model, max_size=5)
+    region = max(regions, key=len)
+    wrong = truth.copy()
+    wrong[region] = np.roll(truth[region], 1)               # labels shifted one point along the region
+    free = np.zeros(p.M, dtype=bool)
+    free[region] = True
+    fixed = max_product(p, region_candidates(p, wrong, free), b)
+    assert np.array_equal(fixed[~free], wrong[~free])        # the rest of the body untouched
+    assert _objective(p, fixed[None], b)[0] >= _objective(p, truth[None], b)[0] - 1e-6
+    assert np.array_equal(fixed, truth)
+
+
+def test_model_regions(model):
+    regions = model_regions(model, max_size=4)
+    assert len(regions) == model.n_labels
+    share = np.zeros((model.n_labels,) * 2, dtype=bool)
+    for tri in model.triangles:
+        share[np.ix_(tri, tri)] = True
+    for lab, reg in enumerate(regions):
+        assert lab in reg and 2 <= len(reg) <= 4
+        grown = [lab]                                        # each label joins through a triangle or as a mirror partner
+        for x in reg:
+            assert x == lab or share[x, reg].sum() > 1 or any(set(pr) == {x, y} for pr in model.mirror_pairs.tolist() for y in reg)
+
+
+def test_resolve_duplicates_keeps_the_best_claimant(model, frame):
+    states, truth = frame
+    p = FrameProblem(model, states, Background())
+    dup = truth.copy()
+    dup[1] = truth[0]                                        # label 1 also claims label 0's point
+    out = resolve_duplicates(p, dup)
+    assert ops.is_valid(out[None], p.n).all()
+    options = [np.where(np.arange(p.M) == k, p.n, dup) for k in (0, 1)]
+    assert p.fitness(out[None])[0] == pytest.approx(max(p.fitness(np.stack(options))))
+
+
+def test_stream_region_checks_put_a_wrong_carried_labeling_right(model):
+    """Tracks carrying a chain of shifted labels (as a start-up search error would leave
+    them): the fast path's region checks restore the truth within a pass over the regions."""
+    clip = synthesize(duration=1.5, seed=4, heading=0.7, noise_mm=1).select(NAMES)
+    P = clip.positions
+    results = {}
+    for checks in (0, 1):
+        lab = StreamLabeler(model, LabelerSettings(region_checks=checks, accept_drop=1e6, refit_drop=1e6))
+        wrong_frames = []
+        for f in range(P.shape[0]):
+            r = lab.process(P[f], f / clip.rate, ids=np.arange(len(NAMES)))
+            if f == 20:                                      # corrupt what the tracks carry
+                region = max(model_regions(model), key=len)
+                tl = dict(lab.track_label)
+                inv = {v: k for k, v in tl.items()}
+                tracks = [inv[int(x)] for x in region]
+                for tr, x in zip(tracks, np.roll(region, 1)):
+                    lab.track_label[tr] = int(x)
+            if f > 20:
+                wrong_frames.append(not np.array_equal(r.search_labels, np.arange(len(NAMES))))
+        results[checks] = np.array(wrong_frames)
+    assert results[1][model.n_labels + 2:].sum() == 0       # repaired within one pass and kept
+    assert results[1].sum() < results[0].sum() or results[0].sum() == 0
