@@ -7,8 +7,12 @@ and of ``dtm-label``; no ROS imports.
 
 Work per frame is bounded: at most ``max_points`` points enter the search (the ones nearest
 the body's last centre), the GA has a generation cap, a stagnation stop and an optional
-time budget. A warm start that still fits (fitness within ``refit_drop`` nats of the
-running level) costs a handful of generations; otherwise a full search runs.
+time budget. The fast path hill-climbs the carried-over labeling and relabels one body
+region exactly (``region_checks``, max-product DP given the rest of the body), so a wrong
+labeling that tracking would carry on is put right within a pass over the regions. It is
+accepted when it fits within ``accept_drop`` nats (or 5 x the running scatter of good
+frames, if larger) of the running level; otherwise a warm GA runs, and a full search when
+that still falls ``refit_drop`` (or 8 x the scatter) short.
 """
 from __future__ import annotations
 
@@ -63,6 +67,8 @@ class LabelerSettings:
             raise ValueError("noise_mm must be in [0, 500]")
         if self.max_points < 0 or self.refit_drop <= 0 or self.max_gap_s <= 0 or self.accept_drop <= 0:
             raise ValueError("max_points >= 0 and refit_drop, accept_drop, max_gap_s > 0 required")
+        if self.region_checks < 0 or self.region_size < 2:
+            raise ValueError("region_checks must be >= 0 and region_size >= 2")
 
 
 @dataclass
@@ -105,6 +111,7 @@ class StreamLabeler(TrackedLabeler):
     def reset(self) -> None:
         self._reset_stream()
         self.level = None                          # running fitness per labelled point (EMA)
+        self.spread = 0.0                          # running RMS of fitness minus expected (nats)
         self._provisional = False
 
     def set_model(self, model: TriangulatedModel) -> None:
@@ -152,7 +159,8 @@ class StreamLabeler(TrackedLabeler):
                 outcome = self._fast_path(problem, seeds[0])
                 if outcome is None:
                     outcome = self.warm_search.search(problem, self.rng, seeds)
-                full = self.level is not None and outcome.fitness < self._expected(outcome.assignment, problem) - s.refit_drop
+                full = self.level is not None and \
+                    outcome.fitness < self._expected(outcome.assignment, problem) - self._margin(s.refit_drop, 8.0)
         if full:
             best = self.full_search.search(problem, self.rng, seeds)
             if outcome is None or best.fitness >= outcome.fitness:
@@ -163,7 +171,10 @@ class StreamLabeler(TrackedLabeler):
         if self.level is None:
             self.level = self._initial_level(problem)
         if not self._provisional:                  # no velocities yet: do not learn from it
-            fits = f >= self._expected(outcome.assignment, problem) - s.accept_drop
+            resid = f - self._expected(outcome.assignment, problem)
+            fits = resid >= -self._margin(s.accept_drop, 5.0)
+            if fits:                               # how much a good frame's fitness scatters
+                self.spread = float(np.sqrt(0.98 * self.spread ** 2 + 0.02 * resid ** 2))
             rate = 0.2 if fits else 0.05           # a subject that fits worse than training: adapt slowly
             self.level = (1 - rate) * self.level + rate * per_point
 
@@ -185,7 +196,7 @@ class StreamLabeler(TrackedLabeler):
         if self.level is None or self.settings.method != "cbga":
             return None
         ind, f, evals = self._hill_climb(problem, seed)
-        if f < self._expected(ind, problem) - self.settings.accept_drop:
+        if f < self._expected(ind, problem) - self._margin(self.settings.accept_drop, 5.0):
             return None
         return _Outcome(ind, f, 0, evals)
 
@@ -198,6 +209,13 @@ class StreamLabeler(TrackedLabeler):
             return ll
         full_gain = gains[problem.codes[:-1] == 2]
         return ll + float(full_gain.mean() if full_gain.size else np.median(gains))
+
+    def _margin(self, floor: float, k: float) -> float:
+        """A drop threshold: ``floor`` nats, or ``k`` times the running RMS scatter of good
+        frames' fitness about the expected level where that is larger -- a model over 41
+        markers scatters more per frame than one over 14, and a fixed threshold would send
+        good frames to the GA (false alarms cost a search each)."""
+        return max(floor, k * self.spread)
 
     def _expected(self, assignment: np.ndarray, problem: FrameProblem) -> float:
         """Running fitness level scaled to this frame's labelled points."""

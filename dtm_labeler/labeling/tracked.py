@@ -130,9 +130,11 @@ class TrackedLabeler:
         turn over the frames) given the rest, by the max-product DP: a wrong labeling that
         tracking carries on -- e.g. labels shifted one marker along a limb -- is put right
         within a few frames at the cost of a few hundred term evaluations per frame."""
-        regions = getattr(self, "_regions", None)
-        if regions is None or len(regions) != problem.M:
-            regions = self._regions = model_regions(problem.model, self.settings.region_size)
+        cache = self.__dict__.setdefault("_regions", {})        # per model (a bank has several)
+        key = (id(problem.model), self.settings.region_size)
+        if key not in cache:
+            cache[key] = model_regions(problem.model, self.settings.region_size)
+        regions = cache[key]
         evals = 0
         b = int(problem.heading_bin(problem.yaw(ind[None]))[0])
         for _ in range(self.settings.region_checks):
