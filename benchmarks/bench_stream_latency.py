@@ -48,7 +48,7 @@ CASES = {
 CONDITIONS = [("clean", 0, 0, 0.0), ("occl 3 + ghosts 2 + 1 mm", 3, 2, 1.0)]
 
 
-def run_case(name: str, max_frames: int | None) -> list[dict]:
+def run_case(name: str, max_frames: int | None, region_checks: int | None = None) -> list[dict]:
     from dtm_labeler.cli.common import load_inputs
     from dtm_labeler.labeling.corruption import corrupt_clip
     from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
@@ -64,7 +64,8 @@ def run_case(name: str, max_frames: int | None) -> list[dict]:
     clip = clip.slice(start, start + (max_frames or spec["frames"]))
     rows = []
     for cond, occ, clut, noise in CONDITIONS:
-        lab = StreamLabeler(model, LabelerSettings())
+        settings = LabelerSettings() if region_checks is None else LabelerSettings(region_checks=region_checks)
+        lab = StreamLabeler(model, settings)
         wall, cpu, full = [], [], []
         ok = tot = 0
         for fr in corrupt_clip(clip, occlude=occ, clutter=clut, noise_mm=noise, seed=1,
@@ -80,7 +81,7 @@ def run_case(name: str, max_frames: int | None) -> list[dict]:
         wall, cpu = np.array(wall), np.array(cpu)
         steady = slice(10, None)
         rows.append(dict(
-            case=name, labels=model.n_labels, condition=cond, frames=len(wall), accuracy=ok / max(tot, 1),
+            case=name, labels=model.n_labels, condition=cond, region_checks=settings.region_checks, frames=len(wall), accuracy=ok / max(tot, 1),
             full_searches=int(np.sum(full)),
             wall_ms=dict(p50=float(np.percentile(wall, 50)), p99=float(np.percentile(wall, 99)), max=float(wall.max())),
             steady_wall_ms=dict(p50=float(np.percentile(wall[steady], 50)), p99=float(np.percentile(wall[steady], 99)),
@@ -88,7 +89,7 @@ def run_case(name: str, max_frames: int | None) -> list[dict]:
             steady_cpu_ms=dict(p50=float(np.percentile(cpu[steady], 50)), p99=float(np.percentile(cpu[steady], 99))),
             startup_ms=float(wall[:10].sum()), fps=float(len(wall) / (wall.sum() / 1e3))))
         r = rows[-1]
-        print(f"{name:9s} {cond:26s} {r['frames']:5d} fr  acc {100 * r['accuracy']:6.2f} %  "
+        print(f"{name:9s} {cond:26s} rc {settings.region_checks} {r['frames']:5d} fr  acc {100 * r['accuracy']:6.2f} %  "
               f"p50 {r['steady_wall_ms']['p50']:5.2f}  p99 {r['steady_wall_ms']['p99']:6.2f}  "
               f"max {r['steady_wall_ms']['max']:7.1f} ms (steady)  cpu p99 {r['steady_cpu_ms']['p99']:5.2f} ms  "
               f"full {r['full_searches']}  start-up {r['startup_ms']:.0f} ms", flush=True)
@@ -99,11 +100,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=None, help="cap the stream length per case")
     ap.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
+    ap.add_argument("--region-checks", type=int, nargs="+", default=[None],
+                    help="region checks per frame to compare (default: the library default)")
     args = ap.parse_args()
     if not (DATA / "index.csv").is_file():
         raise SystemExit(f"real data not found at {DATA}; set DTM_DATA_DIR")
     load0 = os.getloadavg()[0]
-    rows = [r for c in args.cases for r in run_case(c, args.frames)]
+    rows = [r for c in args.cases for rc in args.region_checks for r in run_case(c, args.frames, rc)]
     commit = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True).stdout.strip()
     meta = dict(commit=commit, machine=platform.machine(), cpus=os.cpu_count(),
@@ -115,12 +118,12 @@ def main() -> None:
              f"(shared machine: CPU time is the stable figure). Model trained on the first part of the "
              f"recording(s); stream = frames after that. Steady state = all frames after the first 10 "
              f"(the start-up searches are reported separately).", "",
-             "| case | labels | condition | frames | accuracy % | full searches | p50 ms | p99 ms | max ms | "
-             "CPU p50 ms | CPU p99 ms | start-up (10 frames) ms | fps |",
-             "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "| case | labels | condition | region checks | frames | accuracy % | full searches | p50 ms | p99 ms | "
+             "max ms | CPU p50 ms | CPU p99 ms | start-up (10 frames) ms | fps |",
+             "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         s, c = r["steady_wall_ms"], r["steady_cpu_ms"]
-        lines.append(f"| {r['case']} | {r['labels']} | {r['condition']} | {r['frames']} | {100 * r['accuracy']:.2f} | "
+        lines.append(f"| {r['case']} | {r['labels']} | {r['condition']} | {r['region_checks']} | {r['frames']} | {100 * r['accuracy']:.2f} | "
                      f"{r['full_searches']} | {s['p50']:.2f} | {s['p99']:.2f} | {s['max']:.1f} | {c['p50']:.2f} | "
                      f"{c['p99']:.2f} | {r['startup_ms']:.0f} | {r['fps']:.0f} |")
     (RESULTS / "stream_latency.md").write_text("\n".join(lines) + "\n")

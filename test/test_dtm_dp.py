@@ -140,7 +140,8 @@ def test_stream_region_checks_put_a_wrong_carried_labeling_right(model):
     P = clip.positions
     results = {}
     for checks in (0, 1):
-        lab = StreamLabeler(model, LabelerSettings(region_checks=checks, accept_drop=1e6, refit_drop=1e6))
+        lab = StreamLabeler(model, LabelerSettings(region_checks=checks, region_every=1, accept_drop=1e6,
+                                                   refit_drop=1e6))
         wrong_frames = []
         for f in range(P.shape[0]):
             r = lab.process(P[f], f / clip.rate, ids=np.arange(len(NAMES)))
@@ -156,3 +157,20 @@ def test_stream_region_checks_put_a_wrong_carried_labeling_right(model):
         results[checks] = np.array(wrong_frames)
     assert results[1][model.n_labels + 2:].sum() == 0       # repaired within one pass and kept
     assert results[1].sum() < results[0].sum() or results[0].sum() == 0
+
+
+def test_region_checks_are_due_after_searches_and_periodically(model):
+    clip = synthesize(duration=1.0, seed=5, heading=0.2, noise_mm=1).select(NAMES)
+    lab = StreamLabeler(model, LabelerSettings(region_every=25))
+    M = model.n_labels
+    due = []
+    for f in range(clip.n_frames):
+        due.append(lab._region_checks_due(M))
+        r = lab.process(clip.positions[f], f / clip.rate, ids=np.arange(M))
+        assert f < 2 or not r.full_search or f == 0
+    due = np.array(due)
+    searches = 2                                  # the start-up frames (no velocities, then a full search)
+    assert due[:2 * M + searches - 1].all()       # two passes over the regions after the searches
+    steady = np.flatnonzero(~due)
+    assert steady.size > 0 and due[2 * M + searches + 1:].sum() == sum(
+        1 for f in range(2 * M + searches + 1, clip.n_frames) if f % 25 == 0)

@@ -238,6 +238,8 @@ class BankLabeler(TrackedLabeler):
             for m, c in res.items():
                 if m not in cands or c[1] >= cands[m][1]:
                     cands[m] = c
+        if gens > 0 or full:
+            self._note_search()
         # published: best individual over the searched models (each under its own model)
         m_pub = max(cands, key=lambda m: cands[m][1])
         assign_n, f = cands[m_pub]

@@ -7,9 +7,10 @@ and of ``dtm-label``; no ROS imports.
 
 Work per frame is bounded: at most ``max_points`` points enter the search (the ones nearest
 the body's last centre), the GA has a generation cap, a stagnation stop and an optional
-time budget. The fast path hill-climbs the carried-over labeling and relabels one body
-region exactly (``region_checks``, max-product DP given the rest of the body), so a wrong
-labeling that tracking would carry on is put right within a pass over the regions. It is
+time budget. The fast path hill-climbs the carried-over labeling; after a GA search (or a reset) it also
+relabels one body region per frame exactly (``region_checks``, max-product DP given the
+rest of the body) for two passes over the regions, and one region every ``region_every``
+frames after that, so a wrong labeling that tracking would carry on is put right. It is
 accepted when it fits within ``accept_drop`` nats (or 5 x the running scatter of good
 frames, if larger) of the running level; otherwise a warm GA runs, and a full search when
 that still falls ``refit_drop`` (or 8 x the scatter) short.
@@ -51,7 +52,8 @@ class LabelerSettings:
     fast_rounds: int = 4                 # hill-climbing rounds of the fast path
     swap_radius_m: float = 0.15          # fast path also tries swapping labels this close
     region_checks: int = 1               # body regions relabelled exactly (DP) per frame on the fast path
-    region_size: int = 8                 # labels per region (see search.dtm_dp.model_regions)
+    region_size: int = 6                 # labels per region (see search.dtm_dp.model_regions)
+    region_every: int = 240              # background region check every N frames (0 = only after searches)
     max_gap_s: float = 0.5               # longer input gaps reset window and tracks
     noise_mm: float = 0.0                # measurement noise (sd per coordinate) the model is widened by
     seed: int = 0
@@ -67,8 +69,8 @@ class LabelerSettings:
             raise ValueError("noise_mm must be in [0, 500]")
         if self.max_points < 0 or self.refit_drop <= 0 or self.max_gap_s <= 0 or self.accept_drop <= 0:
             raise ValueError("max_points >= 0 and refit_drop, accept_drop, max_gap_s > 0 required")
-        if self.region_checks < 0 or self.region_size < 2:
-            raise ValueError("region_checks must be >= 0 and region_size >= 2")
+        if self.region_checks < 0 or self.region_size < 2 or self.region_every < 0:
+            raise ValueError("region_checks, region_every must be >= 0 and region_size >= 2")
 
 
 @dataclass
@@ -165,6 +167,8 @@ class StreamLabeler(TrackedLabeler):
             best = self.full_search.search(problem, self.rng, seeds)
             if outcome is None or best.fitness >= outcome.fitness:
                 outcome = best
+        if full or outcome.generations > 0:
+            self._note_search()
         f = float(outcome.fitness)
         truth_f = self._truth_fitness(problem, truth, inp)
         per_point = f / _label_weight(outcome.assignment, problem)

@@ -55,6 +55,20 @@ class TrackedLabeler:
         self.last_stamp = None
         self.heading = None
         self.centre = None
+        self._since_search = 0                     # frames since the last GA search (or reset)
+        self._frame_no = 0
+
+    def _note_search(self) -> None:
+        """A GA search chose this frame's labeling: region checks are due for a while."""
+        self._since_search = 0
+
+    def _region_checks_due(self, M: int) -> bool:
+        """Region checks run for two passes over the regions after a GA search or a reset
+        (a search may land on a locally wrong labeling that tracking then carries on), and
+        on every ``region_every``-th frame in between (a slow background check); steady
+        frames otherwise cost only the hill-climb."""
+        s = self.settings
+        return self._since_search < 2 * M or (s.region_every > 0 and self._frame_no % s.region_every == 0)
 
     def _begin(self, xyz: np.ndarray, stamp: float, ids: np.ndarray | None, n_labels: int) -> FrameInput:
         s = self.settings
@@ -120,7 +134,7 @@ class TrackedLabeler:
         ind, f, evals = polish(problem, seed, float(problem.fitness(seed[None])[0]), self.settings.fast_rounds,
                                neighbours=moves)
         evals += 1
-        if self.settings.region_checks > 0 and problem.M > 3:
+        if self.settings.region_checks > 0 and problem.M > 3 and self._region_checks_due(problem.M):
             ind, f, e = self._region_checks(problem, ind, f, moves)
             evals += e
         return ind, f, evals
@@ -188,6 +202,8 @@ class TrackedLabeler:
         self.track_label = {t: lab for t, lab in self.track_label.items()
                             if t not in seen and t not in lost and lab not in taken}
         self.track_label.update(published)
+        self._since_search += 1
+        self._frame_no += 1
         if present.any():
             self.centre = inp.pts[assign[present]].mean(0)
             self.heading = float(problem.yaw(np.where(assign < 0, n, assign)[None])[0])

@@ -101,8 +101,11 @@ PARAMS: Tuple[ParamSpec, ...] = (
     ParamSpec("accept_drop", _D.accept_drop, "The carried-over labeling is accepted without a GA "
               "when within this many nats of the running level.", range=(0.001, 1e9)),
     ParamSpec("region_checks", _D.region_checks, "Body regions relabelled exactly (max-product DP "
-              "given the rest of the body) per frame on the fast path; repairs a wrong labeling "
-              "that tracking carries on. 0 = off (cheaper frames).", range=(0, 64)),
+              "given the rest of the body) per frame while checks are due (two passes over the "
+              "regions after a GA search, then every region_every frames); repairs a wrong "
+              "labeling that tracking carries on. 0 = off.", range=(0, 64)),
+    ParamSpec("region_every", _D.region_every, "Background region check every this many frames "
+              "in steady state (0 = only after GA searches).", range=(0, 1000000)),
     ParamSpec("region_size", _D.region_size, "Labels per region of the region checks (more = "
               "larger repairs, more work per frame).", range=(2, 16)),
     ParamSpec("seed", _D.seed, "Random seed of the searches (reproducible runs).", range=(0, INT_MAX)),
@@ -163,7 +166,7 @@ DEFAULTS: Dict[str, Any] = {p.name: (list(p.default) if isinstance(p.default, (l
 LABELER_KEYS = frozenset({
     "method", "mode", "window", "population", "max_generations", "stagnation", "time_budget_ms",
     "warm_population", "warm_generations", "warm_stagnation", "refit_drop", "accept_drop", "seed",
-    "region_checks", "region_size",
+    "region_checks", "region_size", "region_every",
     "gate_m", "gate_speed_factor", "max_misses", "clutter_volume_m3", "clutter_max_speed_mps",
     "detection_probability", "max_points", "max_gap_s", "noise_mm"})
 INPUT_QOS_KEYS = frozenset({"input_qos", "input_depth"})
@@ -239,7 +242,7 @@ def settings_from_params(values: Mapping[str, Any]) -> LabelerSettings:
                                 max_misses=v["max_misses"]),
         max_points=v["max_points"], refit_drop=v["refit_drop"], accept_drop=v["accept_drop"],
         max_gap_s=v["max_gap_s"], noise_mm=v["noise_mm"], seed=v["seed"],
-        region_checks=v["region_checks"], region_size=v["region_size"])
+        region_checks=v["region_checks"], region_size=v["region_size"], region_every=v["region_every"])
 
 
 def settings_equal(a: Any, b: Any) -> bool:
