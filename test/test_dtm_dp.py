@@ -170,7 +170,7 @@ def test_region_checks_are_due_after_searches_and_periodically(model):
         assert f < 2 or not r.full_search or f == 0
     due = np.array(due)
     searches = 2                                  # the start-up frames (no velocities, then a full search)
-    assert due[:2 * M + searches - 1].all()       # two passes over the regions after the searches
+    assert due[:M + searches - 1].all()           # one pass over the regions after the searches
     steady = np.flatnonzero(~due)
-    assert steady.size > 0 and due[2 * M + searches + 1:].sum() == sum(
-        1 for f in range(2 * M + searches + 1, clip.n_frames) if f % 25 == 0)
+    assert steady.size > 0 and due[M + searches + 1:].sum() == sum(
+        1 for f in range(M + searches + 1, clip.n_frames) if f % 25 == 0)

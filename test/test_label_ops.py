@@ -209,3 +209,15 @@ def test_plain_operators_break_constraints():
     assert not ops.is_valid(ops.crossover_plain(pa, pb, rng), n).all()
     assert not ops.is_valid(ops.mutate_plain(pa, n, rng, 0.2), n).all()
     assert ops.is_valid(ops.mutate_plain(pa, n, rng, 0.0), n).all()
+
+
+def test_targeted_moves_respect_allowed():
+    n, ind = 6, np.array([0, 1, 2, 6])
+    pairs = np.array([[1, 2]])
+    allowed = np.ones((4, n + 1), dtype=bool)
+    allowed[:, 4] = False                  # point 4 is beyond every label's bounds
+    allowed[3, 5] = False                  # label 3 may not take point 5
+    out = targeted_moves(ind, n, pairs, np.array([4, 5]), allowed=allowed)
+    assert not (out == 4).any()
+    assert not ((out[:, 3] == 5)).any()
+    assert sum(1 for r in out if (r == 5).any()) == 3       # labels 0, 1, 2 onto point 5

@@ -7,10 +7,11 @@ and of ``dtm-label``; no ROS imports.
 
 Work per frame is bounded: at most ``max_points`` points enter the search (the ones nearest
 the body's last centre), the GA has a generation cap, a stagnation stop and an optional
-time budget. The fast path hill-climbs the carried-over labeling; after a GA search (or a reset) it also
-relabels one body region per frame exactly (``region_checks``, max-product DP given the
-rest of the body) for two passes over the regions, and one region every ``region_every``
-frames after that, so a wrong labeling that tracking would carry on is put right. It is
+time budget. The fast path hill-climbs the carried-over labeling, then relabels body regions exactly
+(``region_checks`` per frame, max-product DP given the rest of the body): around points
+that just appeared (a marker back from a gap, a ghost), one region per frame in turn for
+one pass after a GA search (or a reset), and one every ``region_every`` frames otherwise,
+so a wrong labeling that tracking would carry on is put right. It is
 accepted when it fits within ``accept_drop`` nats (or 5 x the running scatter of good
 frames, if larger) of the running level; otherwise a warm GA runs, and a full search when
 that still falls ``refit_drop`` (or 8 x the scatter) short.

@@ -57,18 +57,20 @@ class TrackedLabeler:
         self.centre = None
         self._since_search = 0                     # frames since the last GA search (or reset)
         self._frame_no = 0
+        self._new_tracks = np.zeros(0, dtype=np.int64)   # tracks started last frame
+        self._event_points = np.zeros(0, dtype=np.int64)
 
     def _note_search(self) -> None:
         """A GA search chose this frame's labeling: region checks are due for a while."""
         self._since_search = 0
 
     def _region_checks_due(self, M: int) -> bool:
-        """Region checks run for two passes over the regions after a GA search or a reset
+        """Region checks run for one pass over the regions after a GA search or a reset
         (a search may land on a locally wrong labeling that tracking then carries on), and
         on every ``region_every``-th frame in between (a slow background check); steady
         frames otherwise cost only the hill-climb."""
         s = self.settings
-        return self._since_search < 2 * M or (s.region_every > 0 and self._frame_no % s.region_every == 0)
+        return self._since_search < M or (s.region_every > 0 and self._frame_no % s.region_every == 0)
 
     def _begin(self, xyz: np.ndarray, stamp: float, ids: np.ndarray | None, n_labels: int) -> FrameInput:
         s = self.settings
@@ -96,6 +98,9 @@ class TrackedLabeler:
             keep = np.sort(keep[np.argsort(d)[:max_pts]])
         pts = xyz[keep]
         upd = self.tracker.update(pts, stamp, None if ids is None else np.asarray(ids)[keep])
+        recent = getattr(self, "_new_tracks", np.zeros(0, dtype=np.int64))
+        self._event_points = np.flatnonzero(upd.new | np.isin(upd.track_ids, recent))
+        self._new_tracks = upd.track_ids[upd.new]
         return FrameInput(xyz.shape[0], finite, keep, pts, upd, reason, n_ignored, dt)
 
     def _seeds(self, track_ids: np.ndarray, n: int, M: int) -> np.ndarray | None:
@@ -129,21 +134,50 @@ class TrackedLabeler:
 
         def moves(ind):
             free = np.flatnonzero(~label_ops.used_mask(ind[None], n)[0])
-            return targeted_moves(ind, n, problem.mirror_pairs, free, close)
+            return targeted_moves(ind, n, problem.mirror_pairs, free, close,
+                                  problem.allowed(ind) if free.size else None)
 
         ind, f, evals = polish(problem, seed, float(problem.fitness(seed[None])[0]), self.settings.fast_rounds,
                                neighbours=moves)
         evals += 1
-        if self.settings.region_checks > 0 and problem.M > 3 and self._region_checks_due(problem.M):
-            ind, f, e = self._region_checks(problem, ind, f, moves)
-            evals += e
+        if self.settings.region_checks > 0 and problem.M > 3:
+            centres = self._event_centres(problem, ind)
+            if self._region_checks_due(problem.M):
+                self._region_cursor = (getattr(self, "_region_cursor", -1) + 1) % problem.M
+                centres = [self._region_cursor] + [c for c in centres if c != self._region_cursor]
+            if centres:
+                ind, f, e = self._region_checks(problem, ind, f, moves, centres[:self.settings.region_checks])
+                evals += e
         return ind, f, evals
 
-    def _region_checks(self, problem: FrameProblem, ind: np.ndarray, f: float, moves) -> tuple[np.ndarray, float, int]:
-        """Exact relabelling of ``region_checks`` body regions (:func:`model_regions`, in
-        turn over the frames) given the rest, by the max-product DP: a wrong labeling that
-        tracking carries on -- e.g. labels shifted one marker along a limb -- is put right
-        within a few frames at the cost of a few hundred term evaluations per frame."""
+    def _event_centres(self, problem: FrameProblem, ind: np.ndarray) -> list[int]:
+        """Labels where this frame's labeling is least settled: for each point whose track
+        is new (this frame or the last: its velocity is then first known), its label, or
+        the label of the nearest labelled point if it has none. Appearing points -- a marker
+        back from a gap, a ghost -- are where a carried labeling goes wrong."""
+        pts = getattr(self, "_event_points", None)
+        if pts is None or pts.size == 0:
+            return []
+        have = np.flatnonzero(ind < problem.n)
+        if have.size == 0:
+            return []
+        label_of = np.full(problem.n + 1, -1, dtype=np.int64)
+        label_of[ind[have]] = have
+        out = []
+        for p in pts:
+            lab = label_of[p]
+            if lab < 0:
+                lab = have[int(np.argmin(problem.dist[p, ind[have]]))]
+            if lab not in out:
+                out.append(int(lab))
+        return out
+
+    def _region_checks(self, problem: FrameProblem, ind: np.ndarray, f: float, moves,
+                       centres: list[int]) -> tuple[np.ndarray, float, int]:
+        """Exact relabelling of the body regions (:func:`model_regions`) around ``centres``
+        given the rest, by the max-product DP: a wrong labeling that tracking carries on --
+        e.g. labels shifted one marker along a limb -- is put right at the cost of a few
+        hundred term evaluations per region."""
         cache = self.__dict__.setdefault("_regions", {})        # per model (a bank has several)
         key = (id(problem.model), self.settings.region_size)
         if key not in cache:
@@ -151,10 +185,9 @@ class TrackedLabeler:
         regions = cache[key]
         evals = 0
         b = int(problem.heading_bin(problem.yaw(ind[None]))[0])
-        for _ in range(self.settings.region_checks):
-            self._region_cursor = (getattr(self, "_region_cursor", -1) + 1) % problem.M
+        for c in centres:
             free = np.zeros(problem.M, dtype=bool)
-            free[regions[self._region_cursor]] = True
+            free[regions[c]] = True
             e0 = problem.evaluations
             try:
                 cand = max_product(problem, region_candidates(problem, ind, free), b)

@@ -101,7 +101,7 @@ PARAMS: Tuple[ParamSpec, ...] = (
     ParamSpec("accept_drop", _D.accept_drop, "The carried-over labeling is accepted without a GA "
               "when within this many nats of the running level.", range=(0.001, 1e9)),
     ParamSpec("region_checks", _D.region_checks, "Body regions relabelled exactly (max-product DP "
-              "given the rest of the body) per frame while checks are due (two passes over the "
+              "given the rest of the body) per frame while checks are due (one pass over the "
               "regions after a GA search, then every region_every frames); repairs a wrong "
               "labeling that tracking carries on. 0 = off.", range=(0, 64)),
     ParamSpec("region_every", _D.region_every, "Background region check every this many frames "

@@ -146,15 +146,33 @@ def local_candidates(problem: FrameProblem, ind: np.ndarray, k_near: int = 3,
     return out
 
 
-def region_candidates(problem: FrameProblem, ind: np.ndarray, free: np.ndarray) -> list[np.ndarray]:
+def region_candidates(problem: FrameProblem, ind: np.ndarray, free: np.ndarray,
+                      max_candidates: int = 6) -> list[np.ndarray]:
     """Candidates for relabelling the region ``free`` (M,) bool of ``ind`` with the other
-    labels kept: a free label may take any point not held by a kept label, or be missing;
-    a kept label has its own point only. :func:`max_product` over these is the exact best
-    relabelling of the region (at one heading) given the rest of the body."""
-    n = problem.n
+    labels kept. The pool is every point not held by a kept label; a free label with a
+    point gets the ``max_candidates`` pool points nearest to it (its own included), a
+    missing free label the pool points within its distance bounds to the kept labels,
+    nearest to the region's points; both may also be missing. A kept label has its own
+    point only. :func:`max_product` over these is the best relabelling of the region (at
+    one heading) given the rest of the body; the cap bounds the work when many points are
+    unlabelled."""
+    n, M = problem.n, problem.M
     kept = np.where(free, n, ind)
-    pool = np.append(np.flatnonzero(~ops.used_mask(kept[None], n)[0]), n)
-    return [pool if free[lab] else np.array([ind[lab]]) for lab in range(problem.M)]
+    pool = np.flatnonzero(~ops.used_mask(kept[None], n)[0])
+    out = [np.array([ind[lab]]) for lab in range(M)]
+    have = free & (ind < n)
+    for lab in np.flatnonzero(have):
+        d = problem.dist[ind[lab], pool]
+        out[lab] = np.append(pool[np.argsort(d, kind="stable")[:max_candidates]], n)
+    missing = np.flatnonzero(free & (ind >= n))
+    if missing.size:
+        ok = problem.allowed(kept)[np.ix_(missing, pool)]
+        ref = ind[have]
+        d = problem.dist[np.ix_(pool, ref)].min(1) if ref.size else np.zeros(pool.size)
+        order = np.argsort(d, kind="stable")
+        for lab, row in zip(missing, ok):
+            out[lab] = np.append(pool[order[row[order]]][:max_candidates], n)
+    return out
 
 
 def model_regions(model, max_size: int = 8) -> list[np.ndarray]:

@@ -179,10 +179,12 @@ def guided_sample(problem: FrameProblem, P: int, rng: np.random.Generator,
 
 
 def targeted_moves(ind: np.ndarray, n: int, mirror_pairs: np.ndarray, free_points: np.ndarray,
-                   close_pairs: np.ndarray | None = None) -> np.ndarray:
+                   close_pairs: np.ndarray | None = None, allowed: np.ndarray | None = None) -> np.ndarray:
     """The few moves a carried-over labeling most often needs: the whole mirror image, each
     left/right pair swapped, labels on nearby points swapped (``close_pairs``: where tracks
-    cross) and every label (missing or not) moved onto each free point."""
+    cross) and every label (missing or not) moved onto each free point -- only where
+    ``allowed`` (M, n+1), if given, permits that label on that point (the distance bounds
+    to its labelled triangle neighbours, :meth:`FrameProblem.allowed`)."""
     out = [ind[None], ops.mirror(ind[None], mirror_pairs)]
     if close_pairs is not None and len(close_pairs):
         sw = np.repeat(ind[None], len(close_pairs), 0)
@@ -196,8 +198,12 @@ def targeted_moves(ind: np.ndarray, n: int, mirror_pairs: np.ndarray, free_point
         out.append(sw)
     if free_points.size:
         lab, pt = np.meshgrid(np.arange(ind.size), free_points, indexing="ij")
+        lab, pt = lab.ravel(), pt.ravel()
+        if allowed is not None:
+            ok = allowed[lab, pt]
+            lab, pt = lab[ok], pt[ok]
         mv = np.repeat(ind[None], lab.size, 0)
-        mv[np.arange(lab.size), lab.ravel()] = pt.ravel()
+        mv[np.arange(lab.size), lab] = pt
         out.append(mv)
     return np.concatenate(out)
 
