@@ -104,7 +104,8 @@ class TrackedLabeler:
         return FrameInput(xyz.shape[0], finite, keep, pts, upd, reason, n_ignored, dt)
 
     def _seeds(self, track_ids: np.ndarray, n: int, M: int) -> np.ndarray | None:
-        """Warm start: last frame's published labels carried by the tracks (vectorised lookup)."""
+        """Warm start: the labels the tracks carried last frame (vectorised lookup); None when
+        fewer than half of the frame's labels can be carried (a fresh search is due)."""
         if not self.track_label:
             return None
         seed = np.full(M, n, dtype=np.int64)
@@ -114,6 +115,8 @@ class TrackedLabeler:
         pos = np.minimum(np.searchsorted(tids[order], track_ids), tids.size - 1)
         hit = tids[order][pos] == track_ids
         seed[labs[order][pos[hit]]] = np.flatnonzero(hit)
+        if 2 * int(hit.sum()) < min(M, n):
+            return None                  # most tracks are new (e.g. the input's ids restarted): search afresh
         if self.settings.method == "tracker":
             return seed[None]
         return label_ops.repair(seed[None], n, self.rng, fill=False)

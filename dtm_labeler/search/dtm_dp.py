@@ -30,7 +30,8 @@ def max_product(problem: FrameProblem, candidates: list[np.ndarray], heading_bin
     ``candidates[l]`` (point indices, ``problem.n`` = missing) at one heading bin,
     duplicates across triangles resolved. Returns (M,) point indices."""
     n, M, tri = problem.n, problem.M, problem.tri
-    cand = [np.unique(np.asarray(c, dtype=np.int64)) for c in candidates]
+    cand = [np.asarray(c, dtype=np.int64) for c in candidates]
+    cand = [c if c.size < 2 else np.unique(c) for c in cand]
     if any(c.size == 0 for c in cand):
         raise ValueError("every label needs at least one candidate (n = missing)")
     if len(cand) != M:
@@ -46,9 +47,10 @@ def max_product(problem: FrameProblem, candidates: list[np.ndarray], heading_bin
     for t in active:
         a, b, c = (int(x) for x in tri[t])
         ca, cb, cc = cand[a], cand[b], cand[c]
-        ab = (dist[np.ix_(ca, cb)] <= bounds[a, b]) & ((ca[:, None] != cb[None]) | (ca[:, None] == n))
-        ac = (dist[np.ix_(ca, cc)] <= bounds[a, c]) & ((ca[:, None] != cc[None]) | (ca[:, None] == n))
-        bc = (dist[np.ix_(cb, cc)] <= bounds[b, c]) & ((cb[:, None] != cc[None]) | (cb[:, None] == n))
+        A, B, C = ca[:, None], cb[None, :], cc[None, :]
+        ab = (dist[A, B] <= bounds[a, b]) & ((A != B) | (A == n))
+        ac = (dist[A, C] <= bounds[a, c]) & ((A != C) | (A == n))
+        bc = (dist[cb[:, None], C] <= bounds[b, c]) & ((cb[:, None] != C) | (cb[:, None] == n))
         specs.append((t, ca, cb, cc, ab[:, :, None] & ac[:, None, :] & bc[None, :, :]))
     tables = {}
     for (t, ca, cb, cc, ok), val in zip(specs, problem.grid_terms(heading_bin, specs)):
