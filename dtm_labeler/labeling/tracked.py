@@ -140,9 +140,7 @@ class TrackedLabeler:
             return targeted_moves(ind, n, problem.mirror_pairs, free, close,
                                   problem.allowed(ind) if free.size else None)
 
-        ind, f, evals = polish(problem, seed, float(problem.fitness(seed[None])[0]), self.settings.fast_rounds,
-                               neighbours=moves)
-        evals += 1
+        ind, f, evals = polish(problem, seed, None, self.settings.fast_rounds, neighbours=moves)
         if self.settings.region_checks > 0 and problem.M > 3:
             centres = self._event_centres(problem, ind)
             if self._region_checks_due(problem.M):

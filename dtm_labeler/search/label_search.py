@@ -208,10 +208,12 @@ def targeted_moves(ind: np.ndarray, n: int, mirror_pairs: np.ndarray, free_point
     return np.concatenate(out)
 
 
-def polish(problem: FrameProblem, ind: np.ndarray, fit: float, rounds: int,
+def polish(problem: FrameProblem, ind: np.ndarray, fit: float | None, rounds: int,
            deadline: float | None = None, neighbours=None) -> tuple[np.ndarray, float, int]:
     """Steepest ascent (at most ``rounds`` moves) over ``neighbours(ind)``; by default the
-    full one-move :func:`label_ops.neighbourhood` within the distance bounds."""
+    full one-move :func:`label_ops.neighbourhood` within the distance bounds. ``fit`` None:
+    the start is scored in the same batch as its first neighbourhood (one term-cache fill
+    for both: what a new frame's carried labeling needs)."""
     if neighbours is None:
         def neighbours(x):
             return ops.neighbourhood(x, problem.n, pairs=problem.mirror_pairs, allowed=problem.allowed(x))
@@ -220,12 +222,20 @@ def polish(problem: FrameProblem, ind: np.ndarray, fit: float, rounds: int,
         if deadline is not None and time.perf_counter() > deadline:
             break
         cand = neighbours(ind)
-        f = problem.fitness(cand)
+        if fit is None:
+            f = problem.fitness(np.concatenate([ind[None], cand]))
+            fit, f = float(f[0]), f[1:]
+            evals += 1
+        else:
+            f = problem.fitness(cand)
         evals += len(cand)
         i = int(np.argmax(f))
         if f[i] <= fit + 1e-9:
             break
         ind, fit = cand[i], float(f[i])
+    if fit is None:
+        fit = float(problem.fitness(ind[None])[0])
+        evals += 1
     return ind, fit, evals
 
 
