@@ -180,59 +180,65 @@ class BatchedTerms:
         parts = [None if p is None or p.empty else p for p in parts]
         T = len(parts)
         live = [p for p in parts if p is not None]
-        R = max([p.W.shape[1] for p in live], default=1)
-        kj = max([p.joint.K for p in live], default=1)
-        kp = max([(p.parents.K if p.parents is not None and p.parents.dim > 0 else 1) for p in live], default=1)
+        # fixed slots: joint component k in columns [k mj, (k+1) mj), parents' component k
+        # in [kj mj + k mp, ...): the per-component squared norms are then reshaped sums
+        mj = {p.joint.dim for p in live}
+        mp = {p.parents.dim for p in live if len(p.splits) > 1}
+        if len(mj) > 1 or len(mp) > 1:
+            raise ValueError(f"pattern {pid}: observed dimensions differ between triangles")
+        self.mj, self.mp = (mj.pop() if mj else 1), (mp.pop() if mp else 0)
+        self.kj = max([p.joint.K for p in live], default=1)
+        self.kp = max([p.parents.K for p in live if len(p.splits) > 1], default=0)
+        R = self.kj * self.mj + self.kp * self.mp
         self.W = np.zeros((T, 18, R))
         self.c = np.zeros((T, R))
-        self.Sj = np.zeros((T, R, kj))
-        self.Sp = np.zeros((T, R, kp))
-        self.cj = np.full((T, kj), -np.inf)
-        self.cp = np.full((T, kp), -np.inf)
+        self.cj = np.full((T, self.kj), -np.inf)
+        self.cp = np.full((T, max(self.kp, 1)), -np.inf)
         self.has_parent = np.zeros(T, dtype=bool)
         self.root = np.array([p is not None and p.root for p in parts], dtype=bool)
         dead = np.array([p is None for p in parts], dtype=bool)
         self.cj[dead, 0] = 0.0                       # log-sum-exp of one zero component: term 0
+        off = self.kj * self.mj
         for t, p in enumerate(parts):
             if p is None:
                 continue
-            r = p.W.shape[1]
-            self.W[t, :, :r] = p.W
-            self.c[t, :r] = p.c
-            (a, b) = p.splits[0]
-            rows_j = p.joint.K * p.joint.dim
-            self.Sj[t, :rows_j, :b - a] = p.S[:rows_j, a:b]
+            rj = p.joint.K * self.mj
+            self.W[t, :, :rj] = p.W[:, :rj]
+            self.c[t, :rj] = p.c[:rj]
             self.cj[t, :p.joint.K] = p.joint.logconst
             if len(p.splits) > 1:
-                a2, b2 = p.splits[1]
-                self.Sp[t, rows_j:r, :b2 - a2] = p.S[rows_j:r, a2:b2]
+                rp = p.parents.K * self.mp
+                self.W[t, :, off:off + rp] = p.W[:, rj:rj + rp]
+                self.c[t, off:off + rp] = p.c[rj:rj + rp]
                 self.cp[t, :p.parents.K] = p.parents.logconst
                 self.has_parent[t] = True
+
+    def _norms(self, zz: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Per-component squared norms (joint, parents) from squared whitened coordinates."""
+        lead = zz.shape[:-1]
+        off = self.kj * self.mj
+        qj = zz[..., :off].reshape(lead + (self.kj, self.mj)).sum(-1)
+        qp = zz[..., off:].reshape(lead + (self.kp, self.mp)).sum(-1) if self.kp else None
+        return qj, qp
 
     @staticmethod
     def _lse(x: np.ndarray) -> np.ndarray:
         m = x.max(axis=1)
         return m + np.log(np.exp(x - m[:, None]).sum(axis=1))
 
-    def __call__(self, s: np.ndarray, tri: np.ndarray, gather_max: int = 64) -> np.ndarray:
+    def __call__(self, s: np.ndarray, tri: np.ndarray, gather_max: int = 160) -> np.ndarray:
         """Terms for (n, 18) states of triangles ``tri`` (n,). Small batches gather each row's
-        matrices (no Python loop); large ones loop over the triangles present (one matmul each)."""
+        matrix (no Python loop); large ones loop over the triangles present (one matmul each)."""
         if s.shape[0] <= gather_max:
             z = np.einsum("nj,njr->nr", s, self.W[tri]) - self.c[tri]
-            zz = z * z
-            qj = np.einsum("nr,nrk->nk", zz, self.Sj[tri])
-            qp = np.einsum("nr,nrk->nk", zz, self.Sp[tri])
         else:
-            qj = np.empty((s.shape[0], self.Sj.shape[2]))
-            qp = np.empty((s.shape[0], self.Sp.shape[2]))
+            z = np.empty((s.shape[0], self.W.shape[2]))
             order = np.argsort(tri, kind="stable")
             bounds = np.flatnonzero(np.diff(tri[order])) + 1
             for sel in np.split(order, bounds):
                 t = tri[sel[0]]
-                z = s[sel] @ self.W[t] - self.c[t]
-                zz = z * z
-                qj[sel] = zz @ self.Sj[t]
-                qp[sel] = zz @ self.Sp[t]
+                z[sel] = s[sel] @ self.W[t] - self.c[t]
+        qj, qp = self._norms(z * z)
         out = self._lse(self.cj[tri] - 0.5 * qj)
         hp = self.has_parent[tri]
         if hp.any():
@@ -247,10 +253,10 @@ class BatchedTerms:
         (``k x 6 @ 6 x R``) and the triples only add rows: no 18-wide matmul per triple."""
         W = self.W[t]
         z = (sa @ W[0:6])[ia] + (sb @ W[6:12])[ib] + (sc @ W[12:18])[ic] - self.c[t]    # (m, R)
-        zz = z * z
-        out = _lse_last(self.cj[t] - 0.5 * (zz @ self.Sj[t]))
+        qj, qp = self._norms(z * z)
+        out = _lse_last(self.cj[t] - 0.5 * qj)
         if self.has_parent[t]:
-            out -= _lse_last(self.cp[t] - 0.5 * (zz @ self.Sp[t]))
+            out -= _lse_last(self.cp[t] - 0.5 * qp)
         return out
 
 
