@@ -11,10 +11,12 @@ from ..model.io import save_model
 from ..model.training import MIXTURE_KINDS, STRUCTURE_METHODS, TrainConfig, train_model
 from .common import CliError, HelpFormatter, load_inputs, point_spec, run_main
 
+_DEFAULTS = TrainConfig()
 EPILOG = """examples:
   dtm-train ../shared/data/cmu_skeletal/bvh_from_fbx --out walk_run_dance.npz
   dtm-train walk.bvh --frames 0:90% --structure greedy --mixture fixed --k-fixed 3 --out m.npz
   dtm-train capture.c3d --points all --out markers41.npz
+  dtm-train walk.bvh --scale-jitter 0 --proportion-jitter 0 --tempo-jitter 0 --out m.npz   # no body augmentation
 model bank (one model per action, Ukita L1-L3; the other actions' files are not touched):
   dtm-train walk.bvh --action walk --bank bank/
   dtm-train run.bvh --action run --bank bank/            # + synthesized walk<->run paths
@@ -44,6 +46,22 @@ def build_parser() -> argparse.ArgumentParser:
                    help="covariance floor for relative positions (std, metres)")
     p.add_argument("--velocity-floor", type=float, default=0.2, metavar="MPS",
                    help="covariance floor for velocities (std, m/s)")
+    a = p.add_argument_group("augmentation (copies of the training frames performed by other bodies, so the model "
+                             "labels people of other sizes, proportions and speeds than the recorded ones)")
+    a.add_argument("--augment-copies", type=int, default=_DEFAULTS.augment_copies, metavar="N",
+                   help="augmented copies of every training frame (each with its own random body and tempo); "
+                        "0 = the recorded frames only")
+    a.add_argument("--scale-jitter", type=float, default=_DEFAULTS.scale_jitter, metavar="SD",
+                   help="relative sd of a random isotropic body scale per copied frame (0.05 = people about 5 %% "
+                        "taller or shorter); positions and velocities scale together")
+    a.add_argument("--proportion-jitter", type=float, default=_DEFAULTS.proportion_jitter, metavar="SD",
+                   help="relative sd of a random length factor per body segment (the most rigid links between "
+                        "points: bones, the trunk) per copied frame: other limb proportions and marker placements")
+    a.add_argument("--tempo-jitter", type=float, default=_DEFAULTS.tempo_jitter, metavar="SD",
+                   help="relative sd of a random tempo per copied frame: the same poses performed faster or "
+                        "slower (every velocity times the factor, positions kept)")
+    a.add_argument("--yaw-jitter", type=float, default=_DEFAULTS.yaw_jitter_deg, metavar="DEG",
+                   help="uniform heading error in +-DEG per copied frame (tolerance to heading noise)")
     p.add_argument("--seed", type=int, default=0)
     b = p.add_argument_group("model bank (one model per action, Ukita sections 4.1-4.4)")
     b.add_argument("--action", default=None, metavar="NAME",
@@ -71,7 +89,9 @@ def _main(argv=None) -> int:
         raise CliError("--out is required (or --action NAME --bank DIR)")
     config = TrainConfig(mixture=args.mixture, k_min=args.k_min, k_max=args.k_max, k_fixed=args.k_fixed,
                          structure=args.structure, seed=args.seed, position_floor_m=args.position_floor,
-                         velocity_floor_mps=args.velocity_floor)
+                         velocity_floor_mps=args.velocity_floor, augment_copies=args.augment_copies,
+                         scale_jitter=args.scale_jitter, proportion_jitter=args.proportion_jitter,
+                         tempo_jitter=args.tempo_jitter, yaw_jitter_deg=args.yaw_jitter)
     try:
         config.check()
     except ValueError as e:
@@ -109,6 +129,9 @@ def _main(argv=None) -> int:
     print(f"loglik    {s['loglik_per_frame']:.2f} per frame (model); structure score "
           f"{s['structure_loglik_per_frame']:.2f} per frame (Gaussian)")
     print(f"msg len   {sum(s['message_length']):.0f} nats total over triangles")
+    print(f"augment   {config.augment_copies} cop{'y' if config.augment_copies == 1 else 'ies'}: scale sd "
+          f"{config.scale_jitter:g}, proportion sd {config.proportion_jitter:g}, tempo sd {config.tempo_jitter:g}, "
+          f"yaw +-{config.yaw_jitter_deg:g} deg")
     print(f"time      {s['seconds']:.1f} s")
     return 0
 

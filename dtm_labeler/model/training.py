@@ -5,11 +5,28 @@ Pipeline (section III and IV.A):
 1. per clip, point states (positions, backward-difference velocities in m/s) and the
    per-frame heading from the labelled left/right pairs; states rotated to face +x
    (see :mod:`features` for why invariant features rather than augmentation);
+   ``augment_copies`` extra copies of every frame with a small yaw jitter, a random body
+   (isotropic size and per-segment proportions, :func:`scale_bodies`) and a random tempo
+   (:func:`change_tempo`), drawn per frame;
 2. structure: hand-given, greedy (Song et al.), CBGA or simple GA over the fully observed
    frames, scored with per-triple Gaussians (:mod:`dtm_labeler.search.structure_search`);
 3. one mixture per triangle of the chosen structure over the eq. 12 feature, from every
    frame where that triangle's three points have positions and velocities: single
    Gaussian, fixed K, or EM with the MDL rule (eq. 8-11).
+
+Other people (the augmentation of step 1)
+    The eq. 12 feature of a triangle holds absolute velocities and relative positions, so a
+    mixture fitted to a few recordings knows those people's segment lengths and the speeds
+    at which they moved, and little else. Measured on the shared CMU recordings, a new body
+    alone (the same motion replayed with another subject's segment lengths) costs almost
+    nothing; what fails on a new person is the combination of new poses, new speeds and a
+    different body with densities that are sharp in all three. The copies therefore put each
+    recorded pose on another body and play it at another tempo: per frame an isotropic scale
+    ``s`` (sd ``scale_jitter``), an independent length factor per segment of the most rigid
+    point-to-point tree (sd ``proportion_jitter``; :func:`rigid_tree`) and a velocity factor
+    (sd ``tempo_jitter``), all log-normal. Positions and velocities go through the same
+    linear map, so the 15-D feature stays one a real body could produce. The recorded frames
+    stay in the training set unchanged, which keeps the densities sharp where the data is.
 """
 from __future__ import annotations
 
@@ -52,6 +69,10 @@ class TrainConfig:
     position_floor_m: float = 0.02
     velocity_floor_mps: float = 0.2
     augment_copies: int = 1
+    # other people, per frame of every copy (chosen by measurement, README "Other subjects"):
+    scale_jitter: float = 0.05          # relative sd of the isotropic body scale
+    proportion_jitter: float = 0.10     # relative sd of each segment's length factor
+    tempo_jitter: float = 0.20          # relative sd of the velocity factor (same poses, faster / slower)
     given_structure: Sequence[Sequence[str]] | None = None
 
     def check(self) -> None:
@@ -63,6 +84,23 @@ class TrainConfig:
             raise ValueError("need 1 <= k_min <= k_max")
         if self.k_fixed < 1:
             raise ValueError("k_fixed must be >= 1")
+        if self.augment_copies < 0:
+            raise ValueError("augment_copies must be >= 0")
+        if not 0.0 <= self.yaw_jitter_deg <= 180.0:
+            raise ValueError("yaw_jitter_deg must be in [0, 180]")
+        for name in ("scale_jitter", "proportion_jitter", "tempo_jitter"):
+            if not 0.0 <= getattr(self, name) <= 0.5:
+                raise ValueError(f"{name.replace('_', '-')} must be in [0, 0.5] (a relative standard deviation)")
+
+    @property
+    def reshapes_bodies(self) -> bool:
+        """True when the copies get other body sizes or proportions (needs the body tree)."""
+        return self.scale_jitter > 0 or self.proportion_jitter > 0
+
+    @property
+    def augments(self) -> bool:
+        """True when training adds augmented copies of the recorded frames."""
+        return self.augment_copies > 0 and (self.yaw_jitter_deg > 0 or self.reshapes_bodies or self.tempo_jitter > 0)
 
 
 @dataclass
@@ -130,6 +168,139 @@ def canonical_states(clip: MotionClip, pairs: np.ndarray, jitter_deg: float = 0.
     return canonicalise(states, yaw)
 
 
+def rigid_tree(clips: Sequence[MotionClip], max_frames: int = 2000) -> np.ndarray:
+    """Parent index per point (-1 at the root): the spanning tree of the most rigid links.
+
+    Edge weight = standard deviation of the point-to-point distance within each clip
+    (averaged over clips, so different subjects do not make a bone look elastic), plus a
+    tie-breaker of 0.1 % of the mean distance (exactly rigid skeleton joints: the shorter
+    link wins). The minimum spanning tree of that is the skeleton: for the 14 body points
+    the bones plus one trunk link (a shoulder to a hip), for marker sets the segments'
+    markers joined through the joints. Rooted at the medoid point (smallest summed mean
+    distance, e.g. a hip). Pairs never seen together get a large weight.
+    """
+    from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
+    n = clips[0].n_points
+    var_sum, mean_sum, cnt = np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, n))
+    for c in clips:
+        P = c.positions[np.linspace(0, c.n_frames - 1, min(c.n_frames, max_frames)).astype(np.int64)]
+        d = np.linalg.norm(P[:, :, None, :] - P[:, None, :, :], axis=-1)       # (F, n, n)
+        ok = np.isfinite(d)
+        k = ok.sum(0)
+        mu = np.where(ok, d, 0.0).sum(0) / np.maximum(k, 1)
+        var = np.where(ok, (d - mu) ** 2, 0.0).sum(0) / np.maximum(k, 1)
+        seen = k >= 2
+        var_sum += np.where(seen, var, 0.0)
+        mean_sum += np.where(seen, mu, 0.0)
+        cnt += seen
+    sd = np.sqrt(var_sum / np.maximum(cnt, 1))
+    mean = mean_sum / np.maximum(cnt, 1)
+    w = np.where(cnt > 0, sd + 1e-3 * mean + 1e-9, 1e6)
+    np.fill_diagonal(w, 0.0)
+    tree = minimum_spanning_tree(w)
+    root = int(np.argmin(np.where(cnt > 0, mean, 1e3).sum(1)))
+    _, pred = breadth_first_order(tree, root, directed=False)
+    return np.where(pred < 0, -1, pred).astype(np.int64)
+
+
+def tree_order(parents: np.ndarray) -> np.ndarray:
+    """Point indices ordered so that every parent comes before its children."""
+    parents = np.asarray(parents, dtype=np.int64)
+    depth = np.zeros(parents.size, dtype=np.int64)
+    for i in range(parents.size):
+        j, d = i, 0
+        while parents[j] >= 0:
+            j, d = parents[j], d + 1
+            if d > parents.size:
+                raise ValueError("parents do not form a tree")
+        depth[i] = d
+    return np.argsort(depth, kind="stable")
+
+
+def scale_bodies(states: np.ndarray, parents: np.ndarray, scale: np.ndarray, factors: np.ndarray) -> np.ndarray:
+    """(F, N, 6) states of the same motion performed by other bodies, one body per frame.
+
+    Along the tree ``parents`` every point is its parent plus the (parent -> point) vector
+    times ``scale[f] * factors[f, point]``; the root is ``scale[f]`` times itself. The map
+    is linear in the points with constant coefficients per frame, so the velocities (the
+    derivative of the positions) take the same map: a body ``s`` times as large moving with
+    the same joint angles and timing has ``s`` times the relative positions *and* the
+    velocities of eq. 12, which keeps the 15-D feature consistent. ``factors`` of the root
+    is ignored. A missing parent makes its subtree missing in that frame.
+    """
+    scale = np.asarray(scale, dtype=np.float64)
+    factors = np.asarray(factors, dtype=np.float64)
+    out = np.empty_like(states)
+    for c in tree_order(parents):
+        p = parents[c]
+        if p < 0:
+            out[:, c] = states[:, c] * scale[:, None]
+        else:
+            out[:, c] = out[:, p] + (scale * factors[:, c])[:, None] * (states[:, c] - states[:, p])
+    return out
+
+
+def change_tempo(states: np.ndarray, factor: np.ndarray) -> np.ndarray:
+    """(F, N, 6) states of the same poses performed ``factor[f]`` times as fast: positions kept,
+    every velocity (the nine velocity dimensions of eq. 12, including the whole body's
+    translation) multiplied by ``factor[f]``."""
+    out = states.copy()
+    out[..., 3:] *= np.asarray(factor, dtype=np.float64)[:, None, None]
+    return out
+
+
+def body_draws(rng: np.random.Generator, n_frames: int, n_points: int, scale_sd: float,
+               proportion_sd: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame body scale (F,) and segment factors (F, N): ``exp(sd * z)``, ``z`` standard
+    normal clipped to +-2.5 (log-normal, so 1.1x and 1/1.1x are equally likely; for small
+    ``sd`` the relative standard deviation is ``sd``). A zero ``sd`` draws nothing."""
+    def draw(sd, shape):
+        return np.exp(sd * np.clip(rng.standard_normal(shape), -2.5, 2.5)) if sd > 0 else np.ones(shape)
+    return draw(scale_sd, (n_frames,)), draw(proportion_sd, (n_frames, n_points))
+
+
+def augmented_copy(clip: MotionClip, pairs: np.ndarray, config: "TrainConfig", parents: np.ndarray | None,
+                   yaw_rng: np.random.Generator, body_rng: np.random.Generator) -> np.ndarray:
+    """One augmented copy of ``clip``'s canonical states: yaw jitter, then (if configured) a
+    random body per frame (:func:`scale_bodies`) and a random tempo per frame
+    (:func:`change_tempo`). The yaw draws come from ``yaw_rng`` alone and ``body_rng`` draws
+    nothing for a zero jitter, so zero scale/proportion/tempo jitter reproduces the copies of
+    a model trained without them."""
+    states = canonical_states(clip, pairs, config.yaw_jitter_deg, yaw_rng)
+    if config.reshapes_bodies:
+        scale, factors = body_draws(body_rng, states.shape[0], states.shape[1], config.scale_jitter,
+                                    config.proportion_jitter)
+        states = scale_bodies(states, parents, scale, factors)
+    if config.tempo_jitter > 0:
+        states = change_tempo(states, body_draws(body_rng, states.shape[0], 0, config.tempo_jitter, 0.0)[0])
+    return states
+
+
+def training_states(clips: Sequence[MotionClip], pairs: np.ndarray, config: "TrainConfig"
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """``(states, train_states, parents)``: the recorded canonical states of all clips, the
+    states the mixtures are fitted to (recorded + ``augment_copies`` augmented copies; the
+    recorded ones alone without any jitter) and the body tree used (None without body jitter)."""
+    states = np.concatenate([canonical_states(c, pairs) for c in clips], axis=0)
+    if not config.augments:
+        return states, states, None
+    yaw_rng = np.random.default_rng(config.seed + 7919)
+    body_rng = np.random.default_rng(config.seed + 104729)
+    parents = rigid_tree(clips) if config.reshapes_bodies else None
+    copies = [np.concatenate([augmented_copy(c, pairs, config, parents, yaw_rng, body_rng) for c in clips], axis=0)
+              for _ in range(config.augment_copies)]
+    return states, np.concatenate([states] + copies, axis=0), parents
+
+
+def augmentation_summary(config: "TrainConfig", recorded: int, total: int) -> dict:
+    """What the mixtures were fitted to (stored in the model's settings)."""
+    if not config.augments:
+        return {"copies": 0, "recorded_frames": recorded, "frames": total}
+    return {"copies": config.augment_copies, "yaw_jitter_deg": config.yaw_jitter_deg,
+            "scale_sd": config.scale_jitter, "proportion_sd": config.proportion_jitter,
+            "tempo_sd": config.tempo_jitter, "recorded_frames": recorded, "frames": total}
+
+
 def floor_covariances(mix: GaussianMixture, position_m: float, velocity_mps: float) -> GaussianMixture:
     """Add independent noise of ``position_m`` / ``velocity_mps`` (std) to every component.
 
@@ -162,13 +333,9 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         raise ValueError("a triangulated model needs at least 3 points")
     all_pairs = heading_pairs(labels)
     pairs = stable_heading_pairs(clips, all_pairs)
-    states = np.concatenate([canonical_states(c, pairs) for c in clips], axis=0)
+    states, train_states, parents = training_states(clips, pairs, config)
     codes = observation_state(states)
     complete = (codes == FULL).all(axis=1)
-    jrng = np.random.default_rng(config.seed + 7919)
-    train_states = np.concatenate([states] + [
-        np.concatenate([canonical_states(c, pairs, config.yaw_jitter_deg, jrng) for c in clips], axis=0)
-        for _ in range(config.augment_copies)], axis=0) if config.yaw_jitter_deg > 0 else states
     train_codes = observation_state(train_states)
     n = len(labels)
     step = lambda msg, i, k: progress(msg, i, k) if progress else None  # noqa: E731
@@ -222,11 +389,14 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         labels=tuple(labels), structure=structure, mixtures=mixtures, heading_pairs=pairs,
         mirror_pairs=all_pairs,
         settings={"heading_bins": config.heading_bins, "feature": "eq12, yaw-canonical (lateral pairs)",
-                  "velocity": "backward difference, m/s"},
+                  "velocity": "backward difference, m/s",
+                  "augmentation": augmentation_summary(config, states.shape[0], train_states.shape[0])},
         provenance={"trained": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                     "dtm_labeler": __version__, "config": {k: v for k, v in asdict(config).items()
                                                            if k != "given_structure"},
                     "sources": [c.source for c in clips], "frames": int(states.shape[0]),
+                    "body_tree": None if parents is None else
+                    [[labels[p], labels[c]] for c, p in enumerate(parents) if p >= 0],
                     "rates_hz": sorted({float(c.rate) for c in clips})})
     ll = model.frame_log_likelihood(states[complete]) if complete.any() else np.array([np.nan])
     # the typical model log-likelihood per labelled point: the stream labeler's starting level
