@@ -49,6 +49,14 @@ MARKER_FILES = (
     ("mct_dance1", "markers_csv/mct_dance1_28markers_60hz.csv", "MoCap Toolbox dance1 (28 markers, 60 Hz)"),
 )
 CROSS_FOLDS = (("7", ("W1",)), ("9", ("R1",)), ("55", ("D1", "D2")), ("5", ("D3",)))
+# people outside the CMU skeletal clips (body14 derived from their markers): key, file, title
+CROSS_NEW = (
+    ("qualisys_walk", "markers_c3d/qualisys_walk_55markers.c3d", "Qualisys walk (unknown subject, 200 Hz)"),
+    ("mct_walk1", "markers_csv/mct_walk1_28markers_60hz.csv", "MoCap Toolbox walk1 (60 Hz)"),
+    ("mct_dance1", "markers_csv/mct_dance1_28markers_60hz.csv", "MoCap Toolbox dance1 (60 Hz)"),
+)
+# the training without the body augmentation (sizes, proportions, tempos), for comparison
+NO_BODY_AUG = {"scale_jitter": 0.0, "proportion_jitter": 0.0, "tempo_jitter": 0.0}
 
 
 @dataclass
@@ -72,6 +80,7 @@ class Plan:
     generations: int = 300
     structure_generations: int = 200
     cross_folds: tuple = CROSS_FOLDS
+    cross_new: tuple = tuple(c[0] for c in CROSS_NEW)
     marker_files: tuple = tuple(m[0] for m in MARKER_FILES)
     marker_k_max: int = 4
     marker_train_frames: int = 1500
@@ -88,7 +97,8 @@ def make_plan(args) -> Plan:
         return Plan(quick=True, seed=args.seed, frames_per_test=n, stream_frames=6 * n, greedy_stream_frames=n,
                     seq_model=("W1", "R1"), seq_label=("W1",), occlusion_levels=(0, 2, 4), occlusion_greedy_seq=(),
                     noise_levels_mm=(0, 10, 40), windows=(1, 5), generation_frames=2, generations=60,
-                    structure_generations=40, cross_folds=(("5", ("D3",)),), marker_files=("mct_walk1",),
+                    structure_generations=40, cross_folds=(("5", ("D3",)),), cross_new=("mct_walk1",),
+                    marker_files=("mct_walk1",),
                     marker_k_max=3, marker_train_frames=600)
     n = n or 12
     return Plan(quick=False, seed=args.seed, frames_per_test=n, stream_frames=8 * n, greedy_stream_frames=n)
@@ -175,11 +185,11 @@ def _load_sequences(data_dir: Path, keys) -> dict:
     return out
 
 
-def _load_marker_clip(data_dir: Path, rel: str):
+def _load_marker_clip(data_dir: Path, rel: str, points: str = "all"):
     from ..motion.load import load_clip
     path = data_dir / rel
     try:
-        return load_clip(path, points="all")
+        return load_clip(path, points=points)
     except (OSError, ValueError, KeyError) as e:
         raise CliError(f"{path}: {e}") from None
 
@@ -287,6 +297,7 @@ def _tables12(seqs, models, plan, quiet) -> dict:
 
 def run_sections(sections, plan: Plan, data_dir: Path, runner: Runner, quiet: bool) -> dict:
     from ..evaluation.experiments import TABLE3_ROWS, spread_frames
+    from ..model.training import TrainConfig
     need_model_seqs = set()
     if "tables12" in sections or "structure" in sections:
         need_model_seqs |= set(plan.seq_model)
@@ -325,12 +336,21 @@ def run_sections(sections, plan: Plan, data_dir: Path, runner: Runner, quiet: bo
     if "noise" in sections:
         for kind in ("single", "mdl"):
             wanted[(plan.noise_seq, kind, "given")] = (seqs[plan.noise_seq]["train"], kind, "given")
-    cross_train = {}
+    cross_train, cross_new = {}, {}
     if "cross" in sections:
         for subj, test_keys in plan.cross_folds:
             train_keys = [k for k, s in seqs.items() if s["spec"].subject != subj]
             cross_train[subj] = train_keys
             wanted[("cross" + subj, "mdl", "given")] = ([seqs[k]["clip"] for k in train_keys], "mdl", "given")
+            wanted[("cross" + subj, "mdl", "given", "noaug")] = ([seqs[k]["clip"] for k in train_keys], "mdl",
+                                                                 "given", NO_BODY_AUG)
+        for key, rel, title in CROSS_NEW:
+            if key in plan.cross_new:
+                cross_new[key] = dict(clip=_load_marker_clip(data_dir, rel, "body14"), title=title, rel=rel)
+        if cross_new:
+            every = [s["clip"] for s in seqs.values()]
+            wanted[("crossnew", "mdl", "given")] = (every, "mdl", "given")
+            wanted[("crossnew", "mdl", "given", "noaug")] = (every, "mdl", "given", NO_BODY_AUG)
     marker_clips = {}
     if "markers" in sections:
         for key, rel, title in MARKER_FILES:
@@ -348,7 +368,7 @@ def run_sections(sections, plan: Plan, data_dir: Path, runner: Runner, quiet: bo
     tasks = []
     for key in keys:
         spec = wanted[key]
-        tasks.append((f"{key[0]} {key[1]} {key[2]}", _train_task,
+        tasks.append((" ".join(key), _train_task,
                       dict(clips=spec[0], kind=spec[1], structure=spec[2], seed=seed,
                            overrides=spec[3] if len(spec) > 3 else None)))
     # structure comparisons run with the training tasks (independent)
@@ -427,6 +447,16 @@ def run_sections(sections, plan: Plan, data_dir: Path, runner: Runner, quiet: bo
                 single(("cross", subj, tk, "MixGM+CBGA single"), mk, clip, frames, "cbga")
                 single(("cross", subj, tk, "MixGM+Greedy single"), mk, clip, frames, "greedy")
                 stream(("cross", subj, tk, "MixGM+CBGA stream"), mk, clip.slice(0, plan.stream_frames), "cbga")
+                single(("cross", subj, tk, "no body aug. single"), mk + ("noaug",), clip, frames, "cbga")
+                stream(("cross", subj, tk, "no body aug. stream"), mk + ("noaug",),
+                       clip.slice(0, plan.stream_frames), "cbga")
+        for key, c in cross_new.items():
+            clip = c["clip"]
+            frames = spread_frames(clip.n_frames, N)
+            for tag, mk in (("", ("crossnew", "mdl", "given")),
+                            ("no body aug. ", ("crossnew", "mdl", "given", "noaug"))):
+                single(("cross", "new", key, tag + "single"), mk, clip, frames, "cbga")
+                stream(("cross", "new", key, tag + "stream"), mk, clip.slice(0, plan.stream_frames), "cbga")
     if "markers" in sections:
         for key, mc in marker_clips.items():
             mk = ("marker_" + key, "mdl", "cbga")
@@ -459,6 +489,13 @@ def run_sections(sections, plan: Plan, data_dir: Path, runner: Runner, quiet: bo
     if "cross" in sections:
         results.setdefault("cross", {})["folds"] = {subj: {"test": list(tk), "train": cross_train[subj]}
                                                     for subj, tk in plan.cross_folds}
+        results["cross"]["new_subjects"] = {
+            k: {"title": c["title"], "path": c["rel"], "frames": c["clip"].n_frames, "rate": c["clip"].rate,
+                "train": list(seqs), "train_subjects": sorted({s["spec"].subject for s in seqs.values()}, key=int)}
+            for k, c in cross_new.items()}
+        results["cross"]["augmentation"] = {"default": {k: getattr(TrainConfig(), k) for k in (
+            "augment_copies", "scale_jitter", "proportion_jitter", "tempo_jitter", "yaw_jitter_deg")},
+            "without": NO_BODY_AUG}
     if "markers" in sections:
         results.setdefault("markers", {})["files"] = {
             k: {"title": m["title"], "path": m["rel"], "points": m["clip"].n_points, "rate": m["clip"].rate,
