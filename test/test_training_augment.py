@@ -231,3 +231,28 @@ def test_cross_subject_floor(data_dir):
           {m: round(v, 3) for m, v in pooled.items()})
     assert pooled["single"] >= 0.82
     assert pooled["stream"] >= 0.93
+
+
+def test_unset_jitter_resolves_by_point_set():
+    """None = the measured default for the 14 body points (or a subset), 0 for marker sets;
+    explicit values always win."""
+    from dtm_labeler.model.training import BODY_AUGMENTATION
+    cfg = TrainConfig()
+    body = cfg.resolved(BODY14)
+    assert {k: getattr(body, k) for k in BODY_AUGMENTATION} == BODY_AUGMENTATION
+    assert cfg.resolved(BODY14[:13]).tempo_jitter == BODY_AUGMENTATION["tempo_jitter"]
+    markers = cfg.resolved(["LFHD", "RFHD", "C7", "LSHO", "RSHO"])
+    assert (markers.scale_jitter, markers.proportion_jitter, markers.tempo_jitter) == (0.0, 0.0, 0.0)
+    mixed = TrainConfig(tempo_jitter=0.3).resolved(["LFHD", "RFHD", "C7"])
+    assert (mixed.scale_jitter, mixed.tempo_jitter) == (0.0, 0.3)
+    assert TrainConfig(scale_jitter=0.0).resolved(BODY14).scale_jitter == 0.0
+
+
+def test_marker_models_train_without_body_augmentation_by_default(walker):
+    renamed = walker._replace(names=tuple(f"M{i}" for i in range(len(BODY14))))
+    model, _ = train_model([renamed], TrainConfig(structure="greedy", mixture="single", seed=0))
+    aug = model.settings["augmentation"]
+    assert (aug["scale_sd"], aug["proportion_sd"], aug["tempo_sd"]) == (0.0, 0.0, 0.0)
+    assert model.provenance["body_tree"] is None
+    body, _ = train_model([walker], TrainConfig(structure="given", mixture="single", seed=0))
+    assert body.settings["augmentation"]["tempo_sd"] == 0.2 and body.provenance["body_tree"]

@@ -8,10 +8,22 @@ import sys
 from tqdm import tqdm
 
 from ..model.io import save_model
-from ..model.training import MIXTURE_KINDS, STRUCTURE_METHODS, TrainConfig, train_model
+from ..model.training import BODY_AUGMENTATION, MIXTURE_KINDS, STRUCTURE_METHODS, TrainConfig, train_model
 from .common import CliError, HelpFormatter, load_inputs, point_spec, run_main
 
 _DEFAULTS = TrainConfig()
+
+
+def _jitter(text: str) -> float | None:
+    """A relative sd, or ``auto`` (None: the measured default for the 14 body points, 0 otherwise)."""
+    if text.strip().lower() == "auto":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number or 'auto'") from None
+
+
 EPILOG = """examples:
   dtm-train ../shared/data/cmu_skeletal/bvh_from_fbx --out walk_run_dance.npz
   dtm-train walk.bvh --frames 0:90% --structure greedy --mixture fixed --k-fixed 3 --out m.npz
@@ -47,17 +59,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--velocity-floor", type=float, default=0.2, metavar="MPS",
                    help="covariance floor for velocities (std, m/s)")
     a = p.add_argument_group("augmentation (copies of the training frames performed by other bodies, so the model "
-                             "labels people of other sizes, proportions and speeds than the recorded ones)")
+                             "labels people of other sizes, proportions and speeds than the recorded ones; 'auto' = "
+                             + ", ".join(f"{k.split('_')[0]} {v:g}" for k, v in BODY_AUGMENTATION.items())
+                             + " for the 14 body points, 0 for other point sets such as --points all)")
     a.add_argument("--augment-copies", type=int, default=_DEFAULTS.augment_copies, metavar="N",
                    help="augmented copies of every training frame (each with its own random body and tempo); "
                         "0 = the recorded frames only")
-    a.add_argument("--scale-jitter", type=float, default=_DEFAULTS.scale_jitter, metavar="SD",
+    a.add_argument("--scale-jitter", type=_jitter, default="auto", metavar="SD",
                    help="relative sd of a random isotropic body scale per copied frame (0.05 = people about 5 %% "
                         "taller or shorter); positions and velocities scale together")
-    a.add_argument("--proportion-jitter", type=float, default=_DEFAULTS.proportion_jitter, metavar="SD",
+    a.add_argument("--proportion-jitter", type=_jitter, default="auto", metavar="SD",
                    help="relative sd of a random length factor per body segment (the most rigid links between "
                         "points: bones, the trunk) per copied frame: other limb proportions and marker placements")
-    a.add_argument("--tempo-jitter", type=float, default=_DEFAULTS.tempo_jitter, metavar="SD",
+    a.add_argument("--tempo-jitter", type=_jitter, default="auto", metavar="SD",
                    help="relative sd of a random tempo per copied frame: the same poses performed faster or "
                         "slower (every velocity times the factor, positions kept)")
     a.add_argument("--yaw-jitter", type=float, default=_DEFAULTS.yaw_jitter_deg, metavar="DEG",
@@ -129,9 +143,10 @@ def _main(argv=None) -> int:
     print(f"loglik    {s['loglik_per_frame']:.2f} per frame (model); structure score "
           f"{s['structure_loglik_per_frame']:.2f} per frame (Gaussian)")
     print(f"msg len   {sum(s['message_length']):.0f} nats total over triangles")
-    print(f"augment   {config.augment_copies} cop{'y' if config.augment_copies == 1 else 'ies'}: scale sd "
-          f"{config.scale_jitter:g}, proportion sd {config.proportion_jitter:g}, tempo sd {config.tempo_jitter:g}, "
-          f"yaw +-{config.yaw_jitter_deg:g} deg")
+    aug = model.settings["augmentation"]
+    print(f"augment   {aug['copies']} cop{'y' if aug['copies'] == 1 else 'ies'}" + (
+        f": scale sd {aug['scale_sd']:g}, proportion sd {aug['proportion_sd']:g}, tempo sd {aug['tempo_sd']:g}, "
+        f"yaw +-{aug['yaw_jitter_deg']:g} deg" if aug["copies"] else ""))
     print(f"time      {s['seconds']:.1f} s")
     return 0
 

@@ -27,12 +27,13 @@ Other people (the augmentation of step 1)
     (sd ``tempo_jitter``), all log-normal. Positions and velocities go through the same
     linear map, so the 15-D feature stays one a real body could produce. The recorded frames
     stay in the training set unchanged, which keeps the densities sharp where the data is.
+    By default only models over the 14 body points get it (:meth:`TrainConfig.resolved`).
 """
 from __future__ import annotations
 
 import datetime as _dt
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -42,13 +43,16 @@ from ..motion.clip import MotionClip
 from .dtm import TriangulatedModel
 from .features import (FULL, canonicalise, lateral_yaw, observation_state, point_states,
                        triangle_features)
-from ..motion.pointsets import left_right_pairs
+from ..motion.pointsets import BODY14, left_right_pairs
 from .mixture import GaussianMixture
 from .mixture_em import make_estimator
 from .structure import BODY14_GIVEN, Structure
 
 STRUCTURE_METHODS = ("cbga", "greedy", "given", "sga")
 MIXTURE_KINDS = ("mdl", "fixed", "single")
+# body augmentation of models over the 14 body points (relative sds), chosen by cross-subject
+# measurement (README "Other subjects"); other point sets get 0 unless asked for
+BODY_AUGMENTATION = {"scale_jitter": 0.05, "proportion_jitter": 0.10, "tempo_jitter": 0.20}
 
 
 @dataclass
@@ -69,10 +73,11 @@ class TrainConfig:
     position_floor_m: float = 0.02
     velocity_floor_mps: float = 0.2
     augment_copies: int = 1
-    # other people, per frame of every copy (chosen by measurement, README "Other subjects"):
-    scale_jitter: float = 0.05          # relative sd of the isotropic body scale
-    proportion_jitter: float = 0.10     # relative sd of each segment's length factor
-    tempo_jitter: float = 0.20          # relative sd of the velocity factor (same poses, faster / slower)
+    # other people, per frame of every copy; None = BODY_AUGMENTATION for the 14 body points,
+    # 0 for other point sets (see resolved()):
+    scale_jitter: float | None = None       # relative sd of the isotropic body scale
+    proportion_jitter: float | None = None  # relative sd of each segment's length factor
+    tempo_jitter: float | None = None       # relative sd of the velocity factor (same poses, faster / slower)
     given_structure: Sequence[Sequence[str]] | None = None
 
     def check(self) -> None:
@@ -88,19 +93,30 @@ class TrainConfig:
             raise ValueError("augment_copies must be >= 0")
         if not 0.0 <= self.yaw_jitter_deg <= 180.0:
             raise ValueError("yaw_jitter_deg must be in [0, 180]")
-        for name in ("scale_jitter", "proportion_jitter", "tempo_jitter"):
-            if not 0.0 <= getattr(self, name) <= 0.5:
+        for name in BODY_AUGMENTATION:
+            value = getattr(self, name)
+            if value is not None and not 0.0 <= value <= 0.5:
                 raise ValueError(f"{name.replace('_', '-')} must be in [0, 0.5] (a relative standard deviation)")
+
+    def resolved(self, labels: Sequence[str]) -> "TrainConfig":
+        """This config with every unset (None) body jitter filled in for a model over ``labels``:
+        :data:`BODY_AUGMENTATION` when all labels are among the 14 body points (joint centres,
+        >= 15 cm apart: what the augmentation was measured on), 0 for other point sets. Dense
+        marker sets tell neighbouring markers apart by a few centimetres; there the wider
+        densities cost ghost rejection and accuracy within a session (README "Other subjects")."""
+        body = set(labels) <= set(BODY14)
+        fill = {k: (v if body else 0.0) for k, v in BODY_AUGMENTATION.items() if getattr(self, k) is None}
+        return replace(self, **fill) if fill else self
 
     @property
     def reshapes_bodies(self) -> bool:
         """True when the copies get other body sizes or proportions (needs the body tree)."""
-        return self.scale_jitter > 0 or self.proportion_jitter > 0
+        return bool(self.scale_jitter) or bool(self.proportion_jitter)
 
     @property
     def augments(self) -> bool:
         """True when training adds augmented copies of the recorded frames."""
-        return self.augment_copies > 0 and (self.yaw_jitter_deg > 0 or self.reshapes_bodies or self.tempo_jitter > 0)
+        return self.augment_copies > 0 and (self.yaw_jitter_deg > 0 or self.reshapes_bodies or bool(self.tempo_jitter))
 
 
 @dataclass
@@ -271,7 +287,7 @@ def augmented_copy(clip: MotionClip, pairs: np.ndarray, config: "TrainConfig", p
         scale, factors = body_draws(body_rng, states.shape[0], states.shape[1], config.scale_jitter,
                                     config.proportion_jitter)
         states = scale_bodies(states, parents, scale, factors)
-    if config.tempo_jitter > 0:
+    if config.tempo_jitter:
         states = change_tempo(states, body_draws(body_rng, states.shape[0], 0, config.tempo_jitter, 0.0)[0])
     return states
 
@@ -280,7 +296,9 @@ def training_states(clips: Sequence[MotionClip], pairs: np.ndarray, config: "Tra
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """``(states, train_states, parents)``: the recorded canonical states of all clips, the
     states the mixtures are fitted to (recorded + ``augment_copies`` augmented copies; the
-    recorded ones alone without any jitter) and the body tree used (None without body jitter)."""
+    recorded ones alone without any jitter) and the body tree used (None without body jitter).
+    Unset body jitters are resolved for the clips' point names (:meth:`TrainConfig.resolved`)."""
+    config = config.resolved(clips[0].names)
     states = np.concatenate([canonical_states(c, pairs) for c in clips], axis=0)
     if not config.augments:
         return states, states, None
@@ -331,6 +349,7 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
                              "select one point set for all clips")
     if len(labels) < 3:
         raise ValueError("a triangulated model needs at least 3 points")
+    config = config.resolved(labels)
     all_pairs = heading_pairs(labels)
     pairs = stable_heading_pairs(clips, all_pairs)
     states, train_states, parents = training_states(clips, pairs, config)
