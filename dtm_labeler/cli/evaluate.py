@@ -298,6 +298,7 @@ def _tables12(seqs, models, plan, quiet) -> dict:
 def run_sections(sections, plan: Plan, data_dir: Path, runner: Runner, quiet: bool) -> dict:
     from ..evaluation.experiments import TABLE3_ROWS, spread_frames
     from ..model.training import TrainConfig
+    from ..motion.pointsets import BODY14
     need_model_seqs = set()
     if "tables12" in sections or "structure" in sections:
         need_model_seqs |= set(plan.seq_model)
@@ -406,7 +407,7 @@ def run_sections(sections, plan: Plan, data_dir: Path, runner: Runner, quiet: bo
     def block(s, n):
         return s["test"].slice(0, min(n, s["test"].n_frames))
 
-    for k in plan.seq_label:
+    for k in (plan.seq_label if label_secs else ()):        # --only cross / markers load no W1 ...
         s = seqs[k]
         frames = spread_frames(s["test"].n_frames, N)
         if t3:
@@ -493,7 +494,8 @@ def run_sections(sections, plan: Plan, data_dir: Path, runner: Runner, quiet: bo
             k: {"title": c["title"], "path": c["rel"], "frames": c["clip"].n_frames, "rate": c["clip"].rate,
                 "train": list(seqs), "train_subjects": sorted({s["spec"].subject for s in seqs.values()}, key=int)}
             for k, c in cross_new.items()}
-        results["cross"]["augmentation"] = {"default": {k: getattr(TrainConfig(), k) for k in (
+        body14 = TrainConfig().resolved(BODY14)
+        results["cross"]["augmentation"] = {"default": {k: getattr(body14, k) for k in (
             "augment_copies", "scale_jitter", "proportion_jitter", "tempo_jitter", "yaw_jitter_deg")},
             "without": NO_BODY_AUG}
     if "markers" in sections:

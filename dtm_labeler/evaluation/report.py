@@ -389,7 +389,7 @@ def _aug_text(aug: dict | None) -> str:
         return ""
     d = aug["default"]
     n = d["augment_copies"]
-    return (f"Training augmentation (`dtm-train` defaults): {n} augmented cop{'y' if n == 1 else 'ies'} of every "
+    return (f"Training augmentation (`dtm-train` defaults for the 14 body points): {n} augmented cop{'y' if n == 1 else 'ies'} of every "
             f"frame, each copied frame with a random body (isotropic scale sd {d['scale_jitter']:g}, independent "
             f"length factor per segment of the most rigid point-to-point tree sd {d['proportion_jitter']:g}; "
             f"positions and velocities transformed together) and a random tempo (velocities times a factor of "
@@ -458,7 +458,8 @@ def _markers(res: dict, out: Path) -> list[str]:
                      "n/a" if not cl else f"{num(cl['swaps_per_min'], '.0f')}"])
     return ["## Marker recordings at all markers", "",
             "Models over every labelled marker (`--points all`, structure by CBGA, MDL mixtures with K ≤ "
-            "4 to bound training time) trained on the frames before the held-out last tenth (at most the last "
+            "4 to bound training time, no body augmentation: `dtm-train`'s default for point sets other than the "
+            "14 body points) trained on the frames before the held-out last tenth (at most the last "
             "1500 of them), tested in stream mode (MixGM+CBGA) on the first frames of the held-out tenth: clean "
             "(the MoCap Toolbox walk has real gaps), with simulated gaps (3 markers hidden at a time, mean gap "
             "12 frames), and with 3 ghost points near the body (clutter). Single mode on a few frames shows the "
