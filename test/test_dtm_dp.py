@@ -12,7 +12,10 @@ from dtm_labeler.model.features import point_states
 from dtm_labeler.model.training import TrainConfig, train_model
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search import label_ops as ops
-from dtm_labeler.search.dtm_dp import max_product, model_regions, region_candidates, resolve_duplicates
+from scipy.sparse.csgraph import shortest_path
+
+from dtm_labeler.search.dtm_dp import (max_product, mean_separations, model_regions, region_candidates,
+                                       regions_of, relabel_regions, resolve_duplicates)
 
 NAMES = ("neck", "lshoulder", "rshoulder", "lhip", "rhip", "lknee", "rknee", "lankle", "rankle")
 
@@ -109,17 +112,47 @@ def test_region_relabelling_repairs_a_shifted_chain(model, frame):
     assert np.array_equal(fixed, truth)
 
 
-def test_model_regions(model):
+def test_model_regions_hold_the_nearest_labels_along_the_model(model):
     regions = model_regions(model, max_size=4)
     assert len(regions) == model.n_labels
-    share = np.zeros((model.n_labels,) * 2, dtype=bool)
+    D = mean_separations(model)
+    assert np.allclose(D, D.T) and (np.diag(D) == 0).all()
+    share = np.zeros_like(D, dtype=bool)
     for tri in model.triangles:
         share[np.ix_(tri, tri)] = True
+    assert np.array_equal(np.isfinite(D), share | np.eye(model.n_labels, dtype=bool))
+    G = shortest_path(np.where(np.isfinite(D), D, 0.0), directed=False)
+    partner = {a: b for a, b in model.mirror_pairs.tolist()} | {b: a for a, b in model.mirror_pairs.tolist()}
     for lab, reg in enumerate(regions):
-        assert lab in reg and 2 <= len(reg) <= 4
-        grown = [lab]                                        # each label joins through a triangle or as a mirror partner
-        for x in reg:
-            assert x == lab or share[x, reg].sum() > 1 or any(set(pr) == {x, y} for pr in model.mirror_pairs.tolist() for y in reg)
+        assert lab in reg and len(reg) == 4 and len(set(reg.tolist())) == 4
+        if lab in partner:
+            assert partner[lab] in reg
+        others = [x for x in reg if x != lab and x != partner.get(lab)]
+        outside = [x for x in range(model.n_labels) if x not in reg]
+        assert max(G[lab, others]) <= min(G[lab, outside]) + 1e-12     # nearest first
+
+
+def test_relabel_regions_never_worsens_and_repairs(model, frame):
+    states, truth = frame
+    p = FrameProblem(model, states, Background())
+    regions = regions_of(model, 5)
+    assert regions_of(model, 5) is regions                   # cached per model and size
+    f_true = float(p.fitness(truth[None])[0])
+    region = max(regions, key=len)
+    wrong = truth.copy()
+    wrong[region] = np.roll(truth[region], 1)
+    f_wrong = float(p.fitness(wrong[None])[0])
+    assert f_wrong < f_true
+    calls = []
+
+    def refine(x, fx):
+        calls.append(fx)
+        return x, fx, 0
+    ind, f, evals = relabel_regions(p, wrong, f_wrong, regions, range(p.M), refine)
+    assert f == pytest.approx(float(p.fitness(ind[None])[0])) and f >= f_true - 1e-9
+    assert np.array_equal(ind, truth) and calls and evals > 0
+    same, f2, _ = relabel_regions(p, truth, f_true, regions, range(p.M))
+    assert np.array_equal(same, truth) and f2 == f_true      # already optimal: unchanged
 
 
 def test_resolve_duplicates_keeps_the_best_claimant(model, frame):

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from dtm_labeler.labeling.stream import FrameResult, LabelerSettings, StreamLabeler
+from dtm_labeler.search.label_search import GASettings
 from dtm_labeler.model.training import TrainConfig, train_model
 from dtm_labeler.motion import load_clip
 from dtm_labeler.motion.synthetic import synthesize
@@ -205,6 +206,26 @@ def test_input_ids_and_truth_fitness(model, walker):
         assert np.isfinite(r.truth_fitness)
         assert r.log_likelihood >= r.truth_fitness - 1e-6
     assert (r.labels == np.arange(14)).mean() >= 0.9
+
+
+def test_full_search_restarts_while_short_of_the_level(model, walker):
+    """A full search whose best falls refit_drop short of the level x the frame's points is
+    repeated from fresh populations (at most ``restarts`` more runs); one that fits is not."""
+    weak = GASettings(population=4, max_generations=0, polish=False, region_sweeps=0)
+    counts = {}
+    for restarts, level in ((0, 1e6), (3, 1e6), (3, -1e6)):
+        lab = StreamLabeler(model, LabelerSettings(mode="single", full=weak, restarts=restarts))
+        lab.process(walker.positions[2], 2 / walker.rate)
+        lab.level = level                              # the running level this frame is judged by
+        runs = []
+        orig = lab.full_search.search
+        lab.full_search.search = lambda *a, **k: runs.append(1) or orig(*a, **k)
+        r = lab.process(walker.positions[3], 3 / walker.rate)
+        counts[(restarts, level)] = len(runs)
+        assert r.generations == 0 and r.full_search and np.isfinite(r.log_likelihood)
+    assert counts == {(0, 1e6): 1, (3, 1e6): 4, (3, -1e6): 1}
+    with pytest.raises(ValueError, match="restarts"):
+        LabelerSettings(restarts=-1)
 
 
 def test_settings_validation(model):

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..search import label_ops
-from ..search.dtm_dp import max_product, model_regions, region_candidates
+from ..search.dtm_dp import regions_of, relabel_regions
 from ..search.label_search import polish, targeted_moves
 from .frame_problem import FrameProblem
 from .tracker import TrackUpdate
@@ -175,31 +175,14 @@ class TrackedLabeler:
 
     def _region_checks(self, problem: FrameProblem, ind: np.ndarray, f: float, moves,
                        centres: list[int]) -> tuple[np.ndarray, float, int]:
-        """Exact relabelling of the body regions (:func:`model_regions`) around ``centres``
-        given the rest, by the max-product DP: a wrong labeling that tracking carries on --
-        e.g. labels shifted one marker along a limb -- is put right at the cost of a few
-        hundred term evaluations per region."""
-        cache = self.__dict__.setdefault("_regions", {})        # per model (a bank has several)
-        key = (id(problem.model), self.settings.region_size)
-        if key not in cache:
-            cache[key] = model_regions(problem.model, self.settings.region_size)
-        regions = cache[key]
-        evals = 0
-        b = int(problem.heading_bin(problem.yaw(ind[None]))[0])
-        for c in centres:
-            free = np.zeros(problem.M, dtype=bool)
-            free[regions[c]] = True
-            e0 = problem.evaluations
-            try:
-                cand = max_product(problem, region_candidates(problem, ind, free), b)
-            except ValueError:                 # no relabelling within the distance bounds
-                continue
-            fc = float(problem.fitness(cand[None])[0])
-            evals += problem.evaluations - e0 + 1
-            if fc > f + 1e-9:
-                ind, f, e = polish(problem, cand, fc, self.settings.fast_rounds, neighbours=moves)
-                evals += e
-        return ind, f, evals
+        """Exact relabelling of the body regions around ``centres`` given the rest
+        (:func:`relabel_regions`): a wrong labeling that tracking carries on -- e.g. labels
+        shifted one marker along a limb -- is put right at the cost of a few hundred term
+        evaluations per region."""
+        def refine(x, fx):
+            return polish(problem, x, fx, self.settings.fast_rounds, neighbours=moves)
+        return relabel_regions(problem, ind, f, regions_of(problem.model, self.settings.region_size),
+                               centres, refine)
 
     @staticmethod
     def _truth_fitness(problem: FrameProblem, truth: np.ndarray | None, inp: FrameInput) -> float:

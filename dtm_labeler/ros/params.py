@@ -98,6 +98,9 @@ PARAMS: Tuple[ParamSpec, ...] = (
               "without improvement.", range=(1, 100000)),
     ParamSpec("refit_drop", _D.refit_drop, "A warm result this many nats below the running fitness "
               "level triggers a full search.", range=(0.001, 1e9)),
+    ParamSpec("restarts", _D.restarts, "Full GA searches repeated from fresh populations (at most "
+              "this many more) while the best still falls refit_drop short of the level.",
+              range=(0, 16)),
     ParamSpec("accept_drop", _D.accept_drop, "The carried-over labeling is accepted without a GA "
               "when within this many nats of the running level.", range=(0.001, 1e9)),
     ParamSpec("region_checks", _D.region_checks, "Body regions relabelled exactly (max-product DP "
@@ -165,7 +168,7 @@ DEFAULTS: Dict[str, Any] = {p.name: (list(p.default) if isinstance(p.default, (l
 #: Parameters that change LabelerSettings (the rest are node-only).
 LABELER_KEYS = frozenset({
     "method", "mode", "window", "population", "max_generations", "stagnation", "time_budget_ms",
-    "warm_population", "warm_generations", "warm_stagnation", "refit_drop", "accept_drop", "seed",
+    "warm_population", "warm_generations", "warm_stagnation", "refit_drop", "restarts", "accept_drop", "seed",
     "region_checks", "region_size", "region_every",
     "gate_m", "gate_speed_factor", "max_misses", "clutter_volume_m3", "clutter_max_speed_mps",
     "detection_probability", "max_points", "max_gap_s", "noise_mm"})
@@ -230,7 +233,7 @@ def settings_from_params(values: Mapping[str, Any]) -> LabelerSettings:
     # replace() keeps every other GA setting at the library default (whatever fields exist)
     full = replace(d.full, population=v["population"], max_generations=v["max_generations"],
                    stagnation=v["stagnation"], n_elite=min(d.full.n_elite, v["population"] - 1),
-                   time_budget_s=budget)
+                   time_budget_s=budget, region_size=v["region_size"])
     warm = replace(d.warm, population=v["warm_population"], max_generations=v["warm_generations"],
                    stagnation=v["warm_stagnation"], n_elite=min(d.warm.n_elite, v["warm_population"] - 1),
                    time_budget_s=budget)
@@ -240,7 +243,8 @@ def settings_from_params(values: Mapping[str, Any]) -> LabelerSettings:
                               detection_probability=v["detection_probability"]),
         tracker=TrackerSettings(gate_m=v["gate_m"], gate_speed_factor=v["gate_speed_factor"],
                                 max_misses=v["max_misses"]),
-        max_points=v["max_points"], refit_drop=v["refit_drop"], accept_drop=v["accept_drop"],
+        max_points=v["max_points"], refit_drop=v["refit_drop"], restarts=v["restarts"],
+        accept_drop=v["accept_drop"],
         max_gap_s=v["max_gap_s"], noise_mm=v["noise_mm"], seed=v["seed"],
         region_checks=v["region_checks"], region_size=v["region_size"], region_every=v["region_every"])
 

@@ -177,31 +177,79 @@ def region_candidates(problem: FrameProblem, ind: np.ndarray, free: np.ndarray,
     return out
 
 
-def model_regions(model, max_size: int = 8) -> list[np.ndarray]:
-    """One body region per label, grown from it through the DTM: repeatedly add the label
-    sharing the most triangles with the region so far, and with it its left/right mirror
-    partner (so that a limb swapped with its mirror image is repaired in one relabelling),
-    until ``max_size`` labels. Regions of the model, computed once per model."""
+def mean_separations(model) -> np.ndarray:
+    """(M, M) typical distance (m) between labels that share a triangle -- the norm of the
+    weighted mean of their relative position (eq. 12 rows 9-14) under the triangle's
+    mixture, the smallest over triangles -- and inf between labels that share none."""
     M = model.n_labels
-    shared = np.zeros((M, M), dtype=np.int64)
-    for a, b, c in model.triangles:
-        for u, v in ((a, b), (a, c), (b, c)):
-            shared[u, v] += 1
-            shared[v, u] += 1
+    D = np.full((M, M), np.inf)
+    np.fill_diagonal(D, 0.0)
+    for tri, mix in zip(model.triangles, model.mixtures):
+        mu = np.asarray(mix.weights) @ np.asarray(mix.means)          # (15,)
+        rel = {(1, 0): mu[[9, 11, 13]], (2, 0): mu[[10, 12, 14]]}
+        rel[(2, 1)] = rel[(2, 0)] - rel[(1, 0)]
+        for (i, j), v in rel.items():
+            u, w = int(tri[i]), int(tri[j])
+            D[u, w] = D[w, u] = min(D[u, w], float(np.linalg.norm(v)))
+    return D
+
+
+def model_regions(model, max_size: int = 8) -> list[np.ndarray]:
+    """One body region per label: the label, its left/right mirror partner (so that a limb
+    swapped with its mirror image is repaired in one relabelling) and the labels nearest to
+    it along the model -- shortest paths over triangle edges weighted by
+    :func:`mean_separations` -- up to ``max_size`` labels. Geodesic rather than
+    "shares a triangle" because a learned structure may join far-apart markers (the
+    triangle that is cheapest to describe need not be anatomical): a region must hold the
+    markers a carried labeling can confuse, which are the close ones. Computed once per
+    model (:func:`regions_of`)."""
+    from scipy.sparse.csgraph import shortest_path
+    M = model.n_labels
+    D = mean_separations(model)
+    G = shortest_path(np.where(np.isfinite(D), D, 0.0), method="D", directed=False)
     partner = np.full(M, -1, dtype=np.int64)
     mp = np.asarray(model.mirror_pairs, dtype=np.int64).reshape(-1, 2)
     partner[mp[:, 0]], partner[mp[:, 1]] = mp[:, 1], mp[:, 0]
     regions = []
     for lab in range(M):
-        inside = np.zeros(M, dtype=bool)
-        inside[lab] = True
-        while inside.sum() < max_size:
-            score = np.where(inside, -1, shared[:, inside].sum(1))
-            nxt = int(np.argmax(score))
-            if score[nxt] <= 0:
-                break
-            inside[nxt] = True
-            if partner[nxt] >= 0 and inside.sum() < max_size:
-                inside[partner[nxt]] = True
-        regions.append(np.flatnonzero(inside))
+        first = [lab] + ([int(partner[lab])] if partner[lab] >= 0 else [])
+        rest = [int(x) for x in np.argsort(G[lab], kind="stable") if x not in first and np.isfinite(G[lab, x])]
+        regions.append(np.sort(np.array((first + rest)[:max_size], dtype=np.int64)))
     return regions
+
+
+def regions_of(model, max_size: int) -> list[np.ndarray]:
+    """:func:`model_regions` of ``model``, computed once per model and size."""
+    cache = model.__dict__.setdefault("_regions", {})
+    if max_size not in cache:
+        cache[max_size] = model_regions(model, max_size)
+    return cache[max_size]
+
+
+def relabel_regions(problem: FrameProblem, ind: np.ndarray, fit: float, regions: list[np.ndarray],
+                    centres, refine=None) -> tuple[np.ndarray, float, int]:
+    """Region by region (``regions[c]`` for each of ``centres``), the exact best relabelling
+    of the region given the rest of ``ind`` (:func:`max_product` over
+    :func:`region_candidates`, at the labeling's heading); a relabelling is taken only when
+    it raises the fitness, and then handed to ``refine(ind, fit) -> (ind, fit, evals)``
+    (e.g. a polish) before the next region. Returns (ind, fit, term evaluations): never a
+    labeling worse than the start."""
+    evals = 0
+    b = int(problem.heading_bin(problem.yaw(ind[None]))[0])
+    for c in centres:
+        free = np.zeros(problem.M, dtype=bool)
+        free[regions[c]] = True
+        e0 = problem.evaluations
+        try:
+            cand = max_product(problem, region_candidates(problem, ind, free), b)
+        except ValueError:                 # no relabelling within the distance bounds
+            continue
+        fc = float(problem.fitness(cand[None])[0])
+        evals += problem.evaluations - e0 + 1
+        if fc > fit + 1e-9:
+            ind, fit = cand, fc
+            if refine is not None:
+                ind, fit, e = refine(ind, fit)
+                evals += e
+            b = int(problem.heading_bin(problem.yaw(ind[None]))[0])
+    return ind, fit, evals

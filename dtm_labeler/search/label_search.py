@@ -25,7 +25,7 @@ import numpy as np
 
 from ..labeling.frame_problem import FrameProblem
 from . import label_ops as ops
-from .dtm_dp import max_product
+from .dtm_dp import max_product, regions_of, relabel_regions
 from .ga import Termination, elite_indices, rank_select
 
 
@@ -54,6 +54,8 @@ class GASettings:
     temperatures: np.ndarray = field(default_factory=lambda: np.array([1.0, 3.0, 10.0]))
     p_recreate: float = 0.25
     fresh_fraction: float = 0.25        # share of a seeded population drawn fresh (guided sampling)
+    region_sweeps: int = 1              # after the polish: sweeps of exact region relabelling (0: none)
+    region_size: int = 6                # labels per region of those sweeps
 
     def __post_init__(self) -> None:
         if self.population < 4:
@@ -293,8 +295,32 @@ class _GABase(LabelSearch):
                 evals += e + 1
                 if fc > f:
                     ind, f = cand, fc
+            ind, f, e = self._sweep_regions(problem, ind, f, deadline)
+            evals += e
             history.append(f)
         return SearchOutcome(ind, f, gen, evals, history, term.reason)
+
+    def _sweep_regions(self, problem, ind, f, deadline):
+        """``region_sweeps`` passes of :func:`relabel_regions` over every label's region,
+        each accepted relabelling polished; stops early when a pass changes nothing. The GA
+        and polish leave labelings that are wrong over a few neighbouring labels at once (a
+        limb shifted along its markers); this settles them exactly."""
+        s, evals = self.settings, 0
+        if s.region_sweeps <= 0 or problem.M <= 3 or problem.n == 0:
+            return ind, f, evals
+        regions = regions_of(problem.model, s.region_size)
+
+        def refine(x, fx):
+            return polish(problem, x, fx, s.polish_rounds, deadline)
+        for _ in range(s.region_sweeps):
+            if deadline is not None and time.perf_counter() > deadline:
+                break
+            f0 = f
+            ind, f, e = relabel_regions(problem, ind, f, regions, range(problem.M), refine)
+            evals += e
+            if f <= f0 + 1e-9:
+                break
+        return ind, f, evals
 
     @staticmethod
     def _fitness(problem, pop, valid):
