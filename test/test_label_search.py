@@ -273,7 +273,8 @@ def test_make_search_and_settings():
         assert isinstance(make_search(name), cls)
     with pytest.raises(ValueError, match="unknown search method"):
         make_search("annealing")
-    for kw in [dict(population=3), dict(stagnation=0), dict(p_mutation=1.5), dict(n_elite=48)]:
+    for kw in [dict(population=3), dict(stagnation=0), dict(p_mutation=1.5), dict(n_elite=48),
+               dict(region_sweeps=-1), dict(region_size=1)]:
         with pytest.raises(ValueError):
             GASettings(**kw)
 

@@ -66,6 +66,8 @@ class GASettings:
             raise ValueError("probabilities must be in [0, 1]")
         if not 0 <= self.n_elite < self.population:
             raise ValueError("n_elite must be in [0, population)")
+        if self.region_sweeps < 0 or self.region_size < 2:
+            raise ValueError("region_sweeps must be >= 0 and region_size >= 2")
 
 
 class LabelSearch(ABC):
