@@ -109,7 +109,8 @@ PARAMS: Tuple[ParamSpec, ...] = (
               "labeling that tracking carries on. 0 = off.", range=(0, 64)),
     ParamSpec("region_every", _D.region_every, "Background region check every this many frames "
               "in steady state (0 = only after GA searches).", range=(0, 1000000)),
-    ParamSpec("region_size", _D.region_size, "Labels per region of the region checks (more = "
+    ParamSpec("region_size", _D.region_size, "Labels per region of the region checks and of the "
+              "full search's final region sweep (more = "
               "larger repairs, more work per frame).", range=(2, 16)),
     ParamSpec("seed", _D.seed, "Random seed of the searches (reproducible runs).", range=(0, INT_MAX)),
     # -- tracker ------------------------------------------------------------------------------
