@@ -183,7 +183,7 @@ class StreamLabeler(TrackedLabeler):
         per_point = f / _label_weight(outcome.assignment, problem)
         if not self._provisional:                  # no velocities yet: do not learn from it
             resid = f - self._expected(outcome.assignment, problem)
-            fits = resid >= -self._margin(s.accept_drop, 5.0)
+            fits = resid >= -self._accept_margin()
             if fits:                               # how much a good frame's fitness scatters
                 self.spread = float(np.sqrt(0.98 * self.spread ** 2 + 0.02 * resid ** 2))
             rate = 0.2 if fits else 0.05           # a subject that fits worse than training: adapt slowly
@@ -203,7 +203,7 @@ class StreamLabeler(TrackedLabeler):
     def _falls_short(self, outcome, problem: FrameProblem) -> bool:
         """The labeling fits ``refit_drop`` nats (or 8 x the running scatter) worse than the
         running level predicts for its labelled points: a search should look further."""
-        return outcome.fitness < self._expected(outcome.assignment, problem) - self._margin(self.settings.refit_drop, 8.0)
+        return outcome.fitness < self._expected(outcome.assignment, problem) - self._refit_margin()
 
     def _full_search(self, problem: FrameProblem, seeds):
         """The full GA, repeated from fresh populations (up to ``restarts`` times) while its
@@ -215,7 +215,7 @@ class StreamLabeler(TrackedLabeler):
         restarts = self.settings.restarts if self.settings.method in ("cbga", "sga") else 0   # others: deterministic
         # judged against every point the frame could label, not only those labelled: a stalled
         # run often leaves several points unlabelled, which a per-labelled-point level forgives
-        target = self.level * _frame_weight(problem) - self._margin(self.settings.refit_drop, 8.0)
+        target = self.level * _frame_weight(problem) - self._refit_margin()
         for _ in range(restarts):
             if best.fitness >= target:
                 break
@@ -232,7 +232,7 @@ class StreamLabeler(TrackedLabeler):
         if self.level is None or self.settings.method != "cbga":
             return None
         ind, f, evals = self._hill_climb(problem, seed)
-        if f < self._expected(ind, problem) - self._margin(self.settings.accept_drop, 5.0):
+        if f < self._expected(ind, problem) - self._accept_margin():
             return None
         return _Outcome(ind, f, 0, evals)
 
@@ -252,6 +252,14 @@ class StreamLabeler(TrackedLabeler):
         markers scatters more per frame than one over 14, and a fixed threshold would send
         good frames to the GA (false alarms cost a search each)."""
         return max(floor, k * self.spread)
+
+    def _accept_margin(self) -> float:
+        """How far below the level a carried-over labeling (or a frame the level learns from) may fit."""
+        return self._margin(self.settings.accept_drop, 5.0)
+
+    def _refit_margin(self) -> float:
+        """How far below the level a search result may fit before a (further) full search."""
+        return self._margin(self.settings.refit_drop, 8.0)
 
     def _expected(self, assignment: np.ndarray, problem: FrameProblem) -> float:
         """Running fitness level scaled to this frame's labelled points."""

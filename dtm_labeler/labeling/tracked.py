@@ -98,8 +98,7 @@ class TrackedLabeler:
             keep = np.sort(keep[np.argsort(d)[:max_pts]])
         pts = xyz[keep]
         upd = self.tracker.update(pts, stamp, None if ids is None else np.asarray(ids)[keep])
-        recent = getattr(self, "_new_tracks", np.zeros(0, dtype=np.int64))
-        self._event_points = np.flatnonzero(upd.new | np.isin(upd.track_ids, recent))
+        self._event_points = np.flatnonzero(upd.new | np.isin(upd.track_ids, self._new_tracks))
         self._new_tracks = upd.track_ids[upd.new]
         return FrameInput(xyz.shape[0], finite, keep, pts, upd, reason, n_ignored, dt)
 
@@ -156,8 +155,8 @@ class TrackedLabeler:
         is new (this frame or the last: its velocity is then first known), its label, or
         the label of the nearest labelled point if it has none. Appearing points -- a marker
         back from a gap, a ghost -- are where a carried labeling goes wrong."""
-        pts = getattr(self, "_event_points", None)
-        if pts is None or pts.size == 0:
+        pts = self._event_points
+        if pts.size == 0:
             return []
         have = np.flatnonzero(ind < problem.n)
         if have.size == 0:
