@@ -119,6 +119,45 @@ def test_cache_consistency(model, frames):
     assert bins.shape == (1,) and 0 <= bins[0] < model.heading_bins
 
 
+def test_heading_snap_scores_near_candidates_at_the_anchor(model, frames):
+    """Candidates within ``heading_snap_deg`` of the anchor's yaw are scored at the anchor's
+    bin, the rest (a left/right error: its own heading turns far) at their own; snap 0 or no
+    anchor changes nothing; the anchor itself scores as without the snap."""
+    states, truth = frames[2]
+    plain = FrameProblem(model, states, Background())
+    snapped = FrameProblem(model, states, Background(), heading_snap_deg=4.0)
+    assert snapped.anchor is None                          # nothing anchored yet: no snap
+    pop = np.vstack([truth, ops.mirror(truth[None], model.mirror_pairs)[0]])
+    np.testing.assert_array_equal(snapped.candidate_bins(pop), plain.candidate_bins(pop))
+    f0 = snapped.fitness(truth)[0]
+    snapped.anchor_heading(truth)
+    assert len(snapped.cache) == 0                         # bins may change meaning: cache cleared
+    assert snapped.fitness(truth)[0] == pytest.approx(f0, abs=1e-9)
+    # a candidate with one shoulder on a point 2 cm forward: its own yaw turns by less than the snap
+    lsh, face = truth[1], plain.yaw(truth[None])[0]
+    near = np.vstack([states, states[lsh] + np.r_[0.02 * np.cos(face), 0.02 * np.sin(face), 0.0, 0.0, 0.0, 0.0]])
+    q = FrameProblem(model, near, Background(), heading_snap_deg=4.0)
+    q.anchor_heading(truth)
+    moved = truth.copy()
+    moved[1] = near.shape[0] - 1
+    own_yaw = q.yaw(moved[None])[0]
+    anchor_bin = q.heading_bin(np.array([q.anchor]))[0]
+    assert 0.0 < abs(own_yaw - q.anchor) < np.radians(4.0)
+    assert q.heading_bin(np.array([own_yaw]))[0] != anchor_bin
+    assert q.candidate_bins(moved[None])[0] == anchor_bin
+    # scored at the anchor's bin: exactly the unsnapped problem's terms at that bin
+    r = FrameProblem(model, near, Background())
+    want = r.triangle_table(moved[None], np.array([anchor_bin])).sum() + r.label_gain[moved].sum()
+    assert q.fitness(moved)[0] == pytest.approx(want, abs=1e-9)
+    # the mirror image faces the other way: never snapped
+    mirrored = ops.mirror(truth[None], model.mirror_pairs)
+    assert q.candidate_bins(mirrored)[0] == q.heading_bin(q.yaw(mirrored))[0] != anchor_bin
+    # snap 0: anchoring is a no-op
+    z = FrameProblem(model, near, Background(), heading_snap_deg=0.0)
+    z.anchor_heading(truth)
+    assert z.anchor is None and z.candidate_bins(moved[None])[0] == z.heading_bin(np.array([own_yaw]))[0]
+
+
 def test_term_cache():
     c = TermCache()
     v, found = c.lookup(np.array([3, 1]))

@@ -230,6 +230,6 @@ def test_full_search_restarts_while_short_of_the_level(model, walker):
 
 def test_settings_validation(model):
     for kw in [dict(method="magic"), dict(mode="batch"), dict(window=0), dict(max_points=-1),
-               dict(max_gap_s=0)]:
+               dict(max_gap_s=0), dict(heading_snap_deg=-1.0), dict(heading_snap_deg=45.0)]:
         with pytest.raises(ValueError):
             LabelerSettings(**kw)

@@ -203,13 +203,16 @@ class BankLabeler(TrackedLabeler):
         s, bs = self.settings, self.bank_settings
         inp = self._begin(xyz, stamp, ids, self.M)
         upd, dt = inp.upd, inp.dt
-        problems = [FrameProblem(m, upd.states, s.background, self.heading) for m in self.models]
+        problems = [FrameProblem(m, upd.states, s.background, self.heading, s.heading_snap_deg) for m in self.models]
         n = problems[0].n
         K = len(self.actions)
         hard = bs.strategy == "hard"
         searched = [self.active] if hard else list(range(K))
 
         seeds = self._seeds(upd.track_ids, n, self.M) if s.mode == "stream" else None
+        if seeds is not None:
+            for p in problems:
+                p.anchor_heading(seeds[0])
         cands: dict[int, tuple[np.ndarray, float]] = {}
         gens = evals = 0
         full = True

@@ -16,7 +16,16 @@ left out of :meth:`FrameProblem.fitness` (it does not change the arg max).
 
 Heading: each candidate is canonicalised with the yaw of *its own* labelled left/right
 pairs (see :mod:`dtm_labeler.model.features`), quantised to ``heading_bins`` so triangle
-terms can be cached by ``(bin, triangle, i, j, k)`` for the whole frame.
+terms can be cached by ``(bin, triangle, i, j, k)`` for the whole frame. With an *anchor*
+(:meth:`FrameProblem.anchor_heading`: the yaw of the labeling a search starts from) a
+candidate whose own yaw lies within ``heading_snap_deg`` of it is canonicalised with the
+anchor's yaw instead. The heading is a nuisance parameter the model is trained to tolerate
+(uniform yaw jitter of a few degrees at training time); what it must catch is a gross
+error -- a labeling with left and right exchanged turns its heading by tens of degrees or
+180 -- and that still gets its own heading. Without the snap, a move of one marker
+label turns the yaw of a 41-marker body by a fraction of a degree, which lands in
+another 0.5 deg bin about half the time and costs all ``T`` triangle terms again at
+that bin; with it such a move costs only the terms of its own triangles.
 """
 from __future__ import annotations
 
@@ -80,13 +89,15 @@ class FrameProblem:
     """Fitness of assignments for one frame; caches triangle terms across the whole search."""
 
     def __init__(self, model: TriangulatedModel, states: np.ndarray, background: Background,
-                 heading_hint: float | None = None):
+                 heading_hint: float | None = None, heading_snap_deg: float = 0.0):
         states = np.asarray(states, dtype=np.float64).reshape(-1, STATE_DIM)
         self.model = model
         self.n = states.shape[0]
         self.M = model.n_labels
         self.background = background
         self.heading_hint = 0.0 if heading_hint is None or not np.isfinite(heading_hint) else float(heading_hint)
+        self.snap = float(np.radians(heading_snap_deg))
+        self.anchor: float | None = None           # yaw candidates within ``snap`` of it take (see anchor_heading)
         self.states = np.vstack([states, np.full((1, STATE_DIM), np.nan)])       # row n = missing
         self.codes = observation_state(self.states)
         self._clean = np.nan_to_num(self.states, nan=0.0)
@@ -131,6 +142,24 @@ class FrameProblem:
     def heading_bin(self, yaw: np.ndarray) -> np.ndarray:
         step = 2.0 * np.pi / self.bins
         return np.mod(np.rint(yaw / step), self.bins).astype(np.int64)
+
+    def anchor_heading(self, ind: np.ndarray) -> None:
+        """Anchor the heading on the labeling ``ind`` (M,): from now on a candidate whose
+        yaw is within ``heading_snap_deg`` of ``ind``'s is canonicalised with ``ind``'s yaw
+        (module doc). Clears the term cache (its bins may change meaning)."""
+        if self.snap <= 0:
+            return
+        self.anchor = float(self.yaw(np.asarray(ind, dtype=np.int64).reshape(1, -1))[0])
+        self.cache = TermCache()
+
+    def candidate_bins(self, pop: np.ndarray) -> np.ndarray:
+        """Heading bin each (P, M) candidate is scored at: its own yaw, or the anchor's
+        where they are within the snap radius."""
+        yaw = self.yaw(pop)
+        if self.anchor is not None:
+            off = np.abs(np.angle(np.exp(1j * (yaw - self.anchor))))
+            yaw = np.where(off <= self.snap, self.anchor, yaw)
+        return self.heading_bin(yaw)
 
     # -- fitness -------------------------------------------------------------------------
     def triangle_table(self, pop: np.ndarray, bins: np.ndarray, triangles=None) -> np.ndarray:
@@ -222,7 +251,7 @@ class FrameProblem:
         pop = np.asarray(pop, dtype=np.int64)
         if pop.ndim == 1:
             pop = pop[None]
-        bins = self.heading_bin(self.yaw(pop))
+        bins = self.candidate_bins(pop)
         f = self.triangle_table(pop, bins).sum(1) + self.label_gain[pop].sum(1)
         return (f, bins) if return_bins else f
 

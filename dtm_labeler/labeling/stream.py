@@ -62,6 +62,7 @@ class LabelerSettings:
     region_every: int = 240              # background region check every N frames (0 = only after searches)
     max_gap_s: float = 0.5               # longer input gaps reset window and tracks
     noise_mm: float = 0.0                # measurement noise (sd per coordinate) the model is widened by
+    heading_snap_deg: float = 4.0        # candidates this close to the carried labeling's yaw share it
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -79,6 +80,8 @@ class LabelerSettings:
             raise ValueError("region_checks, region_every must be >= 0 and region_size >= 2")
         if self.restarts < 0:
             raise ValueError("restarts must be >= 0")
+        if not 0.0 <= self.heading_snap_deg <= 30.0:
+            raise ValueError("heading_snap_deg must be in [0, 30]")
 
 
 @dataclass
@@ -152,11 +155,13 @@ class StreamLabeler(TrackedLabeler):
         s = self.settings
         inp = self._begin(xyz, stamp, ids, self.model.n_labels)
         upd = inp.upd
-        problem = FrameProblem(self.model, upd.states, s.background, self.heading)
+        problem = FrameProblem(self.model, upd.states, s.background, self.heading, s.heading_snap_deg)
         n, M = problem.n, problem.M
 
         velocity_known = bool((problem.codes[:-1] == 2).any())
         seeds = self._seeds(upd.track_ids, n, M) if s.mode == "stream" and not self._provisional else None
+        if seeds is not None:
+            problem.anchor_heading(seeds[0])
         self._provisional = not velocity_known     # a labeling without velocities is re-searched next frame
         full = True
         outcome = None

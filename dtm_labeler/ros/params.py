@@ -135,6 +135,10 @@ PARAMS: Tuple[ParamSpec, ...] = (
               "mm). The model is widened by it (relative positions and velocities); 0 = the model's "
               "own floor only. Set it for noisy systems: 10 mm undeclared makes true labelings look "
               "impossible.", range=(0.0, 500.0)),
+    ParamSpec("heading_snap_deg", _D.heading_snap_deg, "Candidate labelings whose facing is within "
+              "this (degrees) of the carried labeling's are scored at its facing: a one-marker move "
+              "then costs only its own triangles. 0 = every candidate at its own facing.",
+              range=(0.0, 30.0)),
     ParamSpec("max_gap_s", _D.max_gap_s, "An input gap (header stamps) longer than this resets the "
               "window and tracks.", range=(0.001, 1e6)),
     # -- I/O --------------------------------------------------------------------------------
@@ -172,7 +176,7 @@ LABELER_KEYS = frozenset({
     "warm_population", "warm_generations", "warm_stagnation", "refit_drop", "restarts", "accept_drop", "seed",
     "region_checks", "region_size", "region_every",
     "gate_m", "gate_speed_factor", "max_misses", "clutter_volume_m3", "clutter_max_speed_mps",
-    "detection_probability", "max_points", "max_gap_s", "noise_mm"})
+    "detection_probability", "max_points", "max_gap_s", "noise_mm", "heading_snap_deg"})
 INPUT_QOS_KEYS = frozenset({"input_qos", "input_depth"})
 
 
@@ -246,7 +250,7 @@ def settings_from_params(values: Mapping[str, Any]) -> LabelerSettings:
                                 max_misses=v["max_misses"]),
         max_points=v["max_points"], refit_drop=v["refit_drop"], restarts=v["restarts"],
         accept_drop=v["accept_drop"],
-        max_gap_s=v["max_gap_s"], noise_mm=v["noise_mm"], seed=v["seed"],
+        max_gap_s=v["max_gap_s"], noise_mm=v["noise_mm"], heading_snap_deg=v["heading_snap_deg"], seed=v["seed"],
         region_checks=v["region_checks"], region_size=v["region_size"], region_every=v["region_every"])
 
 

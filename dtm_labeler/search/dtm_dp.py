@@ -235,7 +235,7 @@ def relabel_regions(problem: FrameProblem, ind: np.ndarray, fit: float, regions:
     (e.g. a polish) before the next region. Returns (ind, fit, term evaluations): never a
     labeling worse than the start."""
     evals = 0
-    b = int(problem.heading_bin(problem.yaw(ind[None]))[0])
+    b = int(problem.candidate_bins(ind[None])[0])
     for c in centres:
         free = np.zeros(problem.M, dtype=bool)
         free[regions[c]] = True
@@ -251,5 +251,5 @@ def relabel_regions(problem: FrameProblem, ind: np.ndarray, fit: float, regions:
             if refine is not None:
                 ind, fit, e = refine(ind, fit)
                 evals += e
-            b = int(problem.heading_bin(problem.yaw(ind[None]))[0])
+            b = int(problem.candidate_bins(ind[None])[0])
     return ind, fit, evals

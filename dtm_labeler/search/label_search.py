@@ -107,7 +107,7 @@ def _root_triangles(problem: FrameProblem, lft: int, rgt: int, t: int) -> tuple[
     r, k = np.nonzero(ok)
     cand = np.full((r.size + 1, M), n, dtype=np.int64)      # last row: the pair not seen
     cand[:-1, lft], cand[:-1, rgt], cand[:-1, third] = I[r], J[r], k
-    return cand, problem.heading_bin(problem.yaw(cand))
+    return cand, problem.candidate_bins(cand)
 
 
 def guided_sample(problem: FrameProblem, P: int, rng: np.random.Generator,
@@ -137,7 +137,7 @@ def guided_sample(problem: FrameProblem, P: int, rng: np.random.Generator,
     pairs = _pair_triangles(problem)
     if base is not None:
         pop = np.where(free, n, base).astype(np.int64)
-        bins = problem.heading_bin(problem.yaw(pop))
+        bins = problem.candidate_bins(pop)
         todo_mask = np.asarray(free, dtype=bool)
     else:
         pop = np.full((P, M), n, dtype=np.int64)
@@ -391,7 +391,7 @@ class GreedySearch(LabelSearch):
         bins = problem.bins
         cand_bins = np.unique((np.arange(self.n_headings) * bins) // self.n_headings)
         if seeds is not None and len(seeds):          # heading of the warm start, if any
-            cand_bins = np.unique(np.append(cand_bins, problem.heading_bin(problem.yaw(np.asarray(seeds)[:1]))))
+            cand_bins = np.unique(np.append(cand_bins, problem.candidate_bins(np.asarray(seeds)[:1])))
         for b in cand_bins:
             ind = self._dp(problem, int(b))
             evals += problem.T * (problem.n + 1) ** 3
