@@ -15,7 +15,7 @@ setup(
         ("share/" + package_name + "/params", glob("params/*.yaml")),
         ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
     ],
-    install_requires=["setuptools", "numpy", "scipy", "ezc3d", "tqdm", "matplotlib", "rosbags"],
+    install_requires=["setuptools", "numpy", "scipy", "numba", "ezc3d", "tqdm", "matplotlib", "rosbags"],
     zip_safe=True,
     maintainer="dtm_labeler developers",
     maintainer_email="dtm-labeler@example.org",

@@ -185,31 +185,21 @@ class FrameProblem:
     def grid_terms(self, heading_bin: int, grids: list[tuple]) -> list[np.ndarray]:
         """Terms over candidate grids at one heading bin: for each ``(t, ca, cb, cc, mask)``
         the (|ca|, |cb|, |cc|) terms of triangle ``t`` for every combination of candidate
-        points (``n`` = missing). Fully observed combinations come from one broadcast per
-        grid (:meth:`BatchedTerms.grid`); the others (a missing point or velocity) from
-        one :meth:`triple_terms` call for all grids; only where ``mask`` is true (elsewhere
-        -inf)."""
-        rot = self.canonical_states([heading_bin])[0]
-        full = self.codes == 2
-        batched = self.model.batched_full
+        points (``n`` = missing) where ``mask`` is true (elsewhere -inf). All grids go
+        through one :meth:`triple_terms` call (cached, one kernel call per observation
+        pattern)."""
         out, idx = [], []
         for t, ca, cb, cc, mask in grids:
-            g = np.full(mask.shape, -np.inf)
-            whole = full[ca][:, None, None] & full[cb][None, :, None] & full[cc][None, None, :]
-            ia, ib, ic = np.nonzero(whole & mask)
-            if ia.size:
-                g[ia, ib, ic] = batched.grid(t, rot[ca], rot[cb], rot[cc], ia, ib, ic) + \
-                    (self.background.log_position if t == 0 else 0.0)
-            self.evaluations += ia.size
-            out.append(g)
-            idx.append(np.nonzero(~whole & mask))
-        counts = [w[0].size for w in idx]
+            ia, ib, ic = np.nonzero(mask)
+            idx.append((t, ca[ia], cb[ib], cc[ic]))
+            out.append(np.full(mask.shape, -np.inf))
+        counts = [w[1].size for w in idx]
         if sum(counts):
-            ts = np.repeat([g[0] for g in grids], counts)
-            pts = [np.concatenate([grids[q][1 + r][idx[q][r]] for q in range(len(grids))]) for r in range(3)]
+            ts = np.repeat([w[0] for w in idx], counts)
+            pts = [np.concatenate([w[r] for w in idx]) for r in (1, 2, 3)]
             vals = np.split(self.triple_terms(heading_bin, ts, *pts), np.cumsum(counts)[:-1])
-            for g, w, v in zip(out, idx, vals):
-                g[w] = v
+            for g, (_, _, _, _, mask), v in zip(out, grids, vals):
+                g[mask] = v
         return out
 
     def canonical_states(self, bins: np.ndarray) -> np.ndarray:

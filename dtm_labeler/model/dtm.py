@@ -29,6 +29,7 @@ from .features import (MISSING, N_PATTERNS, STATE_DIM, feature_map_for, observat
                        observed_map, pattern_codes, pattern_id)
 from .mixture import GaussianMixture
 from .structure import Structure
+from .term_kernel import mixture_terms
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -164,15 +165,17 @@ FULL_PATTERN = 26          # all three vertices with position and velocity (2 + 
 
 
 class BatchedTerms:
-    """Every triangle's term for one observation pattern in one vectorised call.
+    """Every triangle's term for one observation pattern in one compiled call.
 
     The common case on the hot path is a batch of triples from *different* triangles with
     the same observation pattern (mostly: all three points with position and velocity).
-    Per-triangle calls would cost one Python round trip each; here the whitening matrices
-    of all triangles are zero-padded to a common width and gathered per row, so the whole
-    batch is three einsums and two masked log-sum-exps. A triangle whose term vanishes for
-    the pattern (vertex A unobserved) has all-zero matrices and an empty mixture: term 0.
-    ``root[t]``: the pattern leaves triangle ``t``'s absolute position unmodelled.
+    The whitening matrices of all triangles are zero-padded to a common width with fixed
+    component slots (joint component ``k`` in columns ``[k mj, (k+1) mj)``, parents'
+    component ``k`` in ``[kj mj + k mp, ...)``) so that one kernel
+    (:func:`~dtm_labeler.model.term_kernel.mixture_terms`) serves the whole batch. A
+    triangle whose term vanishes for the pattern (vertex A unobserved) has all-zero
+    matrices and one zero component: term 0. ``root[t]``: the pattern leaves triangle
+    ``t``'s absolute position unmodelled.
     """
 
     def __init__(self, terms: "list[TriangleTerms]", pid: int = FULL_PATTERN):
@@ -180,8 +183,6 @@ class BatchedTerms:
         parts = [None if p is None or p.empty else p for p in parts]
         T = len(parts)
         live = [p for p in parts if p is not None]
-        # fixed slots: joint component k in columns [k mj, (k+1) mj), parents' component k
-        # in [kj mj + k mp, ...): the per-component squared norms are then reshaped sums
         mj = {p.joint.dim for p in live}
         mp = {p.parents.dim for p in live if len(p.splits) > 1}
         if len(mj) > 1 or len(mp) > 1:
@@ -194,7 +195,8 @@ class BatchedTerms:
         self.c = np.zeros((T, R))
         self.cj = np.full((T, self.kj), -np.inf)
         self.cp = np.full((T, max(self.kp, 1)), -np.inf)
-        self.has_parent = np.zeros(T, dtype=bool)
+        self.nj = np.ones(T, dtype=np.int64)          # components per triangle (joint, parents)
+        self.np_ = np.zeros(T, dtype=np.int64)
         self.root = np.array([p is not None and p.root for p in parts], dtype=bool)
         dead = np.array([p is None for p in parts], dtype=bool)
         self.cj[dead, 0] = 0.0                       # log-sum-exp of one zero component: term 0
@@ -206,63 +208,23 @@ class BatchedTerms:
             self.W[t, :, :rj] = p.W[:, :rj]
             self.c[t, :rj] = p.c[:rj]
             self.cj[t, :p.joint.K] = p.joint.logconst
+            self.nj[t] = p.joint.K
             if len(p.splits) > 1:
                 rp = p.parents.K * self.mp
                 self.W[t, :, off:off + rp] = p.W[:, rj:rj + rp]
                 self.c[t, off:off + rp] = p.c[rj:rj + rp]
                 self.cp[t, :p.parents.K] = p.parents.logconst
-                self.has_parent[t] = True
+                self.np_[t] = p.parents.K
 
-    def _norms(self, zz: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """Per-component squared norms (joint, parents) from squared whitened coordinates."""
-        lead = zz.shape[:-1]
-        off = self.kj * self.mj
-        qj = zz[..., :off].reshape(lead + (self.kj, self.mj)).sum(-1)
-        qp = zz[..., off:].reshape(lead + (self.kp, self.mp)).sum(-1) if self.kp else None
-        return qj, qp
+    @property
+    def has_parent(self) -> np.ndarray:
+        return self.np_ > 0
 
-    @staticmethod
-    def _lse(x: np.ndarray) -> np.ndarray:
-        m = x.max(axis=1)
-        return m + np.log(np.exp(x - m[:, None]).sum(axis=1))
-
-    def __call__(self, s: np.ndarray, tri: np.ndarray, gather_max: int = 160) -> np.ndarray:
-        """Terms for (n, 18) states of triangles ``tri`` (n,). Small batches gather each row's
-        matrix (no Python loop); large ones loop over the triangles present (one matmul each)."""
-        if s.shape[0] <= gather_max:
-            z = np.einsum("nj,njr->nr", s, self.W[tri]) - self.c[tri]
-        else:
-            z = np.empty((s.shape[0], self.W.shape[2]))
-            order = np.argsort(tri, kind="stable")
-            bounds = np.flatnonzero(np.diff(tri[order])) + 1
-            for sel in np.split(order, bounds):
-                t = tri[sel[0]]
-                z[sel] = s[sel] @ self.W[t] - self.c[t]
-        qj, qp = self._norms(z * z)
-        out = self._lse(self.cj[tri] - 0.5 * qj)
-        hp = self.has_parent[tri]
-        if hp.any():
-            out[hp] -= self._lse(self.cp[tri[hp]] - 0.5 * qp[hp])
-        return out
-
-    def grid(self, t: int, sa: np.ndarray, sb: np.ndarray, sc: np.ndarray,
-             ia: np.ndarray, ib: np.ndarray, ic: np.ndarray) -> np.ndarray:
-        """Fully observed terms of triangle ``t`` for the triples ``(sa[ia], sb[ib], sc[ic])``
-        of candidate states ``sa`` (ka, 6), ``sb`` (kb, 6), ``sc`` (kc, 6). The whitening is
-        linear in the stacked state, so each candidate's share is projected once
-        (``k x 6 @ 6 x R``) and the triples only add rows: no 18-wide matmul per triple."""
-        W = self.W[t]
-        z = (sa @ W[0:6])[ia] + (sb @ W[6:12])[ib] + (sc @ W[12:18])[ic] - self.c[t]    # (m, R)
-        qj, qp = self._norms(z * z)
-        out = _lse_last(self.cj[t] - 0.5 * qj)
-        if self.has_parent[t]:
-            out -= _lse_last(self.cp[t] - 0.5 * qp)
-        return out
-
-
-def _lse_last(x: np.ndarray) -> np.ndarray:
-    m = x.max(axis=-1)
-    return m + np.log(np.exp(x - m[..., None]).sum(axis=-1))
+    def __call__(self, s: np.ndarray, tri: np.ndarray) -> np.ndarray:
+        """Terms for (n, 18) states (unobserved entries zero) of triangles ``tri`` (n,)."""
+        return mixture_terms(np.ascontiguousarray(s, dtype=np.float64),
+                             np.ascontiguousarray(tri, dtype=np.int64),
+                             self.W, self.c, self.cj, self.cp, self.nj, self.np_, self.mj, self.mp)
 
 
 @dataclass
@@ -326,6 +288,7 @@ class TriangulatedModel:
             for pid in range(N_PATTERNS):
                 term.pattern(pid)
         _ = self.batched_full, self.distance_bounds
+        self.batched_full(np.zeros((1, 18)), np.zeros(1, dtype=np.int64))     # compile (or load) the kernel
         return self
 
     @property
