@@ -156,7 +156,7 @@ class BankLabeler(TrackedLabeler):
             self.bank[one]
             acts = [one]
         self.actions = list(acts)
-        self.models = [self.bank[a] for a in self.actions]
+        self.models = [self.bank[a].warm_up() for a in self.actions]    # densities, kernel: now, not on a frame
         self.M = self.models[0].n_labels
         self.rng = np.random.default_rng(s.seed)
         self.tracker = Tracker(s.tracker)
