@@ -97,7 +97,7 @@ class FrameProblem:
         self.background = background
         self.heading_hint = 0.0 if heading_hint is None or not np.isfinite(heading_hint) else float(heading_hint)
         self.snap = float(np.radians(heading_snap_deg))
-        self.anchor: float | None = None           # yaw candidates within ``snap`` of it take (see anchor_heading)
+        self.anchor: float | None = None           # yaw that candidates within ``snap`` of it are scored at
         self.states = np.vstack([states, np.full((1, STATE_DIM), np.nan)])       # row n = missing
         self.codes = observation_state(self.states)
         self._clean = np.nan_to_num(self.states, nan=0.0)

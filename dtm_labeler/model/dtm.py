@@ -216,10 +216,6 @@ class BatchedTerms:
                 self.cp[t, :p.parents.K] = p.parents.logconst
                 self.np_[t] = p.parents.K
 
-    @property
-    def has_parent(self) -> np.ndarray:
-        return self.np_ > 0
-
     def __call__(self, s: np.ndarray, tri: np.ndarray) -> np.ndarray:
         """Terms for (n, 18) states (unobserved entries zero) of triangles ``tri`` (n,)."""
         return mixture_terms(np.ascontiguousarray(s, dtype=np.float64),

@@ -6,7 +6,7 @@ vertices' canonical position + velocity, unobserved entries zero), :class:`Batch
 density of what is observed (``kj`` component slots of ``mj`` rows) and of its parents
 (``kp`` slots of ``mp`` rows): ``z = s W_t - c_t``. The term is
 
-    log sum_k exp(cj[t, k] - |z_jk|^2 / 2)  -  [has_parent[t]] log sum_k exp(cp[t, k] - |z_pk|^2 / 2)
+    log sum_k exp(cj[t, k] - |z_jk|^2 / 2)  -  [np_[t] > 0] log sum_k exp(cp[t, k] - |z_pk|^2 / 2)
 
 i.e. ``log p(obs(A, B, C)) - log p(obs(B, C))`` (eq. 5/14 with eq. 30-31 marginalisation).
 
