@@ -71,7 +71,7 @@ def load_case(name: str):
 def model_for(name: str, clips, retrain: bool = False):
     """Trained on the first 90 % of every clip; cached in results/tmp keyed by data + code."""
     from dtm_labeler.model.io import load_model, save_model
-    from dtm_labeler.model.training import TrainConfig, train_model
+    from dtm_labeler.training.train import TrainConfig, train_model
     key = json.dumps([name, CASES[name], [c.n_frames for c in clips], _code_hash()], sort_keys=True)
     path = RESULTS / "tmp" / f"bench_labeling_{name}_{hashlib.sha1(key.encode()).hexdigest()[:12]}.npz"
     if path.is_file() and not retrain:

@@ -52,7 +52,7 @@ def model_for(case: dict, work: Path, structure: str) -> tuple[Path, object]:
     from dtm_labeler.cli.common import load_inputs
     from dtm_labeler.cli.demo import cache_dir
     from dtm_labeler.model.io import load_model, save_model
-    from dtm_labeler.model.training import TrainConfig, train_model
+    from dtm_labeler.training.train import TrainConfig, train_model
     import hashlib
     key = json.dumps([case, structure, (DATA / case["path"]).stat().st_mtime], sort_keys=True)
     path = cache_dir() / f"bench_model_{hashlib.sha1(key.encode()).hexdigest()[:12]}.npz"
@@ -66,9 +66,10 @@ def model_for(case: dict, work: Path, structure: str) -> tuple[Path, object]:
 
 
 def make_bag(case: dict, model, rate: float, work: Path, seconds: float | None) -> tuple[Path, int]:
-    from dtm_labeler.cli.common import load_inputs, model_points
+    from dtm_labeler.cli.common import load_inputs
+    from dtm_labeler.motion.pointsets import model_points
     from dtm_labeler.cli.demo import resample
-    from dtm_labeler.labeling.corruption import corrupt_clip
+    from dtm_labeler.evaluation.corruption import corrupt_clip
     from dtm_labeler.ros.bag import write_bag
     clip = load_inputs([str(DATA / case["path"])], case["points"], case["test"])[0]
     clip = resample(model_points(clip, model.labels), rate)

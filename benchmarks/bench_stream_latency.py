@@ -52,10 +52,10 @@ CONDITIONS = [("clean", 0, 0, 0.0), ("occl 3 + ghosts 2 + 1 mm", 3, 2, 1.0)]
 
 def run_case(name: str, max_frames: int | None, region_checks: int | None = None) -> list[dict]:
     from dtm_labeler.cli.common import load_inputs
-    from dtm_labeler.labeling.corruption import corrupt_clip
-    from dtm_labeler.labeling.metrics import is_search_error
+    from dtm_labeler.evaluation.corruption import corrupt_clip
+    from dtm_labeler.evaluation.metrics import is_search_error
     from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
-    from dtm_labeler.model.training import TrainConfig, train_model
+    from dtm_labeler.training.train import TrainConfig, train_model
 
     spec = CASES[name]
     split = spec.get("split", 0.5)

@@ -71,7 +71,7 @@ def walk_model() -> WalkModel:
     """Train (once per session) a BODY14 walk model; see module doc."""
     from dtm_labeler.model.dtm import TriangulatedModel
     from dtm_labeler.model.io import save_model
-    from dtm_labeler.model.training import TrainConfig, train_model
+    from dtm_labeler.training.train import TrainConfig, train_model
     from dtm_labeler.motion import load_clip, synthesize, to_point_set
 
     if WALK_BVH.is_file():

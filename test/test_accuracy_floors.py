@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from dtm_labeler.evaluation.pipeline import label_clip, label_clips
-from dtm_labeler.labeling.metrics import MetricsAccumulator
+from dtm_labeler.evaluation.metrics import MetricsAccumulator
 from dtm_labeler.labeling.stream import LabelerSettings
-from dtm_labeler.model.training import TrainConfig, train_model
+from dtm_labeler.training.train import TrainConfig, train_model
 from dtm_labeler.motion import load_clip, to_point_set
 
 BVH = {"walk": "cmu_07_01_walk_s07.bvh", "run": "cmu_09_11_run_s09.bvh", "dance": "cmu_55_01_dance-whirl_s55.bvh"}

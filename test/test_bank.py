@@ -8,7 +8,7 @@ import pytest
 from dtm_labeler.cli.train import main as train_main
 from dtm_labeler.model.bank import (BankFileError, ModelBank, add_to_bank, is_bank, load_bank, save_bank)
 from dtm_labeler.model.features import point_states
-from dtm_labeler.model.training import TrainConfig, train_model
+from dtm_labeler.training.train import TrainConfig, train_model
 from dtm_labeler.motion import load_clip
 
 CFG = TrainConfig(mixture="single", structure="given", yaw_jitter_deg=0.0)

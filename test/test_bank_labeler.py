@@ -7,11 +7,11 @@ import pytest
 from dtm_labeler.evaluation.switching import join_clips, run_sequence, switch_metrics
 from dtm_labeler.labeling.bank_labeler import (BankFrameResult, BankLabeler, BankSettings, _Sub, allocate,
                                                migration_probability)
-from dtm_labeler.labeling.frame_problem import FrameProblem
+from dtm_labeler.search.problem import FrameProblem
 from dtm_labeler.labeling.stream import LabelerSettings
 from dtm_labeler.model.bank import ModelBank
 from dtm_labeler.model.features import point_states
-from dtm_labeler.model.training import TrainConfig, train_model
+from dtm_labeler.training.train import TrainConfig, train_model
 from dtm_labeler.motion import load_clip
 from dtm_labeler.search import label_ops as ops
 

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from dtm_labeler.labeling.corruption import corrupt_clip, occlusion_mask, score_frame
+from dtm_labeler.evaluation.corruption import corrupt_clip, occlusion_mask, score_frame
 from dtm_labeler.motion import synthesize
 
 

@@ -6,10 +6,10 @@ import itertools
 import numpy as np
 import pytest
 
-from dtm_labeler.labeling.frame_problem import Background, FrameProblem
+from dtm_labeler.search.problem import Background, FrameProblem
 from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
 from dtm_labeler.model.features import point_states
-from dtm_labeler.model.training import TrainConfig, train_model
+from dtm_labeler.training.train import TrainConfig, train_model
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search import label_ops as ops
 from scipy.sparse.csgraph import shortest_path

@@ -17,7 +17,7 @@ import time
 import pytest
 
 from dtm_labeler.cli.demo import ros_env, start_node, start_player, stop_process, tail
-from dtm_labeler.labeling.corruption import corrupt_clip
+from dtm_labeler.evaluation.corruption import corrupt_clip
 from dtm_labeler.motion import load_clip, to_point_set
 from dtm_labeler.ros import bag as B
 from dtm_labeler.ros import params as P
@@ -39,7 +39,7 @@ NODE_PARAMS = {"input_qos": "reliable", "input_depth": 100, "max_gap_s": 2.0}
 @pytest.fixture(scope="module")
 def setup(data_dir, tmp_path_factory):
     from dtm_labeler.model.io import save_model
-    from dtm_labeler.model.training import TrainConfig, train_model
+    from dtm_labeler.training.train import TrainConfig, train_model
     d = tmp_path_factory.mktemp("e2e")
     clip = to_point_set(load_clip(data_dir / DANCE), "body14")
     n = clip.n_frames

@@ -7,7 +7,7 @@ from dtm_labeler.model.features import (FEATURE_DIM, FEATURE_MATRIX, FULL, MISSI
                                         POSITION_ONLY, STATE_DIM, canonicalise, feature_map_for,
                                         lateral_yaw, observation_state, observed_map, pattern_codes,
                                         pattern_id, point_states, rotation_z, triangle_features)
-from dtm_labeler.model.training import canonical_states, heading_pairs
+from dtm_labeler.training.train import canonical_states, heading_pairs
 from dtm_labeler.motion.pointsets import BODY14
 from dtm_labeler.motion.synthetic import synthesize
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from dtm_labeler.model.io import save_model
-from dtm_labeler.model.training import TrainConfig, train_model
+from dtm_labeler.training.train import TrainConfig, train_model
 from dtm_labeler.motion import load_clip, to_point_set
 
 WALK = "cmu_skeletal/bvh_from_fbx/cmu_07_01_walk_s07.bvh"

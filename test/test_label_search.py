@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from dtm_labeler.labeling.frame_problem import Background, FrameProblem, TermCache
+from dtm_labeler.search.problem import Background, FrameProblem, TermCache
 from dtm_labeler.model.features import canonicalise, lateral_yaw, point_states, rotation_z
-from dtm_labeler.model.training import TrainConfig, train_model
+from dtm_labeler.training.train import TrainConfig, train_model
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search import label_ops as ops
 from dtm_labeler.search.label_search import (SEARCHES, CBGASearch, ExhaustiveSearch, GASettings, GreedySearch,

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from dtm_labeler.labeling.metrics import (MetricsAccumulator, accuracy, ghost_rejection, is_search_error,
+from dtm_labeler.evaluation.metrics import (MetricsAccumulator, accuracy, ghost_rejection, is_search_error,
                                           percentile_summary)
 
 LABELS = ["a", "b", "c"]

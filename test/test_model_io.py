@@ -8,7 +8,7 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 
 from dtm_labeler.model import io as mio
 from dtm_labeler.model.io import ModelFileError, load_model, model_from_arrays, model_to_bytes, save_model
-from dtm_labeler.model.training import TrainConfig, canonical_states, train_model
+from dtm_labeler.training.train import TrainConfig, canonical_states, train_model
 from dtm_labeler.motion.synthetic import synthesize
 
 

@@ -5,7 +5,7 @@ import pytest
 
 from dtm_labeler.labeling.stream import FrameResult, LabelerSettings, StreamLabeler
 from dtm_labeler.search.label_search import GASettings
-from dtm_labeler.model.training import TrainConfig, train_model
+from dtm_labeler.training.train import TrainConfig, train_model
 from dtm_labeler.motion import load_clip
 from dtm_labeler.motion.synthetic import synthesize
 

@@ -8,7 +8,7 @@ import pytest
 from dtm_labeler.model.dtm import BatchedTerms, TriangulatedModel
 from dtm_labeler.model.features import N_PATTERNS, pattern_codes
 from dtm_labeler.model.mixture import GaussianMixture
-from dtm_labeler.model.training import TrainConfig, train_model
+from dtm_labeler.training.train import TrainConfig, train_model
 from dtm_labeler.motion.synthetic import synthesize
 
 NAMES = ("neck", "lshoulder", "rshoulder", "lhip", "rhip", "lknee", "rknee")

@@ -11,7 +11,7 @@ import pytest
 from dtm_labeler.cli.train import main as train_main
 from dtm_labeler.model.features import point_states
 from dtm_labeler.model.io import load_model
-from dtm_labeler.model.training import (TrainConfig, body_draws, canonical_states, change_tempo, heading_pairs,
+from dtm_labeler.training.train import (TrainConfig, body_draws, canonical_states, change_tempo, heading_pairs,
                                         rigid_tree, scale_bodies, train_model, training_states, tree_order)
 from dtm_labeler.motion.pointsets import BODY14
 from dtm_labeler.motion.synthetic import synthesize
@@ -236,7 +236,7 @@ def test_cross_subject_floor(data_dir):
 def test_unset_jitter_resolves_by_point_set():
     """None = the measured default for the 14 body points (or a subset), 0 for marker sets;
     explicit values always win."""
-    from dtm_labeler.model.training import BODY_AUGMENTATION
+    from dtm_labeler.training.train import BODY_AUGMENTATION
     cfg = TrainConfig()
     body = cfg.resolved(BODY14)
     assert {k: getattr(body, k) for k in BODY_AUGMENTATION} == BODY_AUGMENTATION

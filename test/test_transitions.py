@@ -6,7 +6,7 @@ import pytest
 from scipy.ndimage import maximum_filter
 
 from dtm_labeler.motion import load_clip
-from dtm_labeler.motion.transitions import (TransitionSettings, TransitionSource, angle_second_difference,
+from dtm_labeler.training.transitions import (TransitionSettings, TransitionSource, angle_second_difference,
                                             bone_lengths, end_point_threshold, find_end_points, load_skeletal,
                                             local_bounds, normalized_poses, similarity_matrix,
                                             synthesize_transitions)

@@ -143,7 +143,7 @@ def build_parser() -> argparse.ArgumentParser:
 # ------------------------------------------------------------------------------------- make
 
 def _make(args) -> int:
-    from ..labeling.corruption import corrupt_clip
+    from ..evaluation.corruption import corrupt_clip
     from ..ros.bag import BagError, write_bag
 
     if args.gap_frames < 1:

@@ -8,7 +8,7 @@ from typing import Sequence
 
 from ..motion.clip import MotionClip
 from ..motion.load import load_clip
-from ..motion.pointsets import BODY14, to_point_set
+from ..motion.pointsets import to_point_set
 
 RECORDING_SUFFIXES = (".bvh", ".amc", ".c3d", ".csv")
 
@@ -83,17 +83,6 @@ def load_inputs(inputs: Sequence[str], points: str | list[str], frames: str | No
         a, b = parse_frames(frames, clip.n_frames)
         clips.append(clip.slice(a, b))
     return clips
-
-
-def model_points(clip: MotionClip, labels: Sequence[str]) -> MotionClip:
-    """The clip's points named like the model's labels (deriving the 14 body points if needed)."""
-    if set(labels) <= set(clip.names):
-        return clip.select(labels)
-    if set(labels) <= set(BODY14):
-        return to_point_set(clip, "body14").select(labels)
-    missing = sorted(set(labels) - set(clip.names))
-    raise CliError(f"{clip.source}: has no points named {', '.join(missing[:6])}"
-                   f"{' ...' if len(missing) > 6 else ''} (model labels)")
 
 
 def run_main(main_body, argv=None) -> int:

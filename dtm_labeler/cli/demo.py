@@ -152,7 +152,7 @@ def resample(clip, rate: float):
 def _train_cached(key: dict, make_clips, quiet: bool, log) -> Path:
     """Train (or reuse) a model for ``key``; returns the model path."""
     from ..model.io import save_model
-    from ..model.training import TrainConfig, train_model
+    from ..training.train import TrainConfig, train_model
 
     h = hashlib.sha1(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()[:12]
     path = cache_dir() / f"demo_model_{h}.npz"
@@ -172,11 +172,12 @@ def _train_cached(key: dict, make_clips, quiet: bool, log) -> Path:
 
 def prepare(args, work: Path, log) -> tuple[Path, Path, dict]:
     """(model path, bag path, description) for the demo arguments."""
-    from ..labeling.corruption import corrupt_clip
+    from ..evaluation.corruption import corrupt_clip
     from ..model.io import load_model
     from ..motion import synthesize
     from ..ros.bag import write_bag
-    from .common import load_inputs, model_points, parse_frames, point_spec
+    from ..motion.pointsets import model_points
+    from .common import load_inputs, parse_frames, point_spec
 
     rate = args.rate_hz
     if args.data is None:
@@ -216,7 +217,7 @@ def prepare(args, work: Path, log) -> tuple[Path, Path, dict]:
             what = f"{data.name} frames {c}:{min(d, c + max_frames)} (model {args.model})"
     try:
         clip = model_points(clip, model.labels)
-    except CliError as e:
+    except ValueError as e:
         raise CliError(f"the model's labels are not in the test data: {e}") from None
     stream = corrupt_clip(clip, occlude=args.occlude, clutter=args.clutter, noise_mm=args.noise_mm, seed=args.seed,
                           gap_frames=args.gap_frames)

@@ -297,7 +297,7 @@ def _tables12(seqs, models, plan, quiet) -> dict:
 
 def run_sections(sections, plan: Plan, data_dir: Path, runner: Runner, quiet: bool) -> dict:
     from ..evaluation.experiments import TABLE3_ROWS, spread_frames
-    from ..model.training import TrainConfig
+    from ..training.train import TrainConfig
     from ..motion.pointsets import BODY14
     need_model_seqs = set()
     if "tables12" in sections or "structure" in sections:

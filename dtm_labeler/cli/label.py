@@ -16,7 +16,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..evaluation.pipeline import ClipRun, label_clip_run, model_clip
-from ..labeling.metrics import Metrics, MetricsAccumulator
+from ..evaluation.metrics import Metrics, MetricsAccumulator
 from ..labeling.stream import METHODS, MODES, LabelerSettings
 from ..model.io import load_model
 from ..motion.load import load_clip

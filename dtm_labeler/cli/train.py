@@ -8,7 +8,7 @@ import sys
 from tqdm import tqdm
 
 from ..model.io import save_model
-from ..model.training import BODY_AUGMENTATION, MIXTURE_KINDS, STRUCTURE_METHODS, TrainConfig, train_model
+from ..training.train import BODY_AUGMENTATION, MIXTURE_KINDS, STRUCTURE_METHODS, TrainConfig, train_model
 from .common import CliError, HelpFormatter, load_inputs, point_spec, run_main
 
 _DEFAULTS = TrainConfig()
@@ -153,7 +153,7 @@ def _main(argv=None) -> int:
 
 def _bank_sources(args):
     """Training recordings as TransitionSources (body14 + local rotations when skeletal)."""
-    from ..motion.transitions import TransitionSource
+    from ..training.transitions import TransitionSource
     from .common import expand_inputs, parse_frames
     out = []
     for path in expand_inputs(args.inputs):
@@ -173,9 +173,10 @@ def _bank_sources(args):
 
 
 def _bank_main(args, config) -> int:
-    from ..model.bank import BankFileError, add_to_bank, check_action_name, load_bank, load_sources, train_action
+    from ..model.bank import BankFileError, add_to_bank, check_action_name, load_bank
+    from ..training.bank_training import load_sources, train_action
     from ..model.bank import BANK_JSON
-    from ..motion.transitions import TransitionSettings
+    from ..training.transitions import TransitionSettings
     from pathlib import Path
     try:
         check_action_name(args.action)

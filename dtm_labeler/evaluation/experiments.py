@@ -21,9 +21,9 @@ from typing import Sequence
 
 import numpy as np
 
-from ..labeling.corruption import corrupt_clip
-from ..labeling.frame_problem import Background, FrameProblem
-from ..labeling.metrics import MetricsAccumulator
+from .corruption import corrupt_clip
+from ..search.problem import Background, FrameProblem
+from .metrics import MetricsAccumulator
 from ..labeling.stream import LabelerSettings, StreamLabeler
 from ..model.dtm import TriangulatedModel
 from ..model.features import point_states

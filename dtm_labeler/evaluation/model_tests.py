@@ -35,8 +35,10 @@ import numpy as np
 
 from ..model.dtm import TriangulatedModel
 from ..model.features import FEATURE_MATRIX, FULL, STATE_DIM, observation_state
-from ..model.training import TrainConfig, canonical_states, heading_pairs, train_model
+from ..model.structure import BODY14_GIVEN, Structure
 from ..motion.clip import MotionClip
+from ..search import structure_search as ss
+from ..training.train import TrainConfig, canonical_states, heading_pairs, train_model
 
 MIXTURE_KINDS = ("single", "fixed", "mdl")
 KIND_NAMES = {"single": "JG", "fixed": "JMG", "mdl": "JMGW"}
@@ -150,8 +152,6 @@ def structure_comparison(train: MotionClip, test: MotionClip, test_frames: np.nd
     training and held-out frames under MDL mixtures fitted on the training part.
 
     ``test`` is the whole clip; ``test_frames`` the held-out frame indices within it."""
-    from ..model.structure import BODY14_GIVEN, Structure
-    from ..search import structure_search as ss
     pairs = heading_pairs(labels)
     tr_states = canonical_states(train.select(labels), pairs)
     complete = (observation_state(tr_states) == FULL).all(axis=1)

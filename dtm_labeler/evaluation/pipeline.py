@@ -4,11 +4,11 @@
 
 1. the clip's labels are stripped: the model's points are selected (derived to the 14 body
    points when needed) and every frame becomes an unordered point cloud;
-2. :func:`~dtm_labeler.labeling.corruption.corrupt_clip` hides ``occlude`` points, adds
+2. :func:`~dtm_labeler.evaluation.corruption.corrupt_clip` hides ``occlude`` points, adds
    ``clutter`` ghost points and ``noise_mm`` noise, and shuffles each frame (keeping the truth);
 3. a fresh :class:`~dtm_labeler.labeling.stream.StreamLabeler` gets the frames one by one with
    stamps ``frame / rate`` and the true assignment (only to count search errors);
-4. :class:`~dtm_labeler.labeling.metrics.MetricsAccumulator` scores the published labels.
+4. :class:`~dtm_labeler.evaluation.metrics.MetricsAccumulator` scores the published labels.
 
 By default the labeler gets no track ids (its own tracker associates points); with
 ``use_ids=True`` it gets the simulated mocap-system ids of the corrupted stream.
@@ -21,11 +21,12 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..labeling.corruption import CorruptedStream, corrupt_clip
-from ..labeling.metrics import Metrics, MetricsAccumulator
+from .corruption import CorruptedStream, corrupt_clip
+from .metrics import Metrics, MetricsAccumulator
 from ..labeling.stream import LabelerSettings, StreamLabeler
 from ..model.dtm import TriangulatedModel
 from ..motion.clip import MotionClip
+from ..motion.pointsets import model_points
 
 Progress = Callable[[int, int], None]
 
@@ -70,11 +71,10 @@ def model_clip(model: TriangulatedModel | Sequence[str], clip: MotionClip) -> Mo
     """The clip's points named like the model's labels (``model`` or its label names), in the
     model's order (the 14 body points are derived from markers / joints when the model uses
     them). ValueError if the clip lacks some of them."""
-    from ..cli.common import CliError, model_points
     labels = model.labels if isinstance(model, TriangulatedModel) else tuple(model)
     try:
         return model_points(clip, labels)
-    except (CliError, KeyError) as e:
+    except KeyError as e:
         raise ValueError(str(e).strip("'\"")) from None
 
 

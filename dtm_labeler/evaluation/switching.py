@@ -3,7 +3,7 @@
 **Sequences.** Real recordings of different classes (same or different subjects) are joined at
 their most similar poses: for consecutive parts ``A`` then ``B``, the pair ``(i, j)`` with the
 smallest root-centred, heading-normalised pose distance (as in
-:mod:`dtm_labeler.motion.transitions`) is searched over ``A``'s last frames and ``B``'s first
+:mod:`dtm_labeler.training.transitions`) is searched over ``A``'s last frames and ``B``'s first
 frames (each part keeps at least ``min_part`` frames); ``A`` is cut after frame ``i`` and ``B``
 continues from frame ``j + 1``, turned about the vertical and moved so that its frame ``j``
 coincides with ``A``'s frame ``i`` (same heading and horizontal root position; heights are
@@ -28,18 +28,28 @@ the published active action with the true class (bank configurations and hard sw
 """
 from __future__ import annotations
 
+import json
+import os
+import subprocess
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from ..labeling.corruption import corrupt_clip
-from ..labeling.metrics import MetricsAccumulator
+from ..jsonable import json_default
+from ..labeling.bank_labeler import BankLabeler, BankSettings
+from ..labeling.stream import LabelerSettings, StreamLabeler
 from ..model.features import lateral_yaw, rotation_z
 from ..motion.clip import MotionClip
-from ..motion.transitions import TRUNK_PAIRS, HIPS, normalized_poses, similarity_matrix
-from ..jsonable import json_default
+from ..training.bank_training import build_bank
+from ..training.train import TrainConfig, train_model
+from ..training.transitions import (HIPS, TRUNK_PAIRS, TransitionSettings, TransitionSource,
+                                    normalized_poses, similarity_matrix)
+from .corruption import corrupt_clip
+from .metrics import MetricsAccumulator
+from .pipeline import model_clip, run_labeler
 
 CONFIGS = ("pooled", "hard", "bank", "bank+transitions")
 
@@ -224,8 +234,6 @@ class ExperimentSettings:
 
 def prepare(data_dir, actions: dict | None = None, fraction: float = 0.6, skeletal: bool = True):
     """(training sources per action, held-out test clips per action)."""
-    from pathlib import Path
-    from ..motion.transitions import TransitionSource
     actions = actions or DEFAULT_ACTIONS
     src, test = {}, {}
     for a, rel in actions.items():
@@ -243,9 +251,6 @@ def prepare(data_dir, actions: dict | None = None, fraction: float = 0.6, skelet
 
 def build_configs(src: dict, config=None, transitions=None, incremental: bool = True, progress=print) -> dict:
     """Models of the configurations: pooled model, banks without / with synthesized paths."""
-    from ..model.bank import build_bank
-    from ..model.training import TrainConfig, train_model
-    from ..motion.transitions import TransitionSettings
     config = config or TrainConfig()
     transitions = transitions or TransitionSettings()
     t = time.perf_counter()
@@ -264,8 +269,6 @@ def build_configs(src: dict, config=None, transitions=None, incremental: bool = 
 
 
 def make_labeler(config: str, models: dict, settings=None):
-    from ..labeling.bank_labeler import BankLabeler, BankSettings
-    from ..labeling.stream import LabelerSettings, StreamLabeler
     settings = settings or LabelerSettings()
     if config == "pooled":
         return StreamLabeler(models["pooled"], settings)
@@ -282,8 +285,6 @@ def make_labeler(config: str, models: dict, settings=None):
 
 def run_experiment(data_dir, out_dir, settings: ExperimentSettings | None = None, progress=print) -> dict:
     """Train, build sequences, label them with every configuration, write report.md/json/PNG."""
-    import json
-    from pathlib import Path
     es = settings or ExperimentSettings()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -293,7 +294,6 @@ def run_experiment(data_dir, out_dir, settings: ExperimentSettings | None = None
         d = test["dance"]
         test["dance"] = d.slice(0, es.max_dance_frames)
         test["dance"].meta["frame_range"] = [d.meta["frame_range"][0], d.meta["frame_range"][0] + es.max_dance_frames]
-    from ..model.training import TrainConfig
     models = build_configs(src, TrainConfig(**(es.train or {})), incremental=es.incremental, progress=progress)
     seqs = [join_clips([test[a] for a in order], min_part=es.min_part) for order in DEFAULT_ORDERS]
     configs = list(CONFIGS) + (["bank+transitions (L2 incremental)"] if es.incremental else [])
@@ -337,8 +337,6 @@ def run_experiment(data_dir, out_dir, settings: ExperimentSettings | None = None
 
 
 def _code_version() -> str:
-    import os
-    import subprocess
     if os.environ.get("DTM_CODE_COMMIT"):
         return os.environ["DTM_CODE_COMMIT"]
     try:
@@ -473,8 +471,6 @@ def label_clip_bank(bank, clip: MotionClip, settings=None, bank_settings=None, o
     """:func:`dtm_labeler.evaluation.pipeline.label_clip_run` with a :class:`BankLabeler`.
     The run's ``settings`` add ``active_actions`` (per frame), ``true_class`` and
     ``active_action_accuracy`` (None when the clip's class is not one of the bank's actions)."""
-    from ..evaluation.pipeline import model_clip, run_labeler
-    from ..labeling.bank_labeler import BankLabeler
     mc = model_clip(bank.labels, clip)
     stream = corrupt_clip(mc, occlude=occlude, clutter=clutter, noise_mm=noise_mm, seed=seed, gap_frames=gap_frames)
     active = []

@@ -30,7 +30,7 @@ carried to the next frame (particles persist); in frames labelled by the fast pa
 shares follow the same rule in expectation (mean-field step with the candidates' fitnesses).
 
 **Synthesized transitions** act through the models: each model was trained with the paths to
-the others (:mod:`dtm_labeler.motion.transitions`), so near a switch both models fit the
+the others (:mod:`dtm_labeler.training.transitions`), so near a switch both models fit the
 in-between poses and individuals cross over early.
 
 **Active action (4.3 step 4, smoothed).** Model evidence per frame ``g_m`` = best fitness of any
@@ -67,7 +67,7 @@ from ..model.bank import ModelBank
 from ..search import label_ops as ops
 from ..search.ga import elite_indices, rank_select
 from ..search.label_search import GASettings, guided_sample, polish, ruin_and_recreate
-from .frame_problem import FrameProblem
+from ..search.problem import FrameProblem
 from .stream import FrameResult, LabelerSettings
 from .tracker import Tracker
 from .tracked import TrackedLabeler, scatter

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..model.dtm import TriangulatedModel
 from ..search.label_search import GASettings, LabelSearch, make_search
-from .frame_problem import Background, FrameProblem
+from ..search.problem import Background, FrameProblem
 from .tracker import Tracker, TrackerSettings
 from .tracked import TrackedLabeler, scatter
 from .voting import VoteBook

@@ -19,7 +19,7 @@ import numpy as np
 from ..search import label_ops
 from ..search.dtm_dp import regions_of, relabel_regions
 from ..search.label_search import polish, targeted_moves
-from .frame_problem import FrameProblem
+from ..search.problem import FrameProblem
 from .tracker import TrackUpdate
 
 

@@ -113,6 +113,19 @@ def to_point_set(clip: MotionClip, points: str | Sequence[str] = "body14",
                          meta=dict(b14.meta, point_set="custom"))
 
 
+def model_points(clip: MotionClip, labels: Sequence[str]) -> MotionClip:
+    """The clip's points named like a model's ``labels``, in that order (the 14 body points
+    are derived from markers or joints when the model uses them). ValueError naming the
+    missing points otherwise."""
+    if set(labels) <= set(clip.names):
+        return clip.select(labels)
+    if set(labels) <= set(BODY14):
+        return to_point_set(clip, "body14").select(labels)
+    missing = sorted(set(labels) - set(clip.names))
+    raise ValueError(f"{clip.source}: has no points named {', '.join(missing[:6])}"
+                     f"{' ...' if len(missing) > 6 else ''} (model labels)")
+
+
 # ---------------------------------------------------------------- left / right
 _MIRROR_RULES = (  # tried in order; group 'side' holds the side marker
     re.compile(r"(?i)(?P<side>left|right)"),                  # LeftArm, right_knee

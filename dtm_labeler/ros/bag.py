@@ -35,7 +35,7 @@ from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from ..labeling.corruption import CorruptedStream
+from ..evaluation.corruption import CorruptedStream
 from .msg_types import TYPE_NAMES, make_typestore
 
 TOPIC_UNLABELED = "/markers/unlabeled"

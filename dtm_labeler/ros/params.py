@@ -18,7 +18,7 @@ from dataclasses import dataclass, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, Dict, Iterable, Mapping, Optional, Sequence, Tuple
 
-from ..labeling.frame_problem import Background
+from ..search.problem import Background
 from ..labeling.stream import METHODS, MODES, LabelerSettings
 from ..labeling.tracker import TrackerSettings
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..labeling.frame_problem import FrameProblem
+from .problem import FrameProblem
 from . import label_ops as ops
 
 

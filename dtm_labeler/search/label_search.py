@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..labeling.frame_problem import FrameProblem
+from .problem import FrameProblem
 from . import label_ops as ops
 from .dtm_dp import max_product, regions_of, relabel_regions
 from .ga import Termination, elite_indices, rank_select

@@ -10,7 +10,7 @@ offspring is a valid decomposable triangulation.
 
 Domain rule (the paper's "custom rules"): with ``root_pairs`` given, the first triangle must
 contain one left/right pair, so a labeling candidate's heading is fixed by its first
-triangle (see :mod:`dtm_labeler.labeling.frame_problem`).
+triangle (see :mod:`dtm_labeler.search.problem`).
 """
 from __future__ import annotations
 

@@ -19,7 +19,7 @@ from typing import Callable
 import numpy as np
 
 from ..model.features import FEATURE_MATRIX, FULL, MISSING, STATE_DIM, observed_map
-from ..model.structure import Structure
+from ..model.structure import Structure, is_valid
 from . import structure_ops as ops
 from .ga import Termination, elite_indices, rank_select
 
@@ -136,7 +136,6 @@ def simple_ga(scores: TripleScores, n_vertices: int, *, population: int = 60, ge
 
 
 def _evolve(scores, rng, pop, cross, mutate, n_vertices, generations, n_elite, stagnation, progress, root_pairs):
-    from ..model.structure import is_valid
 
     def fitness(p):
         f = scores.score(p)

@@ -69,11 +69,11 @@ from scipy.ndimage import maximum_filter
 from scipy.spatial.transform import Rotation
 
 from ..model.features import lateral_yaw, rotation_z
-from .asf_amc import _rot_from_angles, read_amc, read_asf
-from .bvh import ASF_UNIT_M, axis_rotation, is_tpose, read_bvh, y_up_to_z_up, _guess_unit
-from .clip import MotionClip
-from .load import load_clip
-from .pointsets import BODY14, derive_body14
+from ..motion.asf_amc import _rot_from_angles, find_asf_for, read_amc, read_asf
+from ..motion.bvh import ASF_UNIT_M, axis_rotation, is_tpose, read_bvh, y_up_to_z_up, _guess_unit
+from ..motion.clip import MotionClip
+from ..motion.load import load_clip, motion_class_of
+from ..motion.pointsets import BODY14, derive_body14
 
 _B = {n: i for i, n in enumerate(BODY14)}
 TRUNK_PAIRS = np.array([(_B["lshoulder"], _B["rshoulder"]), (_B["lhip"], _B["rhip"])])
@@ -171,7 +171,6 @@ def skeletal_from_bvh(path: str | Path) -> SkeletalMotion:
     scale = _guess_unit(bvh)
     pos0 = fk(parents, vectors, False, local[:1], root_pos[:1])[0]
     first = 1 if F > 1 and is_tpose(bvh.names, pos0, up=1) else 0
-    from .load import motion_class_of
     return SkeletalMotion(bvh.names, parents, vectors, False, local[first:], root_pos[first:], scale, bvh.rate,
                           str(path), motion_class_of(path)[0], "cgspeed" if bvh.is_cgspeed() else "",
                           np.arange(first, F))
@@ -203,7 +202,6 @@ def skeletal_from_asf_amc(asf_path: str | Path, amc_path: str | Path, rate: floa
             C = _rot_from_angles(b.axis * to_deg, b.axis_order)
             M = _rot_from_angles(values[name] * to_deg, "".join(d[1].upper() for d in b.dof))
             local[:, j] = C @ M @ C.T
-    from .load import motion_class_of
     return SkeletalMotion(names, parents, vectors, True, local, root_pos, skel.length_unit_m, rate, str(amc_path),
                           motion_class_of(amc_path)[0], "asf", np.asarray(frames))
 
@@ -215,7 +213,6 @@ def load_skeletal(path: str | Path) -> SkeletalMotion | None:
     if ext == ".bvh":
         return skeletal_from_bvh(path)
     if ext in (".amc", ".asf"):
-        from .asf_amc import find_asf_for
         amc = path.with_suffix(".amc") if ext == ".asf" else path
         asf = path if ext == ".asf" else find_asf_for(path)
         return skeletal_from_asf_amc(asf, amc)

@@ -40,13 +40,14 @@ import numpy as np
 
 from .. import __version__
 from ..motion.clip import MotionClip
-from .dtm import TriangulatedModel
-from .features import (FULL, canonicalise, lateral_yaw, observation_state, point_states,
+from ..model.dtm import TriangulatedModel
+from ..model.features import (FULL, canonicalise, lateral_yaw, observation_state, point_states,
                        triangle_features)
 from ..motion.pointsets import BODY14, left_right_pairs
-from .mixture import GaussianMixture
-from .mixture_em import make_estimator
-from .structure import BODY14_GIVEN, Structure
+from ..model.mixture import GaussianMixture
+from ..model.mixture_em import make_estimator
+from ..model.structure import BODY14_GIVEN, Structure
+from ..search import structure_search as ss
 
 STRUCTURE_METHODS = ("cbga", "greedy", "given", "sga")
 MIXTURE_KINDS = ("mdl", "fixed", "single")
@@ -360,7 +361,6 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
     step = lambda msg, i, k: progress(msg, i, k) if progress else None  # noqa: E731
 
     # -- structure --------------------------------------------------------------------
-    from ..search import structure_search as ss
     step("structure", 0, 1)
     scores = ss.TripleScores.from_states(states[complete], config.reg_covar) if complete.sum() >= 2 else None
     if config.structure == "given":

@@ -1,0 +1,1 @@
+"""Offline training: labelled recordings -> models (single action, banks, transitions)."""
