@@ -132,7 +132,7 @@ def _engine_settings(settings):
     return replace(settings, max_gap_s=_NO_GAP)
 
 
-_NO_GAP = 1e12
+_NO_GAP = 1e6   # the largest max_gap_s the table allows: gaps are judged by the node
 
 
 def _stamp_seconds(header) -> float:
