@@ -16,10 +16,12 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..evaluation.pipeline import ClipRun, label_clip_run, model_clip
+from ..evaluation.switching import label_clip_bank
 from ..evaluation.metrics import Metrics, MetricsAccumulator
 from ..labeling import config
 from ..labeling.bank_labeler import BankSettings, bank_settings_from_params
 from ..labeling.config import LabelerSettings
+from ..model.bank import BankFileError, load_bank
 from ..model.io import load_model
 from ..motion.load import load_clip
 from .common import CliError, HelpFormatter, add_corruption_arguments, expand_inputs, parse_frames, run_main
@@ -138,22 +140,30 @@ def _main(argv=None) -> int:
     except (OSError, ValueError, KeyError) as e:
         msg = str(e).strip("'\"")
         raise CliError(msg if str(args.model) in msg else f"{args.model}: cannot read model: {msg}") from None
-    clips = _load(args, model.labels)
+    runs, pooled = _label_all(args, settings, model.labels,
+                              lambda clip, **kw: label_clip_run(model, clip, settings, **kw))
+    out = {"method": settings.method, "mode": settings.mode, "model": str(args.model)} | _metrics_json(pooled)
+    if _report(args, settings, out, runs, []):
+        _print_summary(args, settings, model, pooled, runs)
+    return 0
+
+
+def _label_all(args, settings, labels, label_one):
+    """Every input through ``label_one(clip, **corruption, seed, progress, ...)`` (input ``i``
+    corrupted with ``seed + i``), one progress bar; returns the runs and the pooled metrics;
+    ``--out`` written."""
+    clips = _load(args, labels)
     total = sum(c.n_frames for c in clips)
     bar = tqdm(total=total, desc="labeling", unit="frame", file=sys.stderr, disable=True if args.quiet else None,
                leave=False)
-
-    def progress(done: int, _total: int) -> None:
-        bar.update(done - bar.n)
-
     runs: list[ClipRun] = []
     done = 0
     try:
         for i, clip in enumerate(clips):
-            run = label_clip_run(model, clip, settings, occlude=args.occlude, clutter=args.clutter,
-                                 noise_mm=args.noise_mm, seed=settings.seed + i, progress=progress,
-                                 use_ids=args.track_ids, gap_frames=args.gap_frames,
-                                 keep_records=args.out is not None, done=done, total=total)
+            run = label_one(clip, occlude=args.occlude, clutter=args.clutter, noise_mm=args.noise_mm,
+                            seed=settings.seed + i, progress=lambda d, _t: bar.update(d - bar.n),
+                            use_ids=args.track_ids, gap_frames=args.gap_frames,
+                            keep_records=args.out is not None, done=done, total=total)
             run.settings.update(frame_offset=clip.meta["frame_range"][0], rate=clip.rate,
                                 frame_range=clip.meta["frame_range"])
             runs.append(run)
@@ -162,15 +172,19 @@ def _main(argv=None) -> int:
         raise CliError(str(e)) from None
     finally:
         bar.close()
-    pooled = MetricsAccumulator.merge(r.accumulator for r in runs).metrics()
     if args.out:
-        _write_csv(args.out, runs, model.labels, multi=len(runs) > 1)
+        _write_csv(args.out, runs, tuple(labels), multi=len(runs) > 1)
+    return runs, MetricsAccumulator.merge(r.accumulator for r in runs).metrics()
 
-    out = {"method": settings.method, "mode": settings.mode, "model": str(args.model)} | _metrics_json(pooled)
+
+def _report(args, settings, out: dict, runs: list[ClipRun], input_keys: list[str]) -> bool:
+    """Complete the JSON object (corruption, settings, one entry per input with ``input_keys``
+    of its run settings) and print it with ``--json``; True when a text summary is due."""
     out |= {"occlude": args.occlude, "clutter": args.clutter, "noise_mm": args.noise_mm,
-            "gap_frames": args.gap_frames, "window": settings.window, "seed": settings.seed, "track_ids": args.track_ids,
-            "inputs": [{"source": r.source, "frame_range": r.settings["frame_range"]} | _metrics_json(r.metrics)
-                       for r in runs]}
+            "gap_frames": args.gap_frames, "window": settings.window, "seed": settings.seed,
+            "track_ids": args.track_ids,
+            "inputs": [{"source": r.source, "frame_range": r.settings["frame_range"]}
+                       | {k: r.settings[k] for k in input_keys} | _metrics_json(r.metrics) for r in runs]}
     for item in out["inputs"]:
         for k in ("per_label", "label_names", "labels"):
             item.pop(k, None)
@@ -178,62 +192,23 @@ def _main(argv=None) -> int:
         out["out"] = str(args.out)
     if args.json:
         print(json.dumps(out, indent=1))
-        return 0
-    _print_summary(args, settings, model, pooled, runs)
-    return 0
+        return False
+    return True
 
 
 def _bank_main(args, settings, bank_settings) -> int:
-    from ..evaluation.switching import label_clip_bank
-    from ..model.bank import BankFileError, load_bank
     try:
         bank = load_bank(args.bank)
     except (BankFileError, OSError) as e:
         raise CliError(str(e)) from None
-    clips = _load(args, bank.labels)
-    total = sum(c.n_frames for c in clips)
-    bar = tqdm(total=total, desc="labeling", unit="frame", file=sys.stderr, disable=True if args.quiet else None,
-               leave=False)
-    runs: list[ClipRun] = []
-    done = 0
-    try:
-        for i, clip in enumerate(clips):
-            run = label_clip_bank(bank, clip, settings, bank_settings,
-                                  occlude=args.occlude, clutter=args.clutter, noise_mm=args.noise_mm,
-                                  seed=settings.seed + i, progress=lambda d, _t: bar.update(d - bar.n),
-                                  use_ids=args.track_ids, gap_frames=args.gap_frames,
-                                  keep_records=args.out is not None, done=done, total=total)
-            run.settings.update(frame_offset=clip.meta["frame_range"][0], rate=clip.rate,
-                                frame_range=clip.meta["frame_range"])
-            runs.append(run)
-            done += clip.n_frames
-    except ValueError as e:
-        raise CliError(str(e)) from None
-    finally:
-        bar.close()
-    pooled = MetricsAccumulator.merge(r.accumulator for r in runs).metrics()
-    if args.out:
-        _write_csv(args.out, runs, bank.labels, multi=len(runs) > 1)
+    runs, pooled = _label_all(args, settings, bank.labels,
+                              lambda clip, **kw: label_clip_bank(bank, clip, settings, bank_settings, **kw))
     known = [r for r in runs if r.settings["active_action_accuracy"] is not None]
     agree = (sum(r.settings["active_action_accuracy"] * r.metrics.frames for r in known)
              / sum(r.metrics.frames for r in known)) if known else None
     out = {"method": settings.method, "mode": settings.mode, "bank": str(args.bank), "actions": bank.actions,
-           "bank_strategy": bank_settings.strategy} | _metrics_json(pooled)
-    out |= {"active_action_accuracy": agree, "occlude": args.occlude, "clutter": args.clutter,
-            "noise_mm": args.noise_mm, "gap_frames": args.gap_frames, "window": settings.window, "seed": settings.seed,
-            "track_ids": args.track_ids,
-            "inputs": [{"source": r.source, "frame_range": r.settings["frame_range"],
-                        "true_class": r.settings["true_class"],
-                        "active_action_accuracy": r.settings["active_action_accuracy"],
-                        "active_action_frames": r.settings["active_action_frames"]} | _metrics_json(r.metrics)
-                       for r in runs]}
-    for item in out["inputs"]:
-        for k in ("per_label", "label_names", "labels"):
-            item.pop(k, None)
-    if args.out:
-        out["out"] = str(args.out)
-    if args.json:
-        print(json.dumps(out, indent=1))
+           "bank_strategy": bank_settings.strategy} | _metrics_json(pooled) | {"active_action_accuracy": agree}
+    if not _report(args, settings, out, runs, ["true_class", "active_action_accuracy", "active_action_frames"]):
         return 0
     print(f"bank           {args.bank} ({len(bank.actions)} actions: {', '.join(bank.actions)}; "
           f"{bank_settings.strategy})")
