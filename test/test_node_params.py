@@ -18,7 +18,7 @@ from dtm_labeler.ros import params as P
 
 def test_yaml_lists_every_parameter_with_its_default():
     values = P.load_params_file(H.PARAMS_FILE)
-    hint = "regenerate: python -m dtm_labeler.ros.params --write-yaml params/labeler.yaml"
+    hint = "regenerate: python -m dtm_labeler.labeling.config --write-yaml params/labeler.yaml"
     assert set(values) == set(P.DEFAULTS), (set(values) ^ set(P.DEFAULTS), hint)
     for k, v in values.items():
         assert v == P.DEFAULTS[k] and type(v) is type(P.DEFAULTS[k]), (k, v, P.DEFAULTS[k], hint)

@@ -47,6 +47,9 @@ CHANGES = {
     "accept_drop": 1e6,
     "fast_rounds": 0,
     "swap_radius_m": 2.0,
+    "release_moves": True,
+    "recovery": "background",
+    "audit_period_s": 0.05,
     "region_checks": 0,
     "region_size": 2,
     "region_every": 1,
@@ -88,12 +91,13 @@ def stream():
 def trace(labeler, stream, base: list | None = None) -> list:
     """Per frame what the labeler did; with ``base``, stops at the first frame that differs."""
     out = []
-    for xyz, t in stream:
-        r = labeler.process(xyz, t)
-        out.append((r.labels.tolist(), round(float(r.log_likelihood), 6), r.evaluations, r.generations,
-                    r.full_search, r.reset))
-        if base is not None and out[-1] != base[len(out) - 1]:
-            break
+    with labeler:
+        for xyz, t in stream:
+            r = labeler.process(xyz, t)
+            out.append((r.labels.tolist(), round(float(r.log_likelihood), 6), r.evaluations, r.generations,
+                        r.full_search, r.reset))
+            if base is not None and out[-1] != base[len(out) - 1]:
+                break
     return out
 
 

@@ -269,6 +269,13 @@ class BankLabeler(TrackedLabeler):
                 self.shares[m] = out.island_sizes[i] / tot
             self.shares = self.shares / self.shares.sum()
 
+    def _search_state(self) -> dict:
+        return super()._search_state() | {"shares": self.shares.copy()}
+
+    def _set_search_state(self, state: dict) -> None:
+        super()._set_search_state(state)
+        self.shares = state["shares"].copy()
+
     def _force_full(self) -> bool:
         """When the motion hypothesis changed last frame, the carried labeling was chosen under
         the old model: that frame gets a full search (seeded with it) under all models."""

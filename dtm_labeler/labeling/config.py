@@ -34,6 +34,7 @@ from .tracker import TrackerSettings
 
 NODE_NAME = "dtm_labeler"
 METHODS = ("cbga", "sga", "greedy", "exhaustive", "tracker")
+RECOVERY = ("inline", "background")
 MODES = ("stream", "single")
 STRATEGIES = ("spread", "hard")
 QOS_CHOICES = ("sensor_data", "reliable")
@@ -156,6 +157,8 @@ PARAMS: Tuple[Param, ...] = (
           "when within this many nats of the running level.", range=(0.001, 1e9)),
     Param("fast_rounds", 4, "Hill-climbing rounds of the fast path (moves of the carried labeling "
           "per frame).", range=(0, 1000)),
+    Param("release_moves", False, "The fast path also tries leaving each label missing (a ghost that "
+          "took over a hidden marker's track); helps when the model fits every true marker well."),
     Param("swap_radius_m", 0.15, "The fast path also tries swapping the labels of points closer "
           "than this (m): where the tracker may have swapped two markers.", range=(0.0, 10.0)),
     Param("region_checks", 1, "Body regions relabelled exactly (max-product DP "
@@ -166,6 +169,14 @@ PARAMS: Tuple[Param, ...] = (
           "in steady state (0 = only after GA searches).", range=(0, 1000000)),
     Param("region_size", 6, "Labels per region of the region checks and of the "
           "full search's final region sweep (more = larger repairs, more work per frame).", range=(2, 16)),
+    Param("recovery", "inline", "Where recovery searches run when the fast path cannot vouch for a "
+          "frame: inline (in that frame: deterministic, the offline default) or background (a worker "
+          "process; frames go on with the best labeling known, flagged doubtful, and the result joins "
+          "a later frame: what a live node needs).", choices=RECOVERY, flag="--recovery"),
+    Param("audit_period_s", 1.0, "Background recovery only: a full search from scratch at least this "
+          "often (stream seconds) while the labeling looks fine; its result replaces the labeling "
+          "when the frame scores it higher. Catches a wrong labeling the running level has adapted "
+          "to. 0 = off.", range=(0.0, 3600.0)),
     Param("seed", 0, "Random seed of the searches (reproducible runs).", range=(0, INT_MAX), flag="--seed"),
     # -- tracker -------------------------------------------------------------------------------
     Param("gate_m", TrackerSettings.gate_m, "Tracker association radius in metres (grows with the "
@@ -266,12 +277,15 @@ class LabelerSettings:
     accept_drop: float = DEFAULTS["accept_drop"]
     fast_rounds: int = DEFAULTS["fast_rounds"]
     swap_radius_m: float = DEFAULTS["swap_radius_m"]
+    release_moves: bool = DEFAULTS["release_moves"]
     region_checks: int = DEFAULTS["region_checks"]
     region_size: int = DEFAULTS["region_size"]
     region_every: int = DEFAULTS["region_every"]
     max_gap_s: float = DEFAULTS["max_gap_s"]
     noise_mm: float = DEFAULTS["noise_mm"]
     heading_snap_deg: float = DEFAULTS["heading_snap_deg"]
+    recovery: str = DEFAULTS["recovery"]
+    audit_period_s: float = DEFAULTS["audit_period_s"]
     seed: int = DEFAULTS["seed"]
 
     def __post_init__(self) -> None:
@@ -449,7 +463,7 @@ def render_yaml(node_name: str = NODE_NAME) -> str:
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["Param", "PARAMS", "SPECS", "DEFAULTS", "LABELER_KEYS", "BANK_KEYS", "NODE_NAME", "METHODS", "MODES",
+__all__ = ["Param", "PARAMS", "SPECS", "DEFAULTS", "LABELER_KEYS", "BANK_KEYS", "NODE_NAME", "METHODS", "MODES", "RECOVERY",
            "STRATEGIES", "QOS_CHOICES", "LabelerSettings", "check_fields", "validate", "settings_from_params", "params_from_settings",
            "settings_equal", "check_labels", "load_params_file", "add_arguments", "params_from_args",
            "format_value", "render_yaml"]

@@ -188,7 +188,8 @@ def guided_sample(problem: FrameProblem, P: int, rng: np.random.Generator,
 
 
 def targeted_moves(ind: np.ndarray, n: int, mirror_pairs: np.ndarray, free_points: np.ndarray,
-                   close_pairs: np.ndarray | None = None, allowed: np.ndarray | None = None) -> np.ndarray:
+                   close_pairs: np.ndarray | None = None, allowed: np.ndarray | None = None,
+                   release: np.ndarray | None = None) -> np.ndarray:
     """The few moves a carried-over labeling most often needs: the whole mirror image, each
     left/right pair swapped, labels on nearby points swapped (``close_pairs``: where tracks
     cross) and every label (missing or not) moved onto each free point -- only where
@@ -214,6 +215,10 @@ def targeted_moves(ind: np.ndarray, n: int, mirror_pairs: np.ndarray, free_point
         mv = np.repeat(ind[None], lab.size, 0)
         mv[np.arange(lab.size), lab] = pt
         out.append(mv)
+    if release is not None and len(release):
+        rel = np.repeat(ind[None], len(release), 0)
+        rel[np.arange(len(release)), release] = n
+        out.append(rel)
     return np.concatenate(out)
 
 
