@@ -177,6 +177,9 @@ PARAMS: Tuple[Param, ...] = (
           "often (stream seconds) while the labeling looks fine; its result replaces the labeling "
           "when the frame scores it higher. Catches a wrong labeling the running level has adapted "
           "to. 0 = off.", range=(0.0, 3600.0)),
+    Param("confidence_temperature", 3.0, "Temperature (nats) of the local label posterior behind "
+          "the published confidences (see labeling/confidence.py); the calibrated constant.",
+          range=(0.01, 1000.0)),
     Param("seed", 0, "Random seed of the searches (reproducible runs).", range=(0, INT_MAX), flag="--seed"),
     # -- tracker -------------------------------------------------------------------------------
     Param("gate_m", TrackerSettings.gate_m, "Tracker association radius in metres (grows with the "
@@ -185,6 +188,11 @@ PARAMS: Tuple[Param, ...] = (
           "predicted travel between frames.", range=(0.0, 100.0)),
     Param("max_misses", TrackerSettings.max_misses, "Frames a lost track coasts (and is predicted) "
           "before it is deleted.", range=(0, 100000)),
+    Param("accel_mps2", TrackerSettings.accel_mps2, "Largest marker acceleration (m/s^2) the tracker "
+          "allows off its constant-velocity prediction: the gate grows by accel dt^2 / 2, so tracks "
+          "survive frames a slow consumer skipped.", range=(0.0, 10000.0)),
+    Param("new_track_speed_mps", TrackerSettings.new_track_speed_mps, "Speed (m/s) a track seen only "
+          "once may have moved at (its velocity is not known yet).", range=(0.0, 100.0)),
     # -- clutter model ---------------------------------------------------------------------------
     Param("clutter_volume_m3", Background.volume_m3, "Capture volume (m^3) of the uniform "
           "clutter/ghost position density.", range=(1e-6, 1e9)),
@@ -286,6 +294,7 @@ class LabelerSettings:
     heading_snap_deg: float = DEFAULTS["heading_snap_deg"]
     recovery: str = DEFAULTS["recovery"]
     audit_period_s: float = DEFAULTS["audit_period_s"]
+    confidence_temperature: float = DEFAULTS["confidence_temperature"]
     seed: int = DEFAULTS["seed"]
 
     def __post_init__(self) -> None:
@@ -324,7 +333,8 @@ def settings_from_params(values: Mapping[str, Any]) -> LabelerSettings:
         background=Background(volume_m3=v["clutter_volume_m3"], max_speed_mps=v["clutter_max_speed_mps"],
                               detection_probability=v["detection_probability"]),
         tracker=TrackerSettings(gate_m=v["gate_m"], gate_speed_factor=v["gate_speed_factor"],
-                                max_misses=v["max_misses"]), **direct)
+                                max_misses=v["max_misses"], accel_mps2=v["accel_mps2"],
+                                new_track_speed_mps=v["new_track_speed_mps"]), **direct)
 
 
 def params_from_settings(settings: LabelerSettings) -> Dict[str, Any]:
@@ -336,7 +346,8 @@ def params_from_settings(settings: LabelerSettings) -> Dict[str, Any]:
                warm_generations=s.warm.max_generations, warm_stagnation=s.warm.stagnation,
                fresh_fraction=s.full.fresh_fraction, region_sweeps=s.full.region_sweeps,
                gate_m=s.tracker.gate_m, gate_speed_factor=s.tracker.gate_speed_factor,
-               max_misses=s.tracker.max_misses, clutter_volume_m3=s.background.volume_m3,
+               max_misses=s.tracker.max_misses, accel_mps2=s.tracker.accel_mps2,
+               new_track_speed_mps=s.tracker.new_track_speed_mps, clutter_volume_m3=s.background.volume_m3,
                clutter_max_speed_mps=s.background.max_speed_mps,
                detection_probability=s.background.detection_probability)
     return out

@@ -28,7 +28,7 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from multiprocessing.connection import Client, Connection, Listener
 
 import numpy as np
@@ -151,7 +151,7 @@ def build_worker_labeler(spec: dict):
     from .bank_labeler import BankLabeler
     from .stream import StreamLabeler
     from .tracked import Engine
-    settings = spec["settings"]
+    settings = replace(spec["settings"], recovery="inline")     # a worker searches itself
     models = [model_from_bytes(b, "recovery worker") for b in spec["models"]]
     engine = Engine.prepare(models, settings.noise_mm, spec["names"])
     if spec["cls"] == "BankLabeler":
@@ -167,6 +167,7 @@ class ProcessRecovery(Recovery):
         self.failed = ""
         self._labeler = labeler                 # runs requests inline until the worker is up
         self._pending = False
+        self.ready = False                      # the worker has built its labeler
         self._inline: RecoveryResult | None = None
         self._conn: Connection | None = None
         self._lock = threading.Lock()
@@ -248,15 +249,17 @@ class ProcessRecovery(Recovery):
         if self._inline is not None:
             out, self._inline = self._inline, None
             return out
-        if not self._pending or self._conn is None:
+        if self._conn is None or (self.ready and not self._pending):
             return None
         try:
             while self._conn.poll():
                 kind, payload = self._conn.recv()
-                if kind == "error":
+                if kind == "ready":
+                    self.ready = True
+                elif kind == "error":
                     self._fail(payload)
                     return None
-                if kind == "result":
+                elif kind == "result":
                     self._pending = False
                     return payload
         except (OSError, EOFError) as e:
@@ -291,38 +294,50 @@ class ProcessRecovery(Recovery):
 
 def serve(address: str, key: bytes) -> int:
     """The worker: rebuild the labeler from ``setup``, run ``recover`` requests, stop on ``stop``
-    or when the labeler's process goes away."""
+    or when the labeler's process goes away (its end of the connection closes)."""
     try:
         conn = Client(address, family="AF_UNIX", authkey=key)
     except OSError:                       # the labeler closed before this worker was up
         return 0
     labeler = None
-    while True:
-        try:
+    try:
+        while True:
             kind, payload = conn.recv()
-        except (EOFError, OSError):
-            return 0
-        try:
             if kind == "stop":
                 return 0
-            if kind == "setup":
-                labeler = build_worker_labeler(payload)
-            elif kind == "settings":
-                settings, bank_settings = payload
-                if bank_settings is not None:
-                    labeler.update_settings(settings, bank_settings)
-                else:
-                    labeler.update_settings(settings)
-            elif kind == "recover":
-                t0 = time.perf_counter()
-                res = labeler.recover(payload, rng=np.random.default_rng(payload.seed))
-                res.seconds = time.perf_counter() - t0
-                conn.send(("result", res))
-        except Exception as e:           # report, keep serving: one bad request must not end the worker
             try:
-                conn.send(("error", f"{type(e).__name__}: {e}"))
+                reply = _handle(kind, payload, labeler)
             except (OSError, EOFError):
-                return 1
+                raise
+            except Exception as e:        # report, keep serving: one bad request must not end the worker
+                conn.send(("error", f"{type(e).__name__}: {e}"))
+                continue
+            if kind == "setup":
+                labeler = reply
+                conn.send(("ready", None))
+            elif reply is not None:
+                conn.send(("result", reply))
+    except (OSError, EOFError):
+        return 0
+
+
+def _handle(kind: str, payload, labeler):
+    if kind == "setup":
+        return build_worker_labeler(payload)
+    if kind == "settings":
+        settings, bank_settings = payload
+        settings = replace(settings, recovery="inline")
+        if bank_settings is not None:
+            labeler.update_settings(settings, bank_settings)
+        else:
+            labeler.update_settings(settings)
+        return None
+    if kind == "recover":
+        t0 = time.perf_counter()
+        res = labeler.recover(payload, rng=np.random.default_rng(payload.seed))
+        res.seconds = time.perf_counter() - t0
+        return res
+    raise ValueError(f"unknown request {kind!r}")
 
 
 def main() -> int:

@@ -46,6 +46,7 @@ from ..search.dtm_dp import regions_of, relabel_regions
 from ..search.label_search import GASearch, LabelSearch, SearchOutcome, make_search, polish, targeted_moves
 from ..search.problem import FrameProblem
 from .config import LabelerSettings
+from .confidence import label_posteriors, published_confidence
 from .fit_check import label_misfit, term_floors
 from .recovery import InlineRecovery, ProcessRecovery, Recovery, RecoveryRequest, RecoveryResult
 from .tracker import Tracker, TrackUpdate
@@ -131,6 +132,8 @@ class FrameResult:
     doubtful: bool = False        # published before a search vouched for it (background recovery running)
     recovered: bool = False       # a background search's labeling joined in this frame
     recovering: bool = False      # a background search is running after this frame
+    posterior: np.ndarray | None = None    # (n,) local posterior of the search's label of each point
+    vote_share: np.ndarray | None = None   # (n,) votes of the published label / frames the track was seen
 
 
 @dataclass
@@ -297,6 +300,15 @@ class TrackedLabeler:
             self._build()
         self._configure_recovery()
 
+    def observe(self, xyz: np.ndarray, stamp: float, ids: np.ndarray | None = None) -> None:
+        """A frame that will not be labelled (the consumer was busy and takes a newer one): the
+        tracks follow it, so that labels stay on their markers across the skip. Costs the
+        tracker update only (a fraction of a millisecond)."""
+        inp = self._begin(xyz, stamp, ids)
+        lost = set(int(t) for t in inp.upd.lost)
+        if lost:
+            self.track_label = {t: lab for t, lab in self.track_label.items() if t not in lost}
+
     def predicted_position(self, track_id: int, stamp: float) -> np.ndarray:
         """Where a (possibly coasting) track is predicted at ``stamp`` (NaN if unknown)."""
         return self.tracker.position_of(track_id, stamp)
@@ -343,7 +355,7 @@ class TrackedLabeler:
         self._after_frame(problems, found, m_pub, inp)
         best = found.best
         truth_f = self._truth_fitness(problems[m_pub], truth, inp)
-        assign, search_labels, pub, conf = self._publish(problems[m_pub], best.assignment, inp)
+        assign, search_labels, pub, conf, post, share = self._publish(problems[m_pub], best, inp, found.doubtful)
         keep, n_in = inp.keep, inp.n_in
         return self.result_type(
             labels=scatter(pub, keep, n_in, -1), confidence=scatter(conf, keep, n_in, 0.0),
@@ -354,6 +366,7 @@ class TrackedLabeler:
             n_dropped=int((~inp.finite).sum()), n_ignored=inp.n_ignored, reset=inp.reason,
             heading=self.heading if self.heading is not None else float("nan"), truth_fitness=truth_f,
             doubtful=found.doubtful, recovered=found.recovered, recovering=self.recovery.busy,
+            posterior=scatter(post, keep, n_in, np.nan), vote_share=scatter(share, keep, n_in, 0.0),
             **self._result_fields(m_pub))
 
     def _search_frame(self, problems: list[FrameProblem], inp: FrameInput,
@@ -709,9 +722,9 @@ class TrackedLabeler:
         i, j = np.nonzero(np.triu(d < self.settings.swap_radius_m, 1))
         return np.stack([have[i], have[j]], axis=1)
 
-    def _hill_climb(self, problem: FrameProblem, seed: np.ndarray) -> tuple[np.ndarray, float, int]:
-        """Steepest ascent of a carried-over labeling over its targeted moves (mirror,
-        left/right and close-pair swaps, labels onto free points), then the region checks."""
+    def _moves(self, problem: FrameProblem, seed: np.ndarray):
+        """The targeted neighbourhood of a labeling near ``seed`` (mirror, left/right and
+        close-pair swaps, labels onto free points within the distance bounds, releases)."""
         n = problem.n
         close = self._close_label_pairs(problem, seed)
 
@@ -719,7 +732,12 @@ class TrackedLabeler:
             free = np.flatnonzero(~label_ops.used_mask(ind[None], n)[0])
             return targeted_moves(ind, n, problem.mirror_pairs, free, close,
                                   problem.allowed(ind) if free.size else None, self._releasable(problem, ind))
+        return moves
 
+    def _hill_climb(self, problem: FrameProblem, seed: np.ndarray) -> tuple[np.ndarray, float, int]:
+        """Steepest ascent of a carried-over labeling over its targeted moves (:meth:`_moves`),
+        then the region checks."""
+        moves = self._moves(problem, seed)
         ind, f, evals = polish(problem, seed, None, self.settings.fast_rounds, neighbours=moves)
         if self.settings.region_checks > 0 and problem.M > 3:
             centres = self._event_centres(problem, ind)
@@ -790,10 +808,12 @@ class TrackedLabeler:
         tr = np.asarray(truth, dtype=np.int64)
         return float(problem.fitness(np.where(tr < 0, n, pos[np.where(tr < 0, inp.n_in, tr)])[None])[0])
 
-    def _publish(self, problem: FrameProblem, assignment: np.ndarray, inp: FrameInput):
-        """Votes (eq. 32) and bookkeeping after the search. Returns (assignment with -1 for
-        missing, this frame's search labels per point, published labels, confidences)."""
+    def _publish(self, problem: FrameProblem, best: Candidate, inp: FrameInput, doubtful: bool):
+        """Votes (eq. 32), confidences (:mod:`.confidence`) and bookkeeping after the search.
+        Returns (assignment with -1 for missing, this frame's search labels per point,
+        published labels, confidences, local posteriors, vote shares)."""
         n = problem.n
+        assignment = best.assignment
         assign = np.where(assignment >= n, -1, assignment)
         search_labels = np.full(n, -1, dtype=np.int64)
         present = assign >= 0
@@ -801,9 +821,16 @@ class TrackedLabeler:
         upd = inp.upd
         self.votes.add(upd.track_ids, search_labels)
         if self.settings.mode == "stream":
-            pub, conf = self.votes.publish(upd.track_ids, search_labels)
+            pub, share = self.votes.publish(upd.track_ids, search_labels)
         else:
-            pub, conf = search_labels.copy(), (search_labels >= 0).astype(float)
+            pub, share = search_labels.copy(), (search_labels >= 0).astype(float)
+        post = label_posteriors(problem, assignment, best.fitness, self._moves(problem, assignment)(assignment),
+                                self.settings.confidence_temperature)
+        post_point = np.full(n, np.nan)
+        post_point[assign[present]] = post[present]
+        deficit = self._initial_level(problem) - best.fitness / label_weight(assignment, problem) \
+            if present.any() else 0.0
+        conf = published_confidence(post_point, search_labels, pub, share, doubtful, deficit)
         # the next frame starts from this frame's search result, not from the votes: a
         # correction must not be undone by the window's older majority. Labels stay with
         # their tracks while they coast (occluded for a few frames).
@@ -819,7 +846,7 @@ class TrackedLabeler:
         if present.any():
             self.centre = inp.pts[assign[present]].mean(0)
             self.heading = float(problem.yaw(np.where(assign < 0, n, assign)[None])[0])
-        return assign, search_labels, pub, conf
+        return assign, search_labels, pub, conf, post_point, share
 
 
 def _input_index(assign: np.ndarray, keep: np.ndarray) -> np.ndarray:

@@ -1,6 +1,8 @@
 """Votes over frames (eq. 32): ``N(track, label) += 1`` for every frame in the window where
 the search gave ``label`` to ``track``; the published labeling maximises the total votes
-subject to one label per track and one track per label (Hungarian assignment)."""
+subject to one label per track and one track per label (Hungarian assignment). The share of
+a published label is its votes over the frames of the window in which the track was *seen*
+(labelled or not): a marker hidden for part of the window is not less certain for it."""
 from __future__ import annotations
 
 from collections import deque
@@ -22,8 +24,7 @@ class VoteBook:
 
     def add(self, track_ids: np.ndarray, labels: np.ndarray) -> None:
         """One frame's search result: ``labels[i]`` (-1 = none) for point with ``track_ids[i]``."""
-        keep = labels >= 0
-        self.frames.append((np.asarray(track_ids)[keep].copy(), np.asarray(labels)[keep].copy()))
+        self.frames.append((np.asarray(track_ids).copy(), np.asarray(labels).copy()))
 
     def tally(self, track_ids: np.ndarray) -> np.ndarray:
         """(n, n_labels) vote counts (eq. 32) for the given tracks over the window."""
@@ -36,16 +37,26 @@ class VoteBook:
         for tids, labs in self.frames:
             pos = np.searchsorted(sorted_ids, tids)
             pos_c = np.minimum(pos, sorted_ids.size - 1)
-            hit = sorted_ids[pos_c] == tids
+            hit = (sorted_ids[pos_c] == tids) & (labs >= 0)
             np.add.at(votes, (order[pos_c[hit]], labs[hit]), 1.0)
         return votes
+
+    def seen(self, track_ids: np.ndarray) -> np.ndarray:
+        """(n,) frames of the window in which each track was seen (labelled or not)."""
+        track_ids = np.asarray(track_ids)
+        out = np.zeros(track_ids.size)
+        if not self.frames or track_ids.size == 0:
+            return out
+        for tids, _ in self.frames:
+            out += np.isin(track_ids, tids)
+        return out
 
     def publish(self, track_ids: np.ndarray, current: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Published labels (-1 none) and confidences for this frame's points.
 
         ``current`` is this frame's search result; it breaks ties (a half vote) so a fresh
         decision wins over an equal count of old ones. Confidence = votes for the published
-        label / frames in the window.
+        label / frames of the window in which the track was seen.
         """
         votes = self.tally(track_ids)
         cur = np.asarray(current)
@@ -58,5 +69,6 @@ class VoteBook:
         r, c = linear_sum_assignment(-votes)
         ok = votes[r, c] > 0
         labels[r[ok]] = c[ok]
-        conf[r[ok]] = np.minimum((votes[r[ok], c[ok]] - 0.5 * (cur[r[ok]] == c[ok])) / len(self.frames), 1.0)
+        seen = np.maximum(self.seen(np.asarray(track_ids)[r[ok]]), 1.0)
+        conf[r[ok]] = np.minimum((votes[r[ok], c[ok]] - 0.5 * (cur[r[ok]] == c[ok])) / seen, 1.0)
         return labels, conf
