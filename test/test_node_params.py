@@ -277,7 +277,7 @@ def test_runtime_changes_take_effect(running):
     cl.wait_diag(lambda d: d["mode"] == "single" and d["method"] == "cbga")
     xyz, truth, stamp = feed.next()
     out = cl.send(xyz, stamp)
-    assert {m.confidence for m in out.markers if m.label_index >= 0} == {1.0}
+    assert min(m.confidence for m in out.markers if m.label_index >= 0) > 0.9     # one frame, its own posterior
     # max_points: an effect on the output itself -- at most 5 points searched, the rest ignored
     before = int(cl.wait_diag(lambda d: True)["points_ignored_max_points"])
     assert cl.set_atomically(max_points=5, method="cbga", mode="stream", window=10).successful

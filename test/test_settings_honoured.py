@@ -50,6 +50,7 @@ CHANGES = {
     "release_moves": True,
     "recovery": "background",
     "audit_period_s": 0.05,
+    "confidence_temperature": 0.3,
     "region_checks": 0,
     "region_size": 2,
     "region_every": 1,
@@ -94,7 +95,7 @@ def trace(labeler, stream, base: list | None = None) -> list:
     with labeler:
         for xyz, t in stream:
             r = labeler.process(xyz, t)
-            out.append((r.labels.tolist(), round(float(r.log_likelihood), 6), r.evaluations, r.generations,
+            out.append((r.labels.tolist(), np.round(r.confidence, 6).tolist(), round(float(r.log_likelihood), 6), r.evaluations, r.generations,
                         r.full_search, r.reset))
             if base is not None and out[-1] != base[len(out) - 1]:
                 break
