@@ -47,22 +47,24 @@ FIT_SLACK, FIT_SCALE = 6.0, 15.0
 
 
 def label_posteriors(problem: FrameProblem, ind: np.ndarray, fit: float, alternatives: np.ndarray,
-                     temperature: float) -> np.ndarray:
+                     temperature: float, fitness: np.ndarray | None = None) -> np.ndarray:
     """(M,) local posterior of each label's point (module doc); NaN for missing labels.
-    ``alternatives`` (A, M): labelings near ``ind`` (those equal to it are ignored); the
-    release of every labelled label is added here."""
+    ``alternatives`` (A, M): labelings near ``ind`` (those equal to it are ignored), with their
+    ``fitness`` if already known; the release of every labelled label is added here."""
     n, M = problem.n, problem.M
     have = np.flatnonzero(ind < n)
     rel = np.repeat(ind[None], have.size, 0)
     rel[np.arange(have.size), have] = n
+    f_alt = problem.fitness(alternatives) if fitness is None and len(alternatives) else fitness
     cand = np.concatenate([alternatives, rel]) if len(alternatives) else rel
+    f = np.concatenate([f_alt, problem.fitness(rel)]) if len(alternatives) else problem.fitness(rel)
     changed = cand != ind[None]
-    cand, changed = cand[changed.any(1)], changed[changed.any(1)]
+    keep = changed.any(1)
+    cand, changed, f = cand[keep], changed[keep], f[keep]
     out = np.full(M, np.nan)
     if len(cand) == 0:
         out[have] = 1.0
         return out
-    f = problem.fitness(cand)
     w = np.exp(np.clip((f - fit) / temperature, -60.0, 60.0))
     odds = changed.T.astype(float) @ w                                  # (M,) sum over alternatives
     out[have] = 1.0 / (1.0 + odds[have])

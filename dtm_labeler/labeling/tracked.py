@@ -142,6 +142,7 @@ class Candidate:
 
     assignment: np.ndarray
     fitness: float
+    neighbourhood: tuple | None = None     # (alternatives, their fitness) around it, if already scored
 
 
 @dataclass
@@ -599,8 +600,10 @@ class TrackedLabeler:
             return None
         cands, evals = {}, 0
         for m in searched:
-            ind, f, e = self._hill_climb(problems[m], seed)
-            cands[m], evals = Candidate(ind, f), evals + e
+            last = {}
+            ind, f, e = self._hill_climb(problems[m], seed, last)
+            hood = (last["cand"], last["fitness"]) if last and np.array_equal(last["ind"], ind) else None
+            cands[m], evals = Candidate(ind, f, hood), evals + e
         ok = any(c.fitness >= self._expected(c.assignment, problems[m], m) - self._accept_margin(m)
                  for m, c in cands.items())
         return FrameSearch(cands, full=False, evaluations=evals, doubtful=not ok)
@@ -734,11 +737,12 @@ class TrackedLabeler:
                                   problem.allowed(ind) if free.size else None, self._releasable(problem, ind))
         return moves
 
-    def _hill_climb(self, problem: FrameProblem, seed: np.ndarray) -> tuple[np.ndarray, float, int]:
+    def _hill_climb(self, problem: FrameProblem, seed: np.ndarray,
+                    last: dict | None = None) -> tuple[np.ndarray, float, int]:
         """Steepest ascent of a carried-over labeling over its targeted moves (:meth:`_moves`),
-        then the region checks."""
+        then the region checks. ``last``: see :func:`polish`."""
         moves = self._moves(problem, seed)
-        ind, f, evals = polish(problem, seed, None, self.settings.fast_rounds, neighbours=moves)
+        ind, f, evals = polish(problem, seed, None, self.settings.fast_rounds, neighbours=moves, last=last)
         if self.settings.region_checks > 0 and problem.M > 3:
             centres = self._event_centres(problem, ind)
             if self._region_checks_due(problem.M):
@@ -824,8 +828,8 @@ class TrackedLabeler:
             pub, share = self.votes.publish(upd.track_ids, search_labels)
         else:
             pub, share = search_labels.copy(), (search_labels >= 0).astype(float)
-        post = label_posteriors(problem, assignment, best.fitness, self._moves(problem, assignment)(assignment),
-                                self.settings.confidence_temperature)
+        alt, f_alt = best.neighbourhood or (self._moves(problem, assignment)(assignment), None)
+        post = label_posteriors(problem, assignment, best.fitness, alt, self.settings.confidence_temperature, f_alt)
         post_point = np.full(n, np.nan)
         post_point[assign[present]] = post[present]
         deficit = self._initial_level(problem) - best.fitness / label_weight(assignment, problem) \

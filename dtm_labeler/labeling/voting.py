@@ -28,28 +28,29 @@ class VoteBook:
 
     def tally(self, track_ids: np.ndarray) -> np.ndarray:
         """(n, n_labels) vote counts (eq. 32) for the given tracks over the window."""
-        track_ids = np.asarray(track_ids)
-        votes = np.zeros((track_ids.size, self.n_labels))
-        if not self.frames or track_ids.size == 0:
-            return votes
-        order = np.argsort(track_ids)
-        sorted_ids = track_ids[order]
-        for tids, labs in self.frames:
-            pos = np.searchsorted(sorted_ids, tids)
-            pos_c = np.minimum(pos, sorted_ids.size - 1)
-            hit = (sorted_ids[pos_c] == tids) & (labs >= 0)
-            np.add.at(votes, (order[pos_c[hit]], labs[hit]), 1.0)
-        return votes
+        return self._count(track_ids)[0]
 
     def seen(self, track_ids: np.ndarray) -> np.ndarray:
         """(n,) frames of the window in which each track was seen (labelled or not)."""
+        return self._count(track_ids)[1]
+
+    def _count(self, track_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Votes (n, n_labels) and frames seen (n,) of ``track_ids``: one pass over the window."""
         track_ids = np.asarray(track_ids)
-        out = np.zeros(track_ids.size)
+        votes = np.zeros((track_ids.size, self.n_labels))
+        seen = np.zeros(track_ids.size)
         if not self.frames or track_ids.size == 0:
-            return out
-        for tids, _ in self.frames:
-            out += np.isin(track_ids, tids)
-        return out
+            return votes, seen
+        tids = np.concatenate([f[0] for f in self.frames])
+        labs = np.concatenate([f[1] for f in self.frames])
+        order = np.argsort(track_ids)
+        sorted_ids = track_ids[order]
+        pos = np.minimum(np.searchsorted(sorted_ids, tids), sorted_ids.size - 1)
+        hit = sorted_ids[pos] == tids
+        np.add.at(seen, order[pos[hit]], 1.0)
+        lab = hit & (labs >= 0)
+        np.add.at(votes, (order[pos[lab]], labs[lab]), 1.0)
+        return votes, seen
 
     def publish(self, track_ids: np.ndarray, current: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Published labels (-1 none) and confidences for this frame's points.
@@ -58,7 +59,7 @@ class VoteBook:
         decision wins over an equal count of old ones. Confidence = votes for the published
         label / frames of the window in which the track was seen.
         """
-        votes = self.tally(track_ids)
+        votes, seen = self._count(track_ids)
         cur = np.asarray(current)
         has = cur >= 0
         votes[np.flatnonzero(has), cur[has]] += 0.5
@@ -69,6 +70,6 @@ class VoteBook:
         r, c = linear_sum_assignment(-votes)
         ok = votes[r, c] > 0
         labels[r[ok]] = c[ok]
-        seen = np.maximum(self.seen(np.asarray(track_ids)[r[ok]]), 1.0)
-        conf[r[ok]] = np.minimum((votes[r[ok], c[ok]] - 0.5 * (cur[r[ok]] == c[ok])) / seen, 1.0)
+        conf[r[ok]] = np.minimum((votes[r[ok], c[ok]] - 0.5 * (cur[r[ok]] == c[ok])) / np.maximum(seen[r[ok]], 1.0),
+                                 1.0)
         return labels, conf

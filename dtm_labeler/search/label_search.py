@@ -223,11 +223,13 @@ def targeted_moves(ind: np.ndarray, n: int, mirror_pairs: np.ndarray, free_point
 
 
 def polish(problem: FrameProblem, ind: np.ndarray, fit: float | None, rounds: int,
-           deadline: float | None = None, neighbours=None) -> tuple[np.ndarray, float, int]:
+           deadline: float | None = None, neighbours=None, last: dict | None = None) -> tuple[np.ndarray, float, int]:
     """Steepest ascent (at most ``rounds`` moves) over ``neighbours(ind)``; by default the
     full one-move :func:`label_ops.neighbourhood` within the distance bounds. ``fit`` None:
     the start is scored in the same batch as its first neighbourhood (one term-cache fill
-    for both: what a new frame's carried labeling needs)."""
+    for both: what a new frame's carried labeling needs). ``last``, if given, receives the
+    final neighbourhood and its fitnesses when the ascent stopped at a local optimum
+    (``ind``, ``cand``, ``fitness``): what the confidence of that optimum is read from."""
     if neighbours is None:
         def neighbours(x):
             return ops.neighbourhood(x, problem.n, pairs=problem.mirror_pairs, allowed=problem.allowed(x))
@@ -245,6 +247,8 @@ def polish(problem: FrameProblem, ind: np.ndarray, fit: float | None, rounds: in
         evals += len(cand)
         i = int(np.argmax(f))
         if f[i] <= fit + 1e-9:
+            if last is not None:
+                last.update(ind=ind, cand=cand, fitness=f)
             break
         ind, fit = cand[i], float(f[i])
     if fit is None:
