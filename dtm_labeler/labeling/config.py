@@ -34,7 +34,7 @@ from .tracker import TrackerSettings
 
 NODE_NAME = "dtm_labeler"
 METHODS = ("cbga", "sga", "greedy", "exhaustive", "tracker")
-RECOVERY = ("inline", "background")
+RECOVERY = ("auto", "inline", "background")
 MODES = ("stream", "single")
 STRATEGIES = ("spread", "hard")
 QOS_CHOICES = ("sensor_data", "reliable")
@@ -169,10 +169,11 @@ PARAMS: Tuple[Param, ...] = (
           "in steady state (0 = only after GA searches).", range=(0, 1000000)),
     Param("region_size", 6, "Labels per region of the region checks and of the "
           "full search's final region sweep (more = larger repairs, more work per frame).", range=(2, 16)),
-    Param("recovery", "inline", "Where recovery searches run when the fast path cannot vouch for a "
-          "frame: inline (in that frame: deterministic, the offline default) or background (a worker "
-          "process; frames go on with the best labeling known, flagged doubtful, and the result joins "
-          "a later frame: what a live node needs).", choices=RECOVERY, flag="--recovery"),
+    Param("recovery", "auto", "Where recovery searches run when the fast path cannot vouch for a "
+          "frame: inline (in that frame: deterministic), background (a worker process; frames go on "
+          "with the best labeling known, flagged doubtful, and the result joins a later frame: what a "
+          "live stream needs) or auto (background in the node, inline offline).", choices=RECOVERY,
+          flag="--recovery"),
     Param("audit_period_s", 1.0, "Background recovery only: a full search from scratch at least this "
           "often (stream seconds) while the labeling looks fine; its result replaces the labeling "
           "when the frame scores it higher. Catches a wrong labeling the running level has adapted "

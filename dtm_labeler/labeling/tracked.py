@@ -213,10 +213,10 @@ class TrackedLabeler:
     def _configure_recovery(self) -> None:
         """The executor of recovery searches the settings ask for, told about the current
         models and settings."""
-        want = self.settings.recovery
-        if (want == "inline") != self.recovery.inline or self.recovery.failed == "closed":
+        background = self.settings.recovery == "background"        # "auto" is inline here: the node resolves it
+        if background == self.recovery.inline or self.recovery.failed == "closed":
             self.recovery.close()
-            self.recovery = InlineRecovery(self) if want == "inline" else ProcessRecovery(self)
+            self.recovery = ProcessRecovery(self) if background else InlineRecovery(self)
         else:
             self.recovery.configure(self)
 
