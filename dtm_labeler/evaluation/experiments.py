@@ -52,7 +52,7 @@ PAPER_TABLE3 = {
 
 SUMMARY_KEYS = ("frames", "points", "accuracy", "frame_accuracy", "search_accuracy", "ghosts", "ghost_rejection",
                 "swaps_per_min", "search_errors", "search_checked", "search_error_rate", "latency_ms", "fps",
-                "full_search_rate", "per_label")
+                "full_search_rate", "per_label", "calibration_error", "reliability")
 
 
 def spread_frames(n_frames: int, count: int, start: int = 1) -> np.ndarray:

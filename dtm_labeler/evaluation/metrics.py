@@ -96,7 +96,8 @@ class Metrics:
         d = {k: getattr(self, k) for k in (
             "frames", "duration_s", "points", "correct", "accuracy", "frame_accuracy", "search_accuracy",
             "ghosts", "ghost_rejection", "swaps", "swaps_per_min", "search_errors", "search_checked",
-            "search_error_rate", "latency_ms", "fps", "full_search_rate", "calibration_error", "per_label")}
+            "search_error_rate", "latency_ms", "fps", "full_search_rate", "calibration_error", "reliability",
+            "per_label")}
         d["labels"] = len(self.labels)
         d["label_names"] = list(self.labels)
         if confusion:
