@@ -402,7 +402,7 @@ def label_bag(model, in_path: str | Path, out_path: str | Path | None, settings=
     from rosbags.rosbag2 import Writer
 
     from ..labeling.stream import StreamLabeler
-    from .pointcloud import read_points_xyz
+    from .pointcloud import complete_ids, read_points_xyz
 
     ts = typestore()
     labeler = StreamLabeler(model, settings)
@@ -441,7 +441,7 @@ def label_bag(model, in_path: str | Path, out_path: str | Path | None, settings=
             msg = ts.deserialize_cdr(raw, c.msgtype)
             xyz, ids = read_points_xyz(msg)
             stamp = stamp_ns_of(msg)
-            res = labeler.process(xyz, stamp * 1e-9, ids=ids)
+            res = labeler.process(xyz, stamp * 1e-9, ids=complete_ids(ids))
             lat.append(res.latency_ms)
             resets += bool(res.reset)
             lab = np.asarray(res.labels)
