@@ -60,6 +60,11 @@ class TrackedLabeler:
         self._new_tracks = np.zeros(0, dtype=np.int64)   # tracks started last frame
         self._event_points = np.zeros(0, dtype=np.int64)
 
+    def predicted_position(self, track_id: int, stamp: float) -> np.ndarray:
+        """(3,) position the tracker predicts for a (possibly coasting) track at ``stamp``; NaN
+        when the track is unknown (never seen, or deleted after ``max_misses``)."""
+        return self.tracker.position_of(int(track_id), stamp)
+
     def _note_search(self) -> None:
         """A GA search chose this frame's labeling: region checks are due for a while."""
         self._since_search = 0
