@@ -426,11 +426,15 @@ def _to_params(values: Dict[str, Any]):
 
 
 def start(ns: str, **kw) -> tuple:
-    """Start a node process and a connected client: ``(NodeProcess, NodeClient)``."""
+    """Start a node process and a connected client: ``(NodeProcess, NodeClient)``; with a
+    ``model_path``, also wait until the node has loaded it (or refused it): the node loads
+    models on its loader thread, after it is up."""
     proc = NodeProcess(ns, **kw)
     try:
         client = NodeClient(proc)
         client.wait_connected()
+        if (kw.get("params") or {}).get("model_path"):
+            client.wait_diag(lambda d: d.get("model_status") not in (None, "loading"), 20, "model loaded")
     except BaseException:
         proc.stop(signal.SIGKILL)
         raise

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import node_helpers as H
-from dtm_labeler.ros.node import NO_TRACK
+from dtm_labeler.ros.messages import NO_TRACK
 
 
 @pytest.fixture(scope="module")
@@ -177,6 +177,7 @@ def test_time_going_backwards_resets_the_window(running):
 def test_long_gap_resets_the_window(running):
     proc, cl, feed, wm = running
     before = counter(cl, "resets_gap")
+    still_labelling(cl, feed, 20)        # a clean stream (a discontinuity right after another is a fault)
     xyz, truth, stamp = feed.next(dt=10.0)
     out = cl.send(xyz, stamp)
     assert np.mean(labels_of(out) == truth) > 0.9
@@ -253,9 +254,12 @@ def test_labeler_exception_skips_the_frame_in_process():
     node = LabelerNode(context=ctx, namespace="/t_inproc",
                        parameter_overrides=[Parameter("model_path", value=str(wm.path))])
     published = []
-    node._pub_labeled.publish = published.append
+    node.core.outputs.labeled.publish = published.append
     try:
-        lab = node._labeler
+        end = time.monotonic() + 20
+        while node.core.worker.engine is None and time.monotonic() < end:   # loaded off the executor
+            time.sleep(0.01)
+        lab = node.core.worker.engine
         real = lab.process
         calls = []
 
@@ -271,11 +275,11 @@ def test_labeler_exception_skips_the_frame_in_process():
             sec = int(stamp)
             hdr = Header(frame_id="m")
             hdr.stamp.sec, hdr.stamp.nanosec = sec, int((stamp - sec) * 1e9)
-            node._on_cloud(make_xyz_cloud(xyz, header=hdr))
+            node.core._on_input(make_xyz_cloud(xyz, header=hdr))
             end = time.monotonic() + 10
-            while len(published) + node._stats.skipped["error"] < i + 1 and time.monotonic() < end:
+            while len(published) + node.core.stats.skipped["error"] < i + 1 and time.monotonic() < end:
                 time.sleep(0.002)
-        assert node._stats.skipped["error"] == 1 and "injected" in node._stats.labeler_error
+        assert node.core.stats.skipped["error"] == 1 and "injected" in node.core.stats.last_error
         assert len(published) == 1
         assert np.mean(labels_of(published[0]) == truth) > 0.9
         vals = {kv.key: kv.value for st in node.diagnostics() for kv in st.values}

@@ -4,7 +4,16 @@ Pure Python (no rclpy at import time), so the mapping is unit-testable without a
 node (:mod:`dtm_labeler.ros.node`) declares every entry of :data:`PARAMS` with a
 ``ParameterDescriptor`` built by :func:`descriptor` (description, range, read_only), and its
 on-set-parameters callback runs :func:`validate` + :func:`settings_from_params` on the WHOLE
-resulting configuration, so a set with one bad value applies nothing.
+resulting configuration: a value that is bad on its own, or bad together with the others, is
+rejected with the reason and changes nothing.
+
+What "a set" is follows rclpy (checked on rclpy 7.1): ``set_parameters`` (the
+``~/set_parameters`` service, ``ros2 param set``, ``ros2 param load``) applies its parameters
+ONE BY ONE -- the callback sees each alone, against the values already applied, so the good
+ones of a list are applied and only the bad ones rejected (and a change that needs two values
+at once, e.g. ``model_path`` with new ``expected_labels``, must be ordered or made atomic).
+Only ``set_parameters_atomically`` (``~/set_parameters_atomically``) is all-or-nothing: one
+callback with every value, and one bad value applies none.
 
 ``params/labeler.yaml`` holds every parameter with its default; it is generated from the table
 (``python -m dtm_labeler.ros.params --write-yaml params/labeler.yaml``) and a test checks it
@@ -21,9 +30,11 @@ from typing import Any, Dict, Iterable, Mapping, Optional, Sequence, Tuple
 from ..search.problem import Background
 from ..labeling.stream import METHODS, MODES, LabelerSettings
 from ..labeling.tracker import TrackerSettings
+from .inputs import INPUT_TYPES, MOCAP4R2_IDS
+from .stamps import STAMP_SOURCES
 
 __all__ = ["ParamSpec", "PARAMS", "SPECS", "DEFAULTS", "NODE_NAME", "QOS_CHOICES", "LABELER_KEYS",
-           "INPUT_QOS_KEYS", "validate", "settings_from_params", "check_labels", "descriptor",
+           "INPUT_QOS_KEYS", "INPUT_KEYS", "validate", "settings_from_params", "check_labels", "descriptor",
            "qos_profile", "load_params_file", "format_value", "settings_equal", "render_yaml"]
 
 NODE_NAME = "dtm_labeler"
@@ -142,6 +153,22 @@ PARAMS: Tuple[ParamSpec, ...] = (
     ParamSpec("max_gap_s", _D.max_gap_s, "An input gap (header stamps) longer than this resets the "
               "window and tracks.", range=(0.001, 1e6)),
     # -- I/O --------------------------------------------------------------------------------
+    ParamSpec("input_type", "pointcloud2", "Message type of markers/unlabeled: pointcloud2 "
+              "(sensor_msgs/PointCloud2: IMRCLab motion_capture_tracking, bags), mocap4r2_markers "
+              "(mocap4r2_msgs/Markers: mocap4r2 OptiTrack/Qualisys/Vicon drivers), pointcloud "
+              "(sensor_msgs/PointCloud: natnet_ros2). Changing it recreates the subscription.",
+              choices=INPUT_TYPES),
+    ParamSpec("mocap4r2_ids", "auto", "Track ids from mocap4r2 markers: auto (marker names when "
+              "every marker has a unique one -- Vicon; list indices are ignored: OptiTrack and "
+              "Qualisys number markers by list position), name, index (marker_index, for drivers "
+              "whose indices persist), none (the node tracks by position).", choices=MOCAP4R2_IDS),
+    ParamSpec("stamp_source", "auto", "Time the labeler runs on: auto (header stamps; after "
+              "stamp faults -- zero, repeated, backwards, jumping -- receive time at the frame "
+              "rate, back to stamps once they are clean), header, receive.", choices=STAMP_SOURCES),
+    ParamSpec("frame_id", "", "frame_id of the outputs when the input's is empty (or always, "
+              "with override_frame_id); empty = the input's."),
+    ParamSpec("override_frame_id", False, "Use frame_id for every output, whatever the input "
+              "says."),
     ParamSpec("input_qos", "sensor_data", "QoS of markers/unlabeled: sensor_data (best effort) or "
               "reliable. Changing it (or input_depth) recreates the subscription.", choices=QOS_CHOICES),
     ParamSpec("input_depth", 5, "History depth (keep-last) of the input subscription; the node "
@@ -159,6 +186,14 @@ PARAMS: Tuple[ParamSpec, ...] = (
               "MarkerArray cost on most frames of a 120 Hz stream).", range=(0.0, 3600.0)),
     ParamSpec("marker_scale", 0.05, "Sphere diameter of the RViz markers in metres.",
               range=(0.001, 10.0)),
+    ParamSpec("viz_marker_lifetime_s", 1.0, "Lifetime of the RViz markers (s): RViz drops them "
+              "this long after the last update, so a stopped node leaves no stale markers. 0 = "
+              "for ever.", range=(0.0, 3600.0)),
+    ParamSpec("viz_namespace", "dtm_labeler", "Namespace prefix of the RViz markers "
+              "(<ns>/labelled, <ns>/skeleton, ...)."),
+    ParamSpec("publish_mocap4r2", True, "Publish markers/labeled_mocap4r2 (mocap4r2_msgs/Markers, "
+              "marker_name = label) -- built only while it has subscribers and mocap4r2_msgs is "
+              "installed."),
     ParamSpec("publish_occluded", True, "Add an occluded=true, predicted=true LabeledMarker for "
               "every model label missing this frame whose track can still be predicted."),
     ParamSpec("diagnostics_period_s", 1.0, "Period of the /diagnostics status (steady clock).",
@@ -178,6 +213,8 @@ LABELER_KEYS = frozenset({
     "gate_m", "gate_speed_factor", "max_misses", "clutter_volume_m3", "clutter_max_speed_mps",
     "detection_probability", "max_points", "max_gap_s", "noise_mm", "heading_snap_deg"})
 INPUT_QOS_KEYS = frozenset({"input_qos", "input_depth"})
+#: Parameters whose change recreates the input subscription.
+INPUT_KEYS = INPUT_QOS_KEYS | {"input_type"}
 
 
 def _check_one(spec: ParamSpec, value: Any) -> Any:
@@ -346,7 +383,7 @@ def _yaml_scalar(v: Any) -> str:
     return repr(v) if isinstance(v, float) else str(v)
 
 
-def render_yaml(node_name: str = NODE_NAME) -> str:
+def render_yaml(key: str = "/**") -> str:
     """The text of params/labeler.yaml: every parameter, its description and default."""
     import textwrap
     lines = [
@@ -354,10 +391,12 @@ def render_yaml(node_name: str = NODE_NAME) -> str:
         "# Generated by `python -m dtm_labeler.ros.params --write-yaml params/labeler.yaml`; edit the",
         "# table in dtm_labeler/ros/params.py, not this file.",
         "# Use:  dtm-labeler-node --ros-args --params-file params/labeler.yaml -p model_path:=/path/model.npz",
-        "# The block is keyed by the node name; rename the key to /** to apply it to a node started",
-        "# under another name (__node:=...). Every parameter can be changed at runtime through the",
-        "# parameter services except the read-only ones. Ranges are inclusive.",
-        f"{node_name}:", "  ros__parameters:"]
+        "# The block is keyed /** (every node of the process, so also a node started in a namespace or",
+        "# under another name: a key 'dtm_labeler' would not match /ns/dtm_labeler). To target one node",
+        "# of a shared file, key it by the node's full name (/ns/dtm_labeler). Every parameter can be",
+        "# changed at runtime through the parameter services except the read-only ones; ranges are",
+        "# inclusive. set_parameters applies values one by one; set_parameters_atomically all or none.",
+        f"{key}:", "  ros__parameters:"]
     for p in PARAMS:
         extra = []
         if p.range:

@@ -10,6 +10,9 @@ frame_id), namespaces under ``ns`` (default ``dtm_labeler``):
   between labelled points;
 * ``<ns>/names``     id = label index, TEXT_VIEW_FACING: the label name above its point.
 
+Every marker carries ``lifetime_s`` (0 = forever): with a lifetime, RViz drops the markers of a
+node that stopped publishing instead of showing its last frame for ever.
+
 The set of markers is the same every frame: empty lists and labels not seen this frame are
 sent as DELETE, so RViz never shows stale names without any per-topic state here. A DELETEALL
 (first in the array) is added when ``delete_all`` is set -- the node does so on a model change
@@ -106,8 +109,10 @@ class MarkerArrayBuilder:
     """
 
     def __init__(self, label_names: Sequence[str], edges: Optional[Iterable[Tuple[int, int]]] = None, *,
-                 scale: float = 0.05, ns: str = "dtm_labeler", colors: Optional[np.ndarray] = None):
+                 scale: float = 0.05, ns: str = "dtm_labeler", colors: Optional[np.ndarray] = None,
+                 lifetime_s: float = 0.0):
         from visualization_msgs.msg import Marker
+        self.lifetime_s = float(lifetime_s)
         self.names = [str(x) for x in label_names]
         M = len(self.names)
         self.edges = sorted((int(a), int(b)) for a, b in (edges or ()) if 0 <= a < M and 0 <= b < M)
@@ -129,6 +134,9 @@ class MarkerArrayBuilder:
             m.color = _color(self.colors[lab])
             self._texts.append(m)
         self._label_colors = [_color(c) for c in self.colors]
+        sec = int(self.lifetime_s)
+        for m in [self._labelled, self._unlabelled, self._skeleton, *self._texts]:
+            m.lifetime.sec, m.lifetime.nanosec = sec, int(round((self.lifetime_s - sec) * 1e9))
         self._points: list = []
         self._colors: list = []
 
