@@ -136,14 +136,17 @@ class NodeProcess:
     """The labeler node as a child process in namespace ``ns``."""
 
     def __init__(self, ns: str, params: Optional[Dict[str, Any]] = None, params_file: Optional[Path] = None,
-                 extra_args: Sequence[str] = (), console_script: bool = False):
+                 extra_args: Sequence[str] = (), console_script: bool = False, module: str = "dtm_labeler.ros.node",
+                 cmd: Optional[Sequence[str]] = None, env: Optional[Dict[str, str]] = None):
         self.ns = ns.strip("/")
         self.log_path = _tmpdir() / f"node_{self.ns}_{time.monotonic_ns()}.log"
         script = Path(sys.executable).parent / "dtm-labeler-node"
-        if console_script and script.is_file():
+        if cmd is not None:
+            cmd = list(cmd)
+        elif console_script and script.is_file():
             cmd = [str(script)]
         else:
-            cmd = [sys.executable, "-m", "dtm_labeler.ros.node"]
+            cmd = [sys.executable, "-m", module]
         args = cmd + ["--ros-args", "-r", f"__ns:=/{self.ns}"]
         if params_file is not None:
             args += ["--params-file", str(params_file)]
@@ -156,7 +159,8 @@ class NodeProcess:
         args += list(extra_args)
         self.args = args
         self._log = open(self.log_path, "wb")
-        self.proc = subprocess.Popen(args, env=node_env(), stdout=self._log, stderr=subprocess.STDOUT,
+        self.t_start = time.monotonic()
+        self.proc = subprocess.Popen(args, env=env or node_env(), stdout=self._log, stderr=subprocess.STDOUT,
                                      cwd=str(REPO))
 
     @property
@@ -183,13 +187,16 @@ class NodeProcess:
         return text in self.log()
 
     def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> int:
+        self.stop_seconds = 0.0
         if self.proc.poll() is None:
+            t = time.monotonic()
             self.proc.send_signal(sig)
             try:
                 self.proc.wait(timeout)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait(5)
+            self.stop_seconds = time.monotonic() - t
         self._log.close()
         return self.proc.returncode
 
@@ -231,6 +238,17 @@ class NodeClient:
         self.sub_v = self.node.create_subscription(MarkerArray, node.topic("markers/visualization"),
                                                    self._store(self.viz), q)
         self.sub_d = self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, q)
+        self.mocap4r2: List[Any] = []
+        self._input_pubs: Dict[str, Any] = {"pointcloud2": self.pub}
+        self._input_nodes: List[Any] = []
+        self._input_qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE if input_reliable
+                                     else ReliabilityPolicy.BEST_EFFORT)
+        try:
+            from mocap4r2_msgs.msg import Markers
+            self.sub_m = self.node.create_subscription(Markers, node.topic("markers/labeled_mocap4r2"),
+                                                       self._store(self.mocap4r2), q)
+        except ImportError:
+            self.sub_m = None
         self.params = AsyncParameterClient(self.node, node.fqn)
         self.ex = SingleThreadedExecutor(context=self.ctx)
         self.ex.add_node(self.node)
@@ -351,6 +369,47 @@ class NodeClient:
         self.pub.publish(msg)
         return header
 
+    def input_pub(self, kind: str):
+        """The publisher on markers/unlabeled for input type ``kind``. Each other type gets a
+        participant of its own (its own context): Fast DDS refuses a second type on a topic
+        name a participant has used, even after the first publisher is destroyed."""
+        if kind not in self._input_pubs:
+            import rclpy
+            from dtm_labeler.ros.inputs import message_class
+            ctx = rclpy.Context()
+            rclpy.init(context=ctx)
+            node = rclpy.create_node(f"test_input_{kind}_{self.target.ns}", context=ctx)
+            self._input_nodes.append((node, ctx))
+            self._input_pubs[kind] = node.create_publisher(message_class(kind), self.target.topic(
+                "markers/unlabeled"), self._input_qos)
+        return self._input_pubs[kind]
+
+    def publish_as(self, kind: str, xyz, stamp: float, frame_id: str = "mocap", names=None, frame_number: int = 0):
+        """Publish one frame as ``kind`` (pointcloud2 | mocap4r2_markers | pointcloud); mocap4r2
+        markers carry ``names`` (USE_NAME) when given, else list indices (USE_INDEX, as the
+        OptiTrack driver sends them)."""
+        if kind == "pointcloud2":
+            return self.publish(xyz, stamp, frame_id=frame_id)
+        from builtin_interfaces.msg import Time
+        from std_msgs.msg import Header
+        sec = int(np.floor(stamp))
+        header = Header(stamp=Time(sec=sec, nanosec=int(round((stamp - sec) * 1e9)) % 1_000_000_000),
+                        frame_id=frame_id)
+        msg = make_input(kind, xyz, names, frame_number)
+        msg.header = header
+        self.input_pub(kind).publish(msg)
+        return header
+
+    def call(self, srv_type, name: str, request=None, timeout: float = 10.0):
+        """Call a service of the node (``name`` relative to its full name, e.g. 'reset')."""
+        cli = self.node.create_client(srv_type, f"{self.target.fqn}/{name}")
+        try:
+            if not cli.wait_for_service(timeout_sec=timeout):
+                raise AssertionError(f"service {name} not available")
+            return self._wait_future(cli.call_async(request or srv_type.Request()), timeout)
+        finally:
+            self.node.destroy_client(cli)
+
     @staticmethod
     def stamp_of(msg) -> float:
         return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
@@ -405,6 +464,9 @@ class NodeClient:
         return list(self._wait_future(self.params.list_parameters()).result.names)
 
     def close(self) -> None:
+        for node, ctx in self._input_nodes:
+            node.destroy_node()
+            ctx.try_shutdown()
         try:
             self.ex.shutdown(timeout_sec=1.0)
         except Exception:
@@ -412,6 +474,27 @@ class NodeClient:
         self.node.destroy_node()
         self.ctx.try_shutdown()
         self.thread.join(2.0)
+
+
+def make_input(kind: str, xyz, names=None, frame_number: int = 0):
+    """An input message of type ``kind`` holding ``xyz`` (header left empty)."""
+    if kind == "pointcloud":
+        from geometry_msgs.msg import Point32
+        from sensor_msgs.msg import PointCloud
+        msg = PointCloud()
+        msg.points = [Point32(x=float(x), y=float(y), z=float(z)) for x, y, z in np.asarray(xyz)]
+        return msg
+    from geometry_msgs.msg import Point
+    from mocap4r2_msgs.msg import Marker, Markers
+    msg = Markers(frame_number=int(frame_number))
+    for i, (x, y, z) in enumerate(np.asarray(xyz, dtype=float)):
+        m = Marker(translation=Point(x=x, y=y, z=z), marker_index=i)
+        if names is not None:
+            m.id_type, m.marker_name = Marker.USE_NAME, str(names[i])
+        else:
+            m.id_type = Marker.USE_INDEX
+        msg.markers.append(m)
+    return msg
 
 
 def _to_params(values: Dict[str, Any]):
