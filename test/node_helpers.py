@@ -231,8 +231,9 @@ class NodeClient:
             PointCloud2, node.topic("markers/unlabeled"),
             QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE if input_reliable
                        else ReliabilityPolicy.BEST_EFFORT))
+        self.labeled_times: List[float] = []       # time.monotonic() at reception, one per labeled
         self.sub_l = self.node.create_subscription(LabeledMarkerArray, node.topic("markers/labeled"),
-                                                   self._store(self.labeled), q)
+                                                   self._on_labeled, q)
         self.sub_c = self.node.create_subscription(PointCloud2, node.topic("markers/labeled_cloud"),
                                                    self._store(self.clouds), q)
         self.sub_v = self.node.create_subscription(MarkerArray, node.topic("markers/visualization"),
@@ -268,6 +269,18 @@ class NodeClient:
                 lst.append(msg)
                 self.cond.notify_all()
         return cb
+
+    def _on_labeled(self, msg):
+        with self.cond:
+            self.labeled.append(msg)
+            self.labeled_times.append(time.monotonic())
+            self.cond.notify_all()
+
+    def max_gap(self, t0: float, t1: float) -> float:
+        """The longest time without a labelled output between ``t0`` and ``t1`` (monotonic)."""
+        with self.cond:
+            t = [x for x in self.labeled_times if t0 <= x <= t1]
+        return float(np.max(np.diff([t0] + t + [t1])))
 
     def _on_diag(self, msg):
         vals: Dict[str, str] = {}
@@ -474,6 +487,30 @@ class NodeClient:
         self.node.destroy_node()
         self.ctx.try_shutdown()
         self.thread.join(2.0)
+
+
+class Streamer:
+    """Publishes the walk at ``rate`` Hz from a thread of the test process (a live driver)."""
+
+    def __init__(self, client: "NodeClient", feed: FrameFeed, rate: float = 120.0):
+        self.client, self.feed, self.rate = client, feed, rate
+        self.sent = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        t_next = time.monotonic()
+        while not self._stop.is_set():
+            xyz, truth, stamp = self.feed.next()
+            self.client.publish(xyz, stamp)
+            self.sent += 1
+            t_next += 1.0 / self.rate
+            self._stop.wait(max(t_next - time.monotonic(), 0.0))
+
+    def stop(self):
+        self._stop.set()
+        self._thread.join(2.0)
 
 
 def make_input(kind: str, xyz, names=None, frame_number: int = 0):

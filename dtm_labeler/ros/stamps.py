@@ -190,7 +190,7 @@ class StampGuard:
 class SourceLock:
     """Follows one publisher by its publication sequence numbers (see the module doc)."""
 
-    MAX_STEP = 10_000
+    MAX_STEP = 256               # a larger step is another publisher (or the followed one restarted)
 
     def __init__(self, silence_s: float = 0.5):
         self.silence_s = float(silence_s)
