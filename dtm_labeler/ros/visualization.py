@@ -154,36 +154,23 @@ class MarkerArrayBuilder:
             q.z = z
         return out
 
-    def build(self, header: Any, xyz: Any, labels: Any, confidence: Any, delete_all: bool = False):
-        from visualization_msgs.msg import Marker, MarkerArray
-        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-        labels = np.asarray(labels, dtype=np.int64).reshape(-1)
-        conf = np.asarray(confidence, dtype=np.float64).reshape(-1)
-        M = len(self.names)
-        if labels.shape[0] != xyz.shape[0] or conf.shape[0] != xyz.shape[0]:
-            raise ValueError(f"labels {labels.shape} and confidence {conf.shape} must match xyz {xyz.shape}")
-        finite = np.isfinite(xyz).all(1)
-        valid = finite & (labels >= 0) & (labels < M)
-
-        # one point per label: the most confident one carrying it
-        point_of = np.full(M, -1, dtype=np.int64)
+    def _point_per_label(self, labels: np.ndarray, conf: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        """(M,) the most confident point carrying each label, -1 for none."""
+        point_of = np.full(len(self.names), -1, dtype=np.int64)
         idx = np.flatnonzero(valid)
         if idx.size:
             order = idx[np.lexsort((-conf[idx], labels[idx]))]
             first = np.ones(order.size, dtype=bool)
             first[1:] = labels[order[1:]] != labels[order[:-1]]
             point_of[labels[order[first]]] = order[first]
+        return point_of
 
-        markers = []
-        if delete_all:
-            self._delete_all.header = header if header is not None else self._delete_all.header
-            markers.append(self._delete_all)
-        used = 0
-        # labelled spheres
+    def _labelled_spheres(self, xyz: np.ndarray, labels: np.ndarray, conf: np.ndarray, idx: np.ndarray):
+        """The SPHERE_LIST of labelled points (colour per label, alpha by confidence)."""
+        from visualization_msgs.msg import Marker
         m = self._labelled
         m.action = Marker.ADD if idx.size else Marker.DELETE
-        m.points = self._fill(xyz[idx], used)
-        used += idx.size
+        m.points = self._fill(xyz[idx], 0)
         while len(self._colors) < idx.size:
             self._colors.append(_color((1.0, 1.0, 1.0, 1.0)))
         cols = self.colors[labels[idx]].copy()
@@ -196,7 +183,27 @@ class MarkerArrayBuilder:
         m.colors = self._colors[:idx.size]
         if idx.size:
             m.color = self._label_colors[labels[idx[0]]]
-        markers.append(m)
+        return m
+
+    def build(self, header: Any, xyz: Any, labels: Any, confidence: Any, delete_all: bool = False):
+        from visualization_msgs.msg import Marker, MarkerArray
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        labels = np.asarray(labels, dtype=np.int64).reshape(-1)
+        conf = np.asarray(confidence, dtype=np.float64).reshape(-1)
+        M = len(self.names)
+        if labels.shape[0] != xyz.shape[0] or conf.shape[0] != xyz.shape[0]:
+            raise ValueError(f"labels {labels.shape} and confidence {conf.shape} must match xyz {xyz.shape}")
+        finite = np.isfinite(xyz).all(1)
+        valid = finite & (labels >= 0) & (labels < M)
+
+        point_of = self._point_per_label(labels, conf, valid)
+        idx = np.flatnonzero(valid)
+        markers = []
+        if delete_all:
+            self._delete_all.header = header if header is not None else self._delete_all.header
+            markers.append(self._delete_all)
+        markers.append(self._labelled_spheres(xyz, labels, conf, idx))
+        used = idx.size
         # unlabelled spheres
         un = np.flatnonzero(finite & ~valid)
         m = self._unlabelled
