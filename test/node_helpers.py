@@ -282,6 +282,20 @@ class NodeClient:
             t = [x for x in self.labeled_times if t0 <= x <= t1]
         return float(np.max(np.diff([t0] + t + [t1])))
 
+    def max_node_stall(self, t0: float, t1: float) -> float:
+        """The longest time between ``t0`` and ``t1`` in which the node's worker was not labelling:
+        each gap between two outputs less the time the second frame spent in the node
+        (``latency_ms``: receive -> published, the labeler's own search included). What remains is
+        the node not labelling (swapping engines, applying settings, waiting on anything) plus
+        up to one frame period of waiting for input."""
+        with self.cond:
+            pairs = [(t, m.latency_ms * 1e-3) for t, m in zip(self.labeled_times, self.labeled) if t0 <= t <= t1]
+        if not pairs:
+            return t1 - t0
+        times = [t0] + [t for t, _ in pairs]
+        stall = [t - prev - lat for prev, (t, lat) in zip(times, pairs)]
+        return float(max(max(stall), t1 - times[-1]))
+
     def _on_diag(self, msg):
         vals: Dict[str, str] = {}
         for st in msg.status:
@@ -490,10 +504,11 @@ class NodeClient:
 
 
 class Streamer:
-    """Publishes the walk at ``rate`` Hz from a thread of the test process (a live driver)."""
+    """Publishes the walk at ``rate`` Hz from a thread of the test process (a live driver);
+    with ``ids``, every marker carries a persistent id (as Qualisys and Vicon streams do)."""
 
-    def __init__(self, client: "NodeClient", feed: FrameFeed, rate: float = 120.0):
-        self.client, self.feed, self.rate = client, feed, rate
+    def __init__(self, client: "NodeClient", feed: FrameFeed, rate: float = 120.0, ids: bool = False):
+        self.client, self.feed, self.rate, self.ids = client, feed, rate, ids
         self.sent = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -503,7 +518,7 @@ class Streamer:
         t_next = time.monotonic()
         while not self._stop.is_set():
             xyz, truth, stamp = self.feed.next()
-            self.client.publish(xyz, stamp)
+            self.client.publish(xyz, stamp, ids=truth + 100 if self.ids else None)
             self.sent += 1
             t_next += 1.0 / self.rate
             self._stop.wait(max(t_next - time.monotonic(), 0.0))

@@ -442,7 +442,7 @@ class LabelerCore:
         now = time.monotonic()
         h = self.handler
         with self.lock:
-            lat, labt, ovh = (np.asarray(d) for d in (h.latency, h.labeling, h.overhead))
+            lat, labt, ovh, stall = (np.asarray(d) for d in (h.latency, h.labeling, h.overhead, h.stall))
             m = dict(self.model)
         v = self.values
         engine = self.worker.engine
@@ -454,7 +454,7 @@ class LabelerCore:
             time_base=self.guard.time_base, publishers=self._publishers(),
             since_input_s=now - self._t_input if self._t_input is not None else float("inf"),
             failing_s=now - h.t_failing if h.t_failing is not None else 0.0,
-            latency_ms=lat, labeling_ms=labt, overhead_ms=ovh,
+            latency_ms=lat, labeling_ms=labt, overhead_ms=ovh, stall_ms=stall,
             config={k: v[k] for k in ("method", "mode", "window", "max_points", "input_type", "noise_mm",
                                       "expected_labels", "use_bank")}
             | {"input_qos": f"{v['input_qos']} depth {v['input_depth']}"})

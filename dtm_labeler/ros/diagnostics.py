@@ -99,6 +99,7 @@ class NodeState:
     latency_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     labeling_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     overhead_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    stall_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))   # frame ready -> labelling starts
     config: Dict[str, Any] = field(default_factory=dict)      # parameter values shown as keys
 
 
@@ -179,6 +180,8 @@ def _labeling_values(cur: NodeStats, in_rate: float, out_rate: float, st: NodeSt
            ("latency_max_ms", f"{lat.max():.3f}" if lat.size else "nan"),
            ("labeling_p50_ms", _pct(labt, 50)), ("labeling_p99_ms", _pct(labt, 99)),
            ("overhead_p50_ms", _pct(ovh, 50)), ("overhead_p99_ms", _pct(ovh, 99)),
+           ("stall_p99_ms", _pct(st.stall_ms, 99)),
+           ("stall_max_ms", f"{st.stall_ms.max():.3f}" if st.stall_ms.size else "nan"),
            ("latency_window_frames", lat.size), ("full_searches", cur.full_searches),
            ("settings_applied", cur.settings_applied),
            ("last_log_likelihood", f"{cur.last_log_likelihood:.3f}"), ("publishers_matched", st.publishers),

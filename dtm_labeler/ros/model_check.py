@@ -132,7 +132,7 @@ def _check_bank_dir(path: Path) -> Tuple[str, Tuple[str, ...], int]:
         doc = json.loads(index.read_text(encoding="utf-8"))
         files = [path / str(e.get("file", f"{e['name']}.npz")) for e in doc["actions"]]
     except (ValueError, KeyError, TypeError, AttributeError) as e:
-        raise ValueError(f"{index}: not a bank index ({type(e).__name__}: {e})") from None
+        raise ValueError(f"{index}: corrupt bank index ({type(e).__name__}: {e})") from None
     labels: Tuple[str, ...] = ()
     total = 0
     for f in files:

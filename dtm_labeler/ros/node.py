@@ -29,8 +29,10 @@ state, also during a model load or a long search.
 """
 from __future__ import annotations
 
+import ctypes
 import os
 import sys
+import traceback
 from typing import List, Optional
 
 import rclpy
@@ -70,28 +72,42 @@ class LabelerNode(Node):
 
 def run(make_node, args: Optional[List[str]] = None) -> int:
     """Spin the node ``make_node()`` until SIGINT/SIGTERM (rclpy shuts the context down on
-    both) and exit 0. A worker still inside a search after the short join is not waited for:
-    the process ends at once (``os._exit`` after flushing), so shutdown stays under a second."""
+    both), stop its threads (a worker inside a long search is not waited for) and leave with
+    status 0 -- at once, without interpreter finalization: tearing numba, llvmlite, scipy and
+    rclpy down takes most of a second, and shutdown must stay under one. An exception that is
+    not the shutdown itself is printed and exits 1."""
     rclpy.init(args=args)
-    node, clean = None, True
+    node, code = None, 0
     try:
         node = make_node()
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        if rclpy.ok():      # not the race of a signal arriving while the executor waits
+            traceback.print_exc()
+            code = 1
     finally:
         if node is not None:
-            clean = node.stop()
+            node.stop()
             try:
                 node.destroy_node()
             except Exception:      # pragma: no cover - the context may already be gone
                 pass
         rclpy.try_shutdown()
-    if not clean:
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(0)
-    return 0
+    _exit_now(code)
+    return code                    # pragma: no cover - not reached
+
+
+def _exit_now(code: int) -> None:
+    """Flush Python's and C's stdio (rcutils logs through C), then end the process."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    try:
+        ctypes.CDLL(None).fflush(None)
+    except Exception:              # pragma: no cover - no libc symbol lookup here
+        pass
+    os._exit(code)
 
 
 def main(args: Optional[List[str]] = None) -> int:

@@ -67,6 +67,8 @@ class FrameHandler:
         self.latency = collections.deque(maxlen=500)    # receive -> published, ms
         self.labeling = collections.deque(maxlen=500)   # Engine.process, ms
         self.overhead = collections.deque(maxlen=500)   # decode + build + publish, ms
+        self.stall = collections.deque(maxlen=500)      # frame ready -> its labelling starts, ms
+        self._t_done = 0.0                              # perf_counter() when the last frame was done
 
     def clear(self) -> None:
         """Forget per-stream state (a model change, a reset)."""
@@ -79,6 +81,7 @@ class FrameHandler:
             self.latency = collections.deque(self.latency, maxlen=n)
             self.labeling = collections.deque(self.labeling, maxlen=n)
             self.overhead = collections.deque(self.overhead, maxlen=n)
+            self.stall = collections.deque(self.stall, maxlen=n)
 
     # -- the frame ------------------------------------------------------------------------------
     def __call__(self, f: Frame, engine: Optional[Engine]) -> None:
@@ -108,6 +111,9 @@ class FrameHandler:
         finite = np.isfinite(f.xyz).all(1)
         n, n_finite = f.xyz.shape[0], int(finite.sum())
         t0 = time.perf_counter()
+        # the node's own stall: from "a frame is there and the last one is done" to labelling it
+        # (engine swaps, settings, resets in between -- and any thread holding the worker up)
+        stall_ms = (t0 - max(f.t_recv, self._t_done)) * 1e3
         if n_finite:
             res = engine.process(f.xyz, f.stamp, complete_ids(f.ids))
             labels, conf, tracks = res.labels, np.asarray(res.confidence, dtype=float), res.track_ids
@@ -126,6 +132,8 @@ class FrameHandler:
             return
         self._publish(frame, f, engine, v)
         self._count(f, res, n, n_finite, t0, t1)
+        with self.lock:
+            self.stall.append(stall_ms)
 
     def _publish(self, frame: LabelledFrame, f: Frame, engine: Engine, v: Dict[str, Any]) -> None:
         out = self.outputs
@@ -177,3 +185,4 @@ class FrameHandler:
             self.labeling.append((t1 - t0) * 1e3)
             self.overhead.append(f.decode_ms + (t_end - t1) * 1e3)
             self.t_published, self.t_failing = time.monotonic(), None
+        self._t_done = time.perf_counter()
