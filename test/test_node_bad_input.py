@@ -228,6 +228,21 @@ def test_occluded_labels_are_predicted(running):
     still_labelling(cl, feed)
 
 
+def test_millimetre_cloud_warned_once(running):
+    proc, cl, feed, wm = running
+    before = counter(cl, "frames_millimetres")
+    n0 = len(cl.diags)
+    for _ in range(2):
+        xyz, truth, stamp = feed.next()
+        cl.send(xyz * 1000.0, stamp)
+    cl.wait_diag(lambda d: int(d["frames_millimetres"]) >= before + 2)
+    warned = [d for d in cl.diags[n0:] if "millimetres" in d["labeling.message"]]
+    assert warned and warned[0]["labeling.level"] == "1"
+    assert proc.log().count("look like millimetres") == 1
+    feed.stamp += 1.0                        # a gap: the next frames start afresh
+    still_labelling(cl, feed, 15)
+
+
 def test_node_survived_and_sigterm_exits_cleanly(running):
     proc, cl, feed, wm = running
     d = cl.wait_diag(lambda d: True)

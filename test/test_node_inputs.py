@@ -116,3 +116,31 @@ def test_node_survived(running):
     proc, cl, feed, wm, frames = running
     assert proc.alive() and proc.stop(signal.SIGTERM) == 0
     assert "Traceback" not in proc.log()
+
+
+def test_starts_without_mocap4r2_msgs_and_says_what_to_install(monkeypatch):
+    """In-process node with mocap4r2_msgs made unimportable (as on a machine without it)."""
+    import sys
+
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from dtm_labeler.ros.node import LabelerNode
+    monkeypatch.setitem(sys.modules, "mocap4r2_msgs", None)
+    monkeypatch.setitem(sys.modules, "mocap4r2_msgs.msg", None)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = LabelerNode(context=ctx, namespace="/t_nomocap", start_worker=False,
+                       parameter_overrides=[Parameter("input_type", value="mocap4r2_markers")])
+    try:
+        assert node.core.sub is None and node.core.outputs.mocap4r2 is None
+        assert "ros-jazzy-mocap4r2-msgs" in node.core.input_error
+        st = {s.name.rsplit(": ", 1)[1]: s for s in node.diagnostics()}
+        assert "ros-jazzy-mocap4r2-msgs" in st["labeling"].message
+        r = node.set_parameters([Parameter("input_type", value="pointcloud2")])[0]
+        assert r.successful and node.core.sub is not None and not node.core.input_error
+        r = node.set_parameters([Parameter("input_type", value="mocap4r2_markers")])[0]
+        assert not r.successful and "mocap4r2_msgs is not installed" in r.reason
+    finally:
+        node.destroy_node()
+        ctx.try_shutdown()

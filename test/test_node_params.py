@@ -319,6 +319,16 @@ def test_visualization_period_throttles_markers(running):
     cl.run_frames(feed, 5)
     assert len(cl.viz) == n0
     assert all(r.successful for r in cl.set(publish_visualization=True))
+    # namespace and lifetime of the RViz markers (a stopped node leaves none behind)
+    assert all(r.successful for r in cl.set(viz_namespace="mocap/labels", viz_marker_lifetime_s=0.25))
+    xyz, truth, stamp = feed.next()
+    cl.send(xyz, stamp)
+    viz = cl.wait_for(lambda: [v for v in cl.viz if v.markers and abs(cl.stamp_of(v.markers[-1]) - stamp) < 1e-6],
+                      5, "visualization")[0]
+    shown = [m for m in viz.markers if m.action == 0]
+    assert shown and all(m.ns.startswith("mocap/labels/") for m in shown)
+    assert all((m.lifetime.sec, m.lifetime.nanosec) == (0, 250_000_000) for m in shown)
+    assert all(r.successful for r in cl.set(viz_namespace="dtm_labeler", viz_marker_lifetime_s=1.0))
 
 
 def test_bad_values_rejected_and_nothing_changes(running):

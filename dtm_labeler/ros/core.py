@@ -269,8 +269,8 @@ class LabelerCore:
                                 why="model_path set" if reload else "noise_mm set")
         if not P.settings_equal(settings, old_settings):
             self.worker.settings(settings)
-        if any(old[k] != values[k] for k in P.INPUT_KEYS) and self.sub is not None:
-            self.open_input()
+        if any(old[k] != values[k] for k in P.INPUT_KEYS) and (self.sub is not None or self.input_error):
+            self.open_input()           # (not on an inactive lifecycle node: activate opens it)
         if old["diagnostics_period_s"] != values["diagnostics_period_s"] and self._timer is not None:
             self._make_timer()
         if old["latency_window"] != values["latency_window"]:

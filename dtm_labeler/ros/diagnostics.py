@@ -113,11 +113,11 @@ def _cdelta(cur: NodeStats, prev: NodeStats, name: str) -> int:
 
 def assess(cur: NodeStats, prev: NodeStats, dt: float, st: NodeState) -> Tuple[int, str]:
     """Level and message of the labeling status for the period ``prev`` -> ``cur`` (``dt`` s)."""
+    if st.input_error:
+        return ERROR, st.input_error
     if st.model_status not in ("loaded",):
         what = "loading the model" if st.model_status == "loading" else "no model loaded"
         return ERROR, f"{what}: nothing is labelled" + (f" ({st.model_error})" if st.model_error else "")
-    if st.input_error:
-        return ERROR, st.input_error
     if not st.active:
         return OK, "inactive (lifecycle): not labelling"
     if st.failing_s > _FAILING_S:
