@@ -21,7 +21,7 @@ import numpy as np
 from .diagnostics import NodeStats
 from .engine import Engine
 from .messages import LabelledFrame, OccludedLabels, VizThrottle, labeled_marker_array, mocap4r2_markers
-from .pointcloud import complete_ids, make_labeled_cloud
+from .pointcloud import make_labeled_cloud
 from .visualization import MarkerArrayBuilder, label_colors
 from .worker import Frame
 
@@ -115,7 +115,7 @@ class FrameHandler:
         # (engine swaps, settings, resets in between -- and any thread holding the worker up)
         stall_ms = (t0 - max(f.t_recv, self._t_done)) * 1e3
         if n_finite:
-            res = engine.process(f.xyz, f.stamp, complete_ids(f.ids))
+            res = engine.process(f.xyz, f.stamp, f.ids)
             labels, conf, tracks = res.labels, np.asarray(res.confidence, dtype=float), res.track_ids
         else:   # nothing to search: every point published unlabelled (the labeler needs points)
             res = None

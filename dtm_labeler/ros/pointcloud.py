@@ -128,7 +128,7 @@ def _as_bytes(data: Any) -> np.ndarray:
         return np.asarray(data, dtype=np.uint8)
 
 
-def cloud_to_structured(msg: Any, fields: Optional[Tuple[str, ...]] = None) -> np.ndarray:
+def cloud_to_structured(msg: Any, fields: Optional[Tuple[str, ...]] = None, _key=None) -> np.ndarray:
     """Return the points of a PointCloud2 as a 1-D numpy structured array.
 
     One record per point, ``height * width`` records in row-major order; one column per
@@ -149,7 +149,8 @@ def cloud_to_structured(msg: Any, fields: Optional[Tuple[str, ...]] = None) -> n
     point_step, row_step = int(msg.point_step), int(msg.row_step)
     if row_step == 0:
         row_step = width * point_step      # left unset by several drivers
-    dtype = _dtype_for(_layout_key(msg, fields), point_step, bool(msg.is_bigendian))
+    key = _key if _key is not None else _layout_key(msg, fields)
+    dtype = _dtype_for(key, point_step, bool(msg.is_bigendian))
     buf = _as_bytes(msg.data)
     n = height * width
     full = row_step * height
@@ -199,35 +200,37 @@ def read_points_xyz(msg: Any) -> Tuple[np.ndarray, Optional[np.ndarray]]:
             an ``id`` field with count != 1, negative values other than -1, or non-integral
             float values; or a layout error of :func:`cloud_to_structured` in those fields.
     """
-    names = [f.name for f in msg.fields]
+    key = _layout_key(msg)                  # one pass over the fields (rclpy attributes are slow)
+    by_name = {f[0]: f for f in key}
     for axis in ("x", "y", "z"):
-        f = _find_field(msg, axis)
+        f = by_name.get(axis)
         if f is None:
             raise PointCloudError(
-                f"PointCloud2 has no {axis!r} field (fields: {names}); "
+                f"PointCloud2 has no {axis!r} field (fields: {[g[0] for g in key]}); "
                 f"need float32/float64 x, y, z")
-        if f.datatype not in _FLOAT_TYPES:
+        if f[2] not in _FLOAT_TYPES:
             raise PointCloudError(
-                f"field {axis!r} has datatype {_dtname(f.datatype)}; x, y, z must be FLOAT32 or "
+                f"field {axis!r} has datatype {_dtname(f[2])}; x, y, z must be FLOAT32 or "
                 f"FLOAT64")
-        if f.count != 1:
-            raise PointCloudError(f"field {axis!r} has count {f.count}; x, y, z need count 1")
-    fid = _find_field(msg, "id")
-    if fid is not None and fid.count == 0:
+        if f[3] != 1:
+            raise PointCloudError(f"field {axis!r} has count {f[3]}; x, y, z need count 1")
+    fid = by_name.get("id")
+    if fid is not None and fid[3] == 0:
         fid = None                          # an empty id field: no ids
     if fid is not None:
-        if fid.datatype not in _INT_TYPES + _FLOAT_TYPES:
+        if fid[2] not in _INT_TYPES + _FLOAT_TYPES:
             raise PointCloudError(
-                f"field 'id' has datatype {_dtname(fid.datatype)}; track ids must be an integer "
+                f"field 'id' has datatype {_dtname(fid[2])}; track ids must be an integer "
                 f"type (UINT32 preferred) or integral floats")
-        if fid.count != 1:
-            raise PointCloudError(f"field 'id' has count {fid.count}; track ids need count 1")
-    arr = cloud_to_structured(msg, ("x", "y", "z", "id") if fid is not None else ("x", "y", "z"))
+        if fid[3] != 1:
+            raise PointCloudError(f"field 'id' has count {fid[3]}; track ids need count 1")
+    wanted = ("x", "y", "z", "id") if fid is not None else ("x", "y", "z")
+    arr = cloud_to_structured(msg, _key=tuple(f for f in key if f[0] in wanted))
     xyz = np.empty((arr.shape[0], 3), dtype=np.float64)
     xyz[:, 0] = arr["x"]
     xyz[:, 1] = arr["y"]
     xyz[:, 2] = arr["z"]
-    return xyz, (None if fid is None else _track_ids(arr["id"], fid.datatype))
+    return xyz, (None if fid is None else _track_ids(arr["id"], fid[2]))
 
 
 def _track_ids(raw: np.ndarray, datatype: int) -> np.ndarray:
@@ -243,7 +246,8 @@ def _track_ids(raw: np.ndarray, datatype: int) -> np.ndarray:
         return np.where(none, NO_ID, w).astype(np.int64)
     ids = raw.astype(np.int64)
     if datatype == UINT32:
-        ids[ids == _UINT32_MAX] = NO_ID
+        if ids.size and ids.max() == _UINT32_MAX:
+            ids[ids == _UINT32_MAX] = NO_ID
     elif ids.size and ids.min() < NO_ID:
         raise PointCloudError(
             f"field 'id' holds negative values (min {int(ids.min())}); track ids must be >= 0 "

@@ -30,10 +30,9 @@ numbers). Both classes are pure Python (no rclpy).
 from __future__ import annotations
 
 import collections
+import statistics
 from dataclasses import dataclass
 from typing import Callable, Optional, Tuple
-
-import numpy as np
 
 __all__ = ["StampGuard", "StampVerdict", "SourceLock", "STAMP_SOURCES"]
 
@@ -74,12 +73,18 @@ class StampGuard:
         self._restart_kind = ""
         self._dts: collections.deque = collections.deque(maxlen=32)    # good stamp intervals
         self._rts: collections.deque = collections.deque(maxlen=32)    # receive intervals
+        self._period: Optional[float] = None
+        self._period_age = 0                       # samples since the period was computed
 
     @property
     def period(self) -> Optional[float]:
-        """The frame period (s): median good stamp interval, else median receive interval."""
-        src = self._dts if len(self._dts) >= 4 else self._rts
-        return float(np.median(src)) if len(src) >= 4 else None
+        """The frame period (s): median good stamp interval, else median receive interval
+        (recomputed every 8 new intervals: the callback stays in microseconds)."""
+        if self._period is None or self._period_age >= 8:
+            src = self._dts if len(self._dts) >= 4 else self._rts
+            self._period = statistics.median(src) if len(src) >= 4 else None
+            self._period_age = 0
+        return self._period
 
     def check(self, stamp: float, t_recv: float) -> StampVerdict:
         """The labeler time of a frame with header ``stamp`` received at ``t_recv`` (s, steady)."""
@@ -89,6 +94,7 @@ class StampGuard:
         self._recv = t_recv
         if r > 0:
             self._rts.append(r)
+            self._period_age += 1
         if self.time_base == "receive":
             return self._on_receive_time(stamp, r)
         fault, d = self._classify(stamp)
@@ -130,6 +136,7 @@ class StampGuard:
                 lost = int(round(d / p)) - 1
             else:
                 self._dts.append(d)
+                self._period_age += 1
         self._good = stamp
         self._note("")
         return self._emit(stamp + self._offset, "", "", lost)

@@ -32,7 +32,7 @@ class Frame:
     """One decoded input frame on its way to the labeler."""
 
     xyz: Any                     # (n, 3) float64
-    ids: Any                     # (n,) int64 or None (complete ids only, see pointcloud.complete_ids)
+    ids: Any                     # (n,) int64 for every point, or None (partial ids are dropped)
     header: Any                  # the output header (frame_id filled in)
     stamp: float                 # the labeler's time (stamps.StampGuard)
     header_stamp: float          # the header's own stamp (visualisation throttle)
