@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 
 from dtm_labeler.evaluation.switching import join_clips, run_sequence, switch_metrics
-from dtm_labeler.labeling.bank_labeler import (BankFrameResult, BankLabeler, BankSettings, _Sub, allocate,
+from dtm_labeler.labeling.bank_labeler import (BankFrameResult, BankLabeler, BankSettings, Migration, allocate,
                                                migration_probability)
+from dtm_labeler.search.evolve import Island
 from dtm_labeler.search.problem import FrameProblem
 from dtm_labeler.labeling.stream import LabelerSettings
 from dtm_labeler.model.bank import ModelBank
@@ -59,23 +60,26 @@ def test_migration_moves_individuals_toward_the_better_model(data):
     rng = np.random.default_rng(5)
     truth = np.arange(M)
     assert probs[0].fitness(truth[None])[0] > probs[1].fitness(truth[None])[0]   # walk fits a walking frame
+    migrate = Migration(probs, lab.bank_settings, rng)
+
+    def island(pop, m):
+        return Island(pop.copy(), probs[m].fitness, None, probs[m].fitness(pop))
     moved_to_walk, moved_to_run = [], []
     for rep in range(20):
         base = np.repeat(truth[None], 16, 0)
         pop = ops.mutate(base, n, rng, 0.3)
         half = 8
-        subs = {0: _Sub(pop[:half].copy(), probs[0].fitness(pop[:half])),
-                1: _Sub(pop[half:].copy(), probs[1].fitness(pop[half:]))}
-        lab._migrate(subs, probs, [0, 1])
-        moved_to_walk.append(len(subs[0].pop) - half)
+        isl = [island(pop[:half], 0), island(pop[half:], 1)]
+        migrate(isl, 1)
+        moved_to_walk.append(len(isl[0].pop) - half)
     assert np.mean(moved_to_walk) > 3.0          # most movable run individuals (7 of 8 non-elite) went
     assert min(moved_to_walk) > 0
     # the reverse: individuals in the walk model rarely leave for the run model
     for rep in range(20):
         pop = ops.mutate(np.repeat(truth[None], 16, 0), n, rng, 0.3)
-        subs = {0: _Sub(pop.copy(), probs[0].fitness(pop)), 1: _Sub(truth[None].copy(), probs[1].fitness(truth[None]))}
-        lab._migrate(subs, probs, [0, 1])
-        moved_to_run.append(16 - len(subs[0].pop))
+        isl = [island(pop, 0), island(truth[None], 1)]
+        migrate(isl, 1)
+        moved_to_run.append(16 - len(isl[0].pop))
     assert np.mean(moved_to_run) < 2.0
 
 

@@ -18,7 +18,7 @@ from dtm_labeler.ros import params as P
 
 def test_yaml_lists_every_parameter_with_its_default():
     values = P.load_params_file(H.PARAMS_FILE)
-    hint = "regenerate: python -m dtm_labeler.ros.params --write-yaml params/labeler.yaml"
+    hint = "regenerate: python -m dtm_labeler.labeling.config --write-yaml params/labeler.yaml"
     assert set(values) == set(P.DEFAULTS), (set(values) ^ set(P.DEFAULTS), hint)
     for k, v in values.items():
         assert v == P.DEFAULTS[k] and type(v) is type(P.DEFAULTS[k]), (k, v, P.DEFAULTS[k], hint)
@@ -182,7 +182,7 @@ def test_params_file_applies_under_node_name_and_wildcard(rclpy_ctx, key):
         assert node.get_parameter("window").value == 4
         assert node.get_parameter("method").value == "sga"
         assert node.get_parameter("max_points").value == 33
-        assert node.core.settings.window == 4 and node.core.settings.max_points == 33
+        assert node.core.settings.labeler.window == 4 and node.core.settings.labeler.max_points == 33
         assert node.describe_parameter("window").integer_range[0].to_value == 10000
         assert node.describe_parameter("output_qos").read_only
         assert set(P.DEFAULTS) <= set(node._parameters)
@@ -206,7 +206,7 @@ def test_bad_startup_values_fall_back_to_defaults(rclpy_ctx):
         assert not r.successful and "mode" in r.reason
         assert node.get_parameter("window").value == 10
         r = node.set_parameters_atomically([Parameter("window", value=5), Parameter("mode", value="single")])
-        assert r.successful and node.core.settings.window == 5 and node.core.settings.mode == "single"
+        assert r.successful and node.core.settings.labeler.window == 5 and node.core.settings.labeler.mode == "single"
     finally:
         node.destroy_node()
 

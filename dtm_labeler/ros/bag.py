@@ -253,10 +253,6 @@ class Scorer:
     def ghost_rejection(self) -> float:
         return self.ghosts_rejected / self.ghosts if self.ghosts else float("nan")
 
-    @property
-    def unmatched_outputs(self) -> int:
-        return len(self._out)
-
 
 # --------------------------------------------------------------------------------- writing
 
@@ -370,16 +366,6 @@ def read_messages(path: str | Path, topics: Iterable[str] | None = None) -> Iter
             yield c.topic, int(t), ts.deserialize_cdr(raw, c.msgtype)
     finally:
         r.close()
-
-
-def read_ground_truth(path: str | Path) -> dict[int, tuple[np.ndarray, list[str]]]:
-    """``{stamp_ns: (xyz, labels)}`` of a bag's ``/markers/ground_truth`` (empty if it has none)."""
-    r = _reader(path)
-    has = any(c.topic == TOPIC_GROUND_TRUTH for c in r.connections)
-    r.close()
-    if not has:
-        return {}
-    return {stamp_ns_of(m): markers_to_arrays(m) for _, _, m in read_messages(path, [TOPIC_GROUND_TRUTH])}
 
 
 # -------------------------------------------------------------------------------- labeling

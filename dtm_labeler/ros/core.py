@@ -28,9 +28,10 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.parameter import Parameter
 
+from ..labeling.bank_labeler import bank_settings_from_params
 from . import params as P
 from .diagnostics import DiagnosticsBuilder, NodeState, NodeStats
-from .engine import Source
+from .engine import NodeSettings, Source
 from .inputs import InputUnavailable, decode, message_class
 from .loader import EngineLoader, LoadResult
 from .messages import output_header
@@ -45,6 +46,11 @@ __all__ = ["LabelerCore", "declare_parameters", "stamp_seconds"]
 
 def stamp_seconds(header) -> float:
     return float(header.stamp.sec) + 1e-9 * float(header.stamp.nanosec)
+
+
+def node_settings(values: Dict[str, Any]) -> NodeSettings:
+    """The labeler's and the bank's settings of a parameter set (ValueError when bad)."""
+    return NodeSettings(P.settings_from_params(values), bank_settings_from_params(values))
 
 
 def _param(name: str, value: Any) -> Parameter:
@@ -96,7 +102,7 @@ class LabelerCore:
         self.lock = threading.Lock()
         self.stats = NodeStats()
         self.values = declare_parameters(node)
-        self.settings = P.settings_from_params(self.values)
+        self.settings = node_settings(self.values)
         self.guard = StampGuard(self.values["max_gap_s"], self.values["stamp_source"])
         self.sources = SourceLock()
         self.model: Dict[str, Any] = dict(status="no model", path="", error="", labels=(), actions=(), active="")
@@ -148,7 +154,7 @@ class LabelerCore:
             return False
         if self.model["status"] == "no model":
             self._set_model(status="loading", path=src.path, error="")
-        self.loader.request(src, self.settings.noise_mm, reload=True, why=why)
+        self.loader.request(src, self.settings.labeler.noise_mm, self.settings.bank, reload=True, why=why)
         return True
 
     def _set_model(self, **kw) -> None:
@@ -171,7 +177,11 @@ class LabelerCore:
             self.log.error(f"worker: {detail}")
 
     def _on_loaded(self, detail) -> None:
-        result, replaced = detail
+        result, change = detail
+        replaced = change == "replaced"
+        if change in ("swapped", "replaced", "new"):
+            with self.lock:
+                self.stats.models_prepared += 1
         p = result.prepared
         engine = self.worker.engine
         if p is None:
@@ -216,7 +226,7 @@ class LabelerCore:
                 new[p.name] = p.value
         try:
             values = P.validate(new)
-            settings = P.settings_from_params(values)
+            settings = node_settings(values)
             reload = self._check_source(params, values)
             if values["input_type"] != self.values["input_type"]:
                 message_class(values["input_type"])
@@ -262,13 +272,15 @@ class LabelerCore:
         old, old_settings = self.values, self.settings
         self.values, self.settings = values, settings
         changed = [p.name for p in params if p.name in P.SPECS]
-        if reload or settings.noise_mm != old_settings.noise_mm:
+        rebuild = (settings.labeler.noise_mm != old_settings.labeler.noise_mm
+                   or (values["use_bank"] and settings.bank != old_settings.bank))
+        if reload or rebuild:
             src = self.source()
             if reload and not src.empty and self.model["status"] == "no model":
                 self._set_model(status="loading", path=src.path, error="")
-            self.loader.request(src, settings.noise_mm, reload=reload,
-                                why="model_path set" if reload else "noise_mm set")
-        if not P.settings_equal(settings, old_settings):
+            self.loader.request(src, settings.labeler.noise_mm, settings.bank, reload=reload,
+                                why="model_path set" if reload else "noise_mm / bank settings set")
+        if settings != old_settings:
             self.worker.settings(settings)
         if any(old[k] != values[k] for k in P.INPUT_KEYS) and (self.sub is not None or self.input_error):
             self.open_input()           # (not on an inactive lifecycle node: activate opens it)
@@ -484,7 +496,10 @@ class LabelerCore:
 
     # ------------------------------------------------------------------ shutdown
     def shutdown(self, timeout: float = 0.3) -> bool:
-        """Stop the worker and the loader; True when both ended within ``timeout``."""
+        """Stop the worker and the loader (and the labeler's recovery worker, when the worker
+        thread has let go of it); True when the worker thread ended within ``timeout``."""
         done = self.worker.stop(timeout)
         self.loader.stop(0.05)
+        if done and self.worker.engine is not None:
+            self.worker.engine.close()
         return done

@@ -67,6 +67,7 @@ class NodeStats:
     frames_overrun: int = 0
     reloads_ok: int = 0
     reloads_failed: int = 0
+    models_prepared: int = 0          # engines swapped in (loads, and re-widenings for a new noise)
     settings_applied: int = 0
     last_bad_input: str = ""
     last_error: str = ""
@@ -200,7 +201,7 @@ def _model_status(cur: NodeStats, st: NodeState) -> Tuple[int, str, List[Tuple[s
           ("expected_labels", ",".join(st.config.get("expected_labels", []) or [])),
           ("active_model", st.active_model), ("use_bank", st.config.get("use_bank", False)),
           ("bank_actions", ",".join(st.actions)), ("reloads_ok", cur.reloads_ok),
-          ("reloads_failed", cur.reloads_failed)]
+          ("reloads_failed", cur.reloads_failed), ("models_prepared", cur.models_prepared)]
     return level, message, kv
 
 

@@ -5,16 +5,17 @@ the labeler's API is a change here only.
 
 * :func:`load` (slow, loader thread): the model or bank a :class:`Source` names, after
   :func:`~.model_check.check_model_file` has vetted the file.
-* :func:`prepare` (slow, loader thread): what a labeler needs before its first frame -- the model
-  widened by the declared measurement noise, densities built and the kernel compiled.
-* :class:`Engine` (fast to build, worker thread only): a labeler over a prepared model, with the
-  calls the node makes per frame (:meth:`Engine.process`, :meth:`Engine.predicted_position`) and
-  between frames (:meth:`Engine.reset`, :meth:`Engine.update_settings`).
+* :func:`prepare` (slow, loader thread): the labeler's prepared models
+  (:meth:`dtm_labeler.labeling.tracked.Engine.prepare`, :meth:`BankLabeler.prepare`) -- widened by
+  the declared measurement noise, densities built, the kernel compiled; touches no labeler.
+* :class:`NodeLabeler` (fast to build, worker thread only): a labeler over them, with the calls
+  the node makes per frame (:meth:`NodeLabeler.process`, :meth:`NodeLabeler.predicted_position`)
+  and between frames (:meth:`NodeLabeler.reset`, :meth:`NodeLabeler.update_settings`,
+  :meth:`NodeLabeler.swap_models`: a new noise keeps the tracks), and :meth:`NodeLabeler.close`
+  (the labeler's background recovery worker, if any).
 
-The labeler gets ``noise_mm = 0`` because the model it is given is already widened: so a new
-``noise_mm`` never makes the worker rebuild anything (a new prepared engine is swapped in),
-and the labeler's own gap check is off (``max_gap_s`` huge): the node judges gaps on the stamps it
-receives (:mod:`.stamps`), including frames it skipped.
+The labeler's own gap check is off (``max_gap_s`` at its maximum): the node judges gaps on the
+stamps it receives (:mod:`.stamps`), including frames it skipped.
 """
 from __future__ import annotations
 
@@ -23,17 +24,18 @@ from typing import Any, Optional, Sequence, Tuple
 
 import numpy as np
 
-from ..labeling.bank_labeler import BankLabeler
-from ..labeling.stream import LabelerSettings, StreamLabeler
+from ..labeling.bank_labeler import BankLabeler, BankSettings
+from ..labeling.config import SPECS, LabelerSettings, settings_equal
+from ..labeling.stream import StreamLabeler
+from ..labeling.tracked import Engine
 from ..model.bank import ModelBank, load_bank
 from ..model.io import load_model
 from .model_check import check_model_file
-from .params import settings_equal
 
-__all__ = ["Source", "Prepared", "Engine", "load", "prepare", "NO_GAP"]
+__all__ = ["Source", "Prepared", "NodeSettings", "NodeLabeler", "load", "prepare", "NO_GAP"]
 
-#: max_gap_s given to the labeler: gaps are the node's business (see module doc)
-NO_GAP = 1e12
+#: max_gap_s given to the labeler (the largest the table allows): gaps are the node's business
+NO_GAP = float(SPECS["max_gap_s"].range[1])
 
 
 @dataclass(frozen=True)
@@ -53,13 +55,26 @@ class Source:
 
 
 @dataclass(frozen=True)
+class NodeSettings:
+    """The labeler's settings and, for a bank, the bank's."""
+
+    labeler: LabelerSettings
+    bank: BankSettings
+
+    def __eq__(self, other) -> bool:
+        return (isinstance(other, NodeSettings) and settings_equal(self.labeler, other.labeler)
+                and settings_equal(self.bank, other.bank))
+
+
+@dataclass(frozen=True)
 class Prepared:
-    """A loaded model or bank, widened by ``noise_mm`` and warmed up: ready for :class:`Engine`."""
+    """A loaded model or bank and the labeler's engine for it at ``noise_mm``."""
 
     source: Source
     base: Any                  # the model / bank as loaded (kept for re-widening)
     noise_mm: float
-    engine_model: Any          # the widened model, or the bank
+    engine: Engine
+    bank_settings: Optional[BankSettings]
     labels: Tuple[str, ...]
     edges: Tuple[Tuple[int, int], ...]
 
@@ -72,35 +87,34 @@ def load(source: Source) -> Any:
     return load_model(source.path)
 
 
-def prepare(source: Source, base: Any, noise_mm: float) -> Prepared:
-    """Widen and warm up (see module doc); pure: touches no labeler."""
+def prepare(source: Source, base: Any, noise_mm: float, bank_settings: BankSettings) -> Prepared:
+    """The labeler's engine for ``base`` at ``noise_mm`` (slow, see the module doc)."""
     if isinstance(base, ModelBank):
+        engine = BankLabeler.prepare(base, bank_settings, noise_mm)
         first = base[base.actions[0]]
-        for action in base.actions:
-            base[action].warm_up()
-        engine_model, labels = base, tuple(first.labels)
-        edges = tuple(sorted(first.structure.edges()))
     else:
-        engine_model = base.with_noise(noise_mm * 1e-3).warm_up()
-        labels, edges = tuple(base.labels), tuple(sorted(base.structure.edges()))
-    return Prepared(source, base, float(noise_mm), engine_model, labels, edges)
+        engine, first, bank_settings = Engine.prepare(base, noise_mm), base, None
+    return Prepared(source, base, float(noise_mm), engine, bank_settings, tuple(first.labels),
+                    tuple(sorted(first.structure.edges())))
 
 
-def _labeler_settings(settings: LabelerSettings) -> LabelerSettings:
-    return replace(settings, noise_mm=0.0, max_gap_s=NO_GAP)
+def _labeler_settings(settings: LabelerSettings, prepared: Prepared) -> LabelerSettings:
+    """What the labeler gets: the noise its prepared models are widened for (a new noise comes
+    as new prepared models, never as a rebuild on the worker), gaps judged by the node."""
+    return replace(settings, max_gap_s=NO_GAP, noise_mm=prepared.noise_mm)
 
 
-class Engine:
-    """A labeler over a :class:`Prepared` model; used by one thread (the node's worker)."""
+class NodeLabeler:
+    """A labeler over a :class:`Prepared` engine; used by one thread (the node's worker)."""
 
-    def __init__(self, prepared: Prepared, settings: LabelerSettings):
+    def __init__(self, prepared: Prepared, settings: NodeSettings):
         self.prepared = prepared
         self.settings = settings
-        s = _labeler_settings(settings)
-        if isinstance(prepared.engine_model, ModelBank):
-            self._lab = BankLabeler(prepared.engine_model, s)
+        s = _labeler_settings(settings.labeler, prepared)
+        if prepared.bank_settings is not None:
+            self._lab = BankLabeler(prepared.base, s, prepared.bank_settings, engine=prepared.engine)
         else:
-            self._lab = StreamLabeler(prepared.engine_model, s)
+            self._lab = StreamLabeler(prepared.engine, s)
 
     @property
     def labels(self) -> Tuple[str, ...]:
@@ -128,11 +142,32 @@ class Engine:
     def reset(self) -> None:
         self._lab.reset()
 
-    def update_settings(self, settings: LabelerSettings) -> bool:
-        """Apply settings that need no new model (``noise_mm`` is the loader's: it needs a new
-        :class:`Prepared`); returns False when they equal the current ones."""
-        if settings_equal(settings, self.settings):
+    def same_source(self, prepared: Prepared) -> bool:
+        """True when ``prepared`` holds the same models at another noise (tracks can stay)."""
+        p = self.prepared
+        return p.base is prepared.base and (p.bank_settings is None) == (prepared.bank_settings is None)
+
+    def swap_models(self, prepared: Prepared) -> None:
+        """The same models widened for another noise: fitness levels restart, tracks stay."""
+        self.prepared = prepared
+        self._update(self.settings, prepared.engine)
+
+    def update_settings(self, settings: NodeSettings) -> bool:
+        """Apply settings between frames (a new noise needs :meth:`swap_models`); False when
+        they equal the current ones."""
+        if settings == self.settings:
             return False
-        self.settings = settings
-        self._lab.update_settings(_labeler_settings(settings))
+        self._update(settings, None)
         return True
+
+    def _update(self, settings: NodeSettings, engine: Optional[Engine]) -> None:
+        self.settings = settings
+        s = _labeler_settings(settings.labeler, self.prepared)
+        if isinstance(self._lab, BankLabeler):      # bank settings come with prepared models
+            self._lab.update_settings(s, self.prepared.bank_settings, engine=engine)
+        else:
+            self._lab.update_settings(s, engine=engine)
+
+    def close(self) -> None:
+        """Stop the labeler's background recovery worker, if any."""
+        self._lab.close()

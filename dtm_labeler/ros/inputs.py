@@ -38,13 +38,12 @@ from typing import Any, Optional
 
 import numpy as np
 
+from ..labeling.config import INPUT_TYPES, MOCAP4R2_IDS
 from .pointcloud import NO_ID, PointCloudError, read_points_xyz
 
 __all__ = ["INPUT_TYPES", "MOCAP4R2_IDS", "MOCAP4R2_INSTALL", "Decoded", "InputUnavailable", "message_class",
            "decode", "decode_pointcloud", "decode_markers", "name_id"]
 
-INPUT_TYPES = ("pointcloud2", "mocap4r2_markers", "pointcloud")
-MOCAP4R2_IDS = ("auto", "name", "index", "none")
 MOCAP4R2_INSTALL = ("mocap4r2_msgs is not installed: on a ROS install `sudo apt install "
                     "ros-jazzy-mocap4r2-msgs` (or build it from source in your workspace); in this "
                     "project's venv `bash scripts/setup.sh` builds it from vendor/mocap4r2_msgs")

@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable, Optional
 
+from ..labeling.bank_labeler import BankSettings
 from .engine import Prepared, Source, load, prepare
 
 __all__ = ["LoadRequest", "LoadResult", "EngineLoader"]
@@ -25,6 +26,7 @@ __all__ = ["LoadRequest", "LoadResult", "EngineLoader"]
 class LoadRequest:
     source: Source
     noise_mm: float
+    bank_settings: BankSettings = field(default_factory=BankSettings)   # a bank's engine depends on them
     reload: bool = False       # read the file again even when the source is the loaded one
     generation: int = 0
     why: str = ""
@@ -59,11 +61,12 @@ class EngineLoader:
     def generation(self) -> int:
         return self._generation
 
-    def request(self, source: Source, noise_mm: float, reload: bool = False, why: str = "") -> int:
+    def request(self, source: Source, noise_mm: float, bank_settings: BankSettings, reload: bool = False,
+                why: str = "") -> int:
         """Queue a request (replacing any waiting one); returns its generation."""
         with self._cond:
             self._generation += 1
-            self._pending = LoadRequest(source, float(noise_mm), reload, self._generation, why)
+            self._pending = LoadRequest(source, float(noise_mm), bank_settings, reload, self._generation, why)
             self._cond.notify_all()
             return self._generation
 
@@ -139,8 +142,8 @@ class EngineLoader:
         if req.source.empty:
             return None
         last = self._last
-        if (not req.reload and last is not None and last.source == req.source
-                and last.noise_mm == req.noise_mm):
+        if (not req.reload and last is not None and last.source == req.source and last.noise_mm == req.noise_mm
+                and (last.bank_settings is None or last.bank_settings == req.bank_settings)):
             return last                                  # nothing to do: the same engine
         cached = self._cached
         if req.reload or cached is None or cached[0] != req.source:
@@ -150,7 +153,7 @@ class EngineLoader:
             base = cached[1]
         if self._superseded(req):
             return _DROPPED
-        return prepare(req.source, base, req.noise_mm)
+        return prepare(req.source, base, req.noise_mm, req.bank_settings)
 
 
 _DROPPED = object()

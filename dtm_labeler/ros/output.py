@@ -19,7 +19,7 @@ from typing import Any, Callable, Dict, Optional
 import numpy as np
 
 from .diagnostics import NodeStats
-from .engine import Engine
+from .engine import NodeLabeler
 from .messages import LabelledFrame, OccludedLabels, VizThrottle, labeled_marker_array, mocap4r2_markers
 from .pointcloud import make_labeled_cloud
 from .visualization import MarkerArrayBuilder, label_colors
@@ -65,7 +65,7 @@ class FrameHandler:
         self.t_published = time.monotonic()
         self.t_failing: Optional[float] = None          # first labeler error since the last published frame
         self.latency = collections.deque(maxlen=500)    # receive -> published, ms
-        self.labeling = collections.deque(maxlen=500)   # Engine.process, ms
+        self.labeling = collections.deque(maxlen=500)   # NodeLabeler.process, ms
         self.overhead = collections.deque(maxlen=500)   # decode + build + publish, ms
         self.stall = collections.deque(maxlen=500)      # frame ready -> its labelling starts, ms
         self._t_done = 0.0                              # perf_counter() when the last frame was done
@@ -84,7 +84,7 @@ class FrameHandler:
             self.stall = collections.deque(self.stall, maxlen=n)
 
     # -- the frame ------------------------------------------------------------------------------
-    def __call__(self, f: Frame, engine: Optional[Engine]) -> None:
+    def __call__(self, f: Frame, engine: Optional[NodeLabeler]) -> None:
         if engine is None:
             with self.lock:
                 self.stats.skipped["no_model"] += 1
@@ -104,7 +104,7 @@ class FrameHandler:
             engine.reset()
             self.clear()
 
-    def _handle(self, f: Frame, engine: Engine) -> None:
+    def _handle(self, f: Frame, engine: NodeLabeler) -> None:
         if f.resets:                         # counted and logged where they were decided (executor)
             engine.reset()
             self.clear()
@@ -135,7 +135,7 @@ class FrameHandler:
         with self.lock:
             self.stall.append(stall_ms)
 
-    def _publish(self, frame: LabelledFrame, f: Frame, engine: Engine, v: Dict[str, Any]) -> None:
+    def _publish(self, frame: LabelledFrame, f: Frame, engine: NodeLabeler, v: Dict[str, Any]) -> None:
         out = self.outputs
         out.labeled.publish(labeled_marker_array(frame))
         if v["publish_cloud"] and out.cloud.get_subscription_count() > 0:
@@ -151,7 +151,7 @@ class FrameHandler:
                 out.viz.publish(self._viz(engine, v).build(frame.header, frame.xyz, frame.labels, frame.confidence,
                                                            delete_all=delete_all))
 
-    def _viz(self, engine: Engine, v: Dict[str, Any]) -> MarkerArrayBuilder:
+    def _viz(self, engine: NodeLabeler, v: Dict[str, Any]) -> MarkerArrayBuilder:
         b = self._viz_builder
         if (b is None or b.scale != v["marker_scale"] or b.names != list(engine.labels)
                 or b.ns != v["viz_namespace"] or b.lifetime_s != v["viz_marker_lifetime_s"]):

@@ -34,9 +34,10 @@ import statistics
 from dataclasses import dataclass
 from typing import Callable, Optional, Tuple
 
+from ..labeling.config import STAMP_SOURCES
+
 __all__ = ["StampGuard", "StampVerdict", "SourceLock", "STAMP_SOURCES"]
 
-STAMP_SOURCES = ("auto", "header", "receive")
 _WINDOW, _TO_FALLBACK, _TO_RECOVER, _RESTART_SPACING = 20, 3, 60, 240
 _MIN_STEP = 1e-4
 

@@ -9,9 +9,10 @@
   newest settings (:meth:`settings`; older ones waiting are dropped) and runs a requested reset
   (:meth:`request_reset`) -- all fast: the slow part (reading files, widening the model) was done
   by the loader thread.
-* The worker is the only thread that touches the :class:`~.engine.Engine`. It calls
+* The worker is the only thread that touches the :class:`~.engine.NodeLabeler`. It calls
   ``label(frame, engine)`` (the node's frame handler) and ``on_event(kind, detail)`` for what
-  the node reports: ``loaded`` ((LoadResult, replaced an engine)), ``load_failed`` (LoadResult),
+  the node reports: ``loaded`` ((LoadResult, new | replaced | swapped | same | unloaded)),
+  ``load_failed`` (LoadResult),
   ``settings``, ``reset`` (reason), ``error`` (text). :meth:`stop` returns within its timeout even during a long search (the
   thread is a daemon; the handler must not publish once :attr:`stopping` is set).
 """
@@ -21,7 +22,7 @@ import threading
 from dataclasses import dataclass, field
 from typing import Any, Callable, List, Optional
 
-from .engine import Engine
+from .engine import NodeLabeler
 from .loader import LoadResult
 
 __all__ = ["Frame", "LabelWorker"]
@@ -43,7 +44,7 @@ class Frame:
 
 
 class LabelWorker:
-    def __init__(self, label: Callable[[Frame, Optional[Engine]], None],
+    def __init__(self, label: Callable[[Frame, Optional[NodeLabeler]], None],
                  on_event: Callable[[str, Any], None], settings: Any, name: str = "dtm_labeler_worker"):
         self._label = label
         self.current_settings = settings      # what engines are built with (newest applied)
@@ -55,7 +56,7 @@ class LabelWorker:
         self._reset: List[str] = []
         self._stop = False
         self._paused = False
-        self.engine: Optional[Engine] = None
+        self.engine: Optional[NodeLabeler] = None
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
     @property
@@ -109,7 +110,9 @@ class LabelWorker:
     def drop_engine(self) -> None:
         """Forget the engine and anything the loader delivered for it (lifecycle cleanup)."""
         with self._cond:
-            self.engine, self._result = None, None
+            old, self.engine, self._result = self.engine, None, None
+        if old is not None:
+            old.close()
 
     # -- worker thread -------------------------------------------------------------------------
     def _run(self) -> None:
@@ -149,7 +152,15 @@ class LabelWorker:
             return
         p, old = result.prepared, self.engine
         if p is None:
-            self.engine = None
-        elif old is None or old.prepared is not p:
-            self.engine = Engine(p, self.current_settings)
-        self._on_event("loaded", (result, old is not None and self.engine is not old))
+            self.engine, change = None, "unloaded"
+        elif old is not None and old.prepared is p:
+            change = "same"                        # the same models: nothing to swap
+        elif old is not None and not result.request.reload and old.same_source(p):
+            old.swap_models(p)                     # another noise (or bank settings): tracks stay
+            change = "swapped"
+        else:
+            self.engine = NodeLabeler(p, self.current_settings)
+            change = "replaced" if old is not None else "new"
+        if old is not None and self.engine is not old:
+            old.close()
+        self._on_event("loaded", (result, change))
