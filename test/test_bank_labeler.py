@@ -127,30 +127,39 @@ def test_node_uses_the_bank(tmp_path, data):
 
     from dtm_labeler.model.bank import save_bank
     from dtm_labeler.model.io import save_model
-    from dtm_labeler.ros.node import LabelerNode, _Frame
+    from dtm_labeler.ros.node import LabelerNode
+    from dtm_labeler.ros.worker import Frame
     bank, tw, tr = data
     save_bank(bank, tmp_path / "bank")
     save_model(bank["walk"], tmp_path / "walk.npz")
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
-    node = LabelerNode(context=ctx, namespace="/t_bank", start_worker=False, parameter_overrides=[
+    node = LabelerNode(context=ctx, namespace="/t_bank", parameter_overrides=[
         Parameter("use_bank", value=True), Parameter("bank_path", value=str(tmp_path / "bank")),
         Parameter("model_path", value=str(tmp_path / "walk.npz"))])
+    core = node.core
     published = []
-    node._pub_labeled.publish = published.append
+    core.outputs.labeled.publish = published.append
 
     def diag():
         st = {s.name.rsplit(": ", 1)[1]: s for s in node.diagnostics()}
         return {kv.key: kv.value for kv in st["model"].values}
 
+    def wait_engine(pred, what):       # models load on the node's loader thread
+        end = time.monotonic() + 60
+        while not (core.worker.engine is not None and pred(core.worker.engine)):
+            assert time.monotonic() < end, what
+            time.sleep(0.01)
+
     def feed(clip, n, t0):
         rng = np.random.default_rng(0)
         for k in range(n):
             xyz = clip.positions[k][rng.permutation(14)]
-            node._label(_Frame(xyz, None, Header(), t0 + k / clip.rate, time.perf_counter(), 0.0))
+            t = t0 + k / clip.rate
+            core.handler(Frame(xyz, None, Header(), t, t, time.perf_counter(), 0.0), core.worker.engine)
 
     try:
-        assert isinstance(node._labeler, BankLabeler)
+        wait_engine(lambda e: e.actions == ("walk", "run"), "the bank")
         d = diag()
         assert d["model_status"] == "loaded" and d["use_bank"] == "True" and d["bank_actions"] == "walk,run"
         feed(tr, 40, 0.0)
@@ -161,14 +170,12 @@ def test_node_uses_the_bank(tmp_path, data):
         (tmp_path / "bad" / "bank.json").write_text("{")
         r = node.set_parameters([Parameter("bank_path", value=str(tmp_path / "bad"))])[0]
         assert not r.successful and "corrupt" in r.reason
-        assert isinstance(node._labeler, BankLabeler)
-        # bank off: back to the single model at model_path (applied by the worker; run it here)
+        assert core.worker.engine.actions == ("walk", "run")
+        # bank off: back to the single model at model_path
         r = node.set_parameters([Parameter("use_bank", value=False)])[0]
         assert r.successful
-        pending, node._pending = node._pending, []
-        for item in pending:
-            node._apply(item)
-        assert not isinstance(node._labeler, BankLabeler) and node._labeler.model.labels == bank.labels
+        wait_engine(lambda e: e.actions == (), "the single model")
+        assert core.worker.engine.labels == tuple(bank.labels)
         feed(tw, 3, 10.0)
         assert published[-1].active_model == "" and diag()["use_bank"] == "False"
         r = node.set_parameters([Parameter("use_bank", value=True), Parameter("bank_path", value="")])

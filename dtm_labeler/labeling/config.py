@@ -38,6 +38,9 @@ RECOVERY = ("auto", "inline", "background")
 MODES = ("stream", "single")
 STRATEGIES = ("spread", "hard")
 QOS_CHOICES = ("sensor_data", "reliable")
+INPUT_TYPES = ("pointcloud2", "mocap4r2_markers", "pointcloud")      # dtm_labeler.ros.inputs
+MOCAP4R2_IDS = ("auto", "name", "index", "none")
+STAMP_SOURCES = ("auto", "header", "receive")                       # dtm_labeler.ros.stamps
 LAYERS = ("labeler", "bank", "node")
 INT_MAX = 2 ** 31 - 1
 
@@ -228,6 +231,21 @@ PARAMS: Tuple[Param, ...] = (
           "on a bank); empty = the first.", "bank"),
     Param("search_on_switch", True, "Full search in the frame after the active action changes.", "bank"),
     # -- I/O (node) ----------------------------------------------------------------------------
+    Param("input_type", "pointcloud2", "Message type of markers/unlabeled: pointcloud2 "
+          "(sensor_msgs/PointCloud2: IMRCLab motion_capture_tracking, bags), mocap4r2_markers "
+          "(mocap4r2_msgs/Markers: mocap4r2 OptiTrack/Qualisys/Vicon drivers), pointcloud "
+          "(sensor_msgs/PointCloud: natnet_ros2). Changing it recreates the subscription.", "node",
+          choices=INPUT_TYPES),
+    Param("mocap4r2_ids", "auto", "Track ids from mocap4r2 markers: auto (marker names when "
+          "every marker has a unique one -- Vicon; list indices are ignored: OptiTrack and "
+          "Qualisys number markers by list position), name, index (marker_index, for drivers "
+          "whose indices persist), none (the node tracks by position).", "node", choices=MOCAP4R2_IDS),
+    Param("stamp_source", "auto", "Time the labeler runs on: auto (header stamps; after "
+          "stamp faults -- zero, repeated, backwards, jumping -- receive time at the frame "
+          "rate, back to stamps once they are clean), header, receive.", "node", choices=STAMP_SOURCES),
+    Param("frame_id", "", "frame_id of the outputs when the input's is empty (or always, "
+          "with override_frame_id); empty = the input's.", "node"),
+    Param("override_frame_id", False, "Use frame_id for every output, whatever the input says.", "node"),
     Param("input_qos", "sensor_data", "QoS of markers/unlabeled: sensor_data (best effort) or "
           "reliable. Changing it (or input_depth) recreates the subscription.", "node", choices=QOS_CHOICES),
     Param("input_depth", 5, "History depth (keep-last) of the input subscription; the node "
@@ -244,6 +262,14 @@ PARAMS: Tuple[Param, ...] = (
           "messages (0 = every frame; the default gives RViz about 30 Hz and saves the "
           "MarkerArray cost on most frames of a 120 Hz stream).", "node", range=(0.0, 3600.0)),
     Param("marker_scale", 0.05, "Sphere diameter of the RViz markers in metres.", "node", range=(0.001, 10.0)),
+    Param("viz_marker_lifetime_s", 1.0, "Lifetime of the RViz markers (s): RViz drops them this "
+          "long after the last update, so a stopped node leaves no stale markers. 0 = for ever.", "node",
+          range=(0.0, 3600.0)),
+    Param("viz_namespace", "dtm_labeler", "Namespace prefix of the RViz markers (<ns>/labelled, "
+          "<ns>/skeleton, ...).", "node"),
+    Param("publish_mocap4r2", True, "Publish markers/labeled_mocap4r2 (mocap4r2_msgs/Markers, "
+          "marker_name = label) -- built only while it has subscribers and mocap4r2_msgs is "
+          "installed.", "node"),
     Param("publish_occluded", True, "Add an occluded=true, predicted=true LabeledMarker for "
           "every model label missing this frame whose track can still be predicted.", "node"),
     Param("diagnostics_period_s", 1.0, "Period of the /diagnostics status (steady clock).", "node",
@@ -449,7 +475,7 @@ def _yaml_scalar(v: Any) -> str:
     return repr(v) if isinstance(v, float) else str(v)
 
 
-def render_yaml(node_name: str = NODE_NAME) -> str:
+def render_yaml(key: str = "/**") -> str:
     """The text of params/labeler.yaml: every parameter, its description and default."""
     lines = [
         "# dtm_labeler parameters: every parameter with its default (node, dtm-label --params-file,",
@@ -457,10 +483,12 @@ def render_yaml(node_name: str = NODE_NAME) -> str:
         "# `python -m dtm_labeler.labeling.config --write-yaml params/labeler.yaml`; edit the table in",
         "# dtm_labeler/labeling/config.py, not this file.",
         "# Use:  dtm-labeler-node --ros-args --params-file params/labeler.yaml -p model_path:=/path/model.npz",
-        "# The block is keyed by the node name; rename the key to /** to apply it to a node started",
-        "# under another name (__node:=...). Every parameter can be changed at runtime through the",
-        "# parameter services except the read-only ones. Ranges are inclusive.",
-        f"{node_name}:", "  ros__parameters:"]
+        "# The block is keyed /** (every node of the process, so also a node started in a namespace or",
+        "# under another name: a key 'dtm_labeler' would not match /ns/dtm_labeler). To target one node",
+        "# of a shared file, key it by the node's full name (/ns/dtm_labeler). Every parameter can be",
+        "# changed at runtime through the parameter services except the read-only ones; ranges are",
+        "# inclusive. set_parameters applies values one by one; set_parameters_atomically all or none.",
+        f"{key}:", "  ros__parameters:"]
     for p in PARAMS:
         extra = [f"layer {p.layer}"]
         if p.range:

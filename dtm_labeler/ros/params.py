@@ -6,7 +6,16 @@ and its validation live in :mod:`dtm_labeler.labeling.config` (pure Python, shar
 ``ParameterDescriptor`` of a table entry (:func:`descriptor`) and the QoS profiles
 (:func:`qos_profile`). The node declares every entry of :data:`PARAMS` and its
 on-set-parameters callback runs :func:`validate` + :func:`settings_from_params` on the
-WHOLE resulting configuration.
+WHOLE resulting configuration: a value that is bad on its own, or bad together with the
+others, is rejected with the reason and changes nothing.
+
+What "a set" is follows rclpy (checked on rclpy 7.1): ``set_parameters`` (the
+``~/set_parameters`` service, ``ros2 param set``, ``ros2 param load``) applies its parameters
+ONE BY ONE -- the callback sees each alone, against the values already applied, so the good
+ones of a list are applied and only the bad ones rejected (and a change that needs two values
+at once, e.g. ``model_path`` with new ``expected_labels``, must be ordered or made atomic).
+Only ``set_parameters_atomically`` (``~/set_parameters_atomically``) is all-or-nothing: one
+callback with every value, and one bad value applies none.
 
 ``params/labeler.yaml`` holds every parameter with its default; it is generated from the table
 (``python -m dtm_labeler.labeling.config --write-yaml params/labeler.yaml``) and a test checks it.
@@ -19,9 +28,11 @@ from ..labeling.config import (DEFAULTS, LABELER_KEYS, NODE_NAME, PARAMS, QOS_CH
 
 ParamSpec = Param
 INPUT_QOS_KEYS = frozenset({"input_qos", "input_depth"})
+#: Parameters whose change recreates the input subscription.
+INPUT_KEYS = INPUT_QOS_KEYS | {"input_type"}
 
 __all__ = ["ParamSpec", "PARAMS", "SPECS", "DEFAULTS", "NODE_NAME", "QOS_CHOICES", "LABELER_KEYS",
-           "INPUT_QOS_KEYS", "validate", "settings_from_params", "check_labels", "descriptor",
+           "INPUT_QOS_KEYS", "INPUT_KEYS", "validate", "settings_from_params", "check_labels", "descriptor",
            "qos_profile", "load_params_file", "format_value", "settings_equal", "render_yaml"]
 
 
