@@ -430,7 +430,8 @@ class TrackedLabeler:
         frame and its result is taken when it fits better; in the background it joins a later
         frame the same way (:meth:`_join`)."""
         period = self.settings.audit_period_s / AUDITS_PER_PERIOD
-        if period <= 0 or self.recovery.busy or self._provisional or self.settings.method != "cbga":
+        if period <= 0 or self.recovery.busy or self._provisional or self.settings.method != "cbga" or \
+                not (self.recovery.inline or self.recovery.background_ready):
             return fast
         now = self.last_stamp
         if self._last_search_stamp is not None and now - self._last_search_stamp < period:

@@ -3,6 +3,11 @@ before) a velocity for the eq. 12 features.
 
 Constant-velocity prediction, a gate that widens with the track's speed and with the time
 since it was last seen, and optimal assignment (``scipy.optimize.linear_sum_assignment``).
+When the input carries ids (a mocap system's unlabelled trajectories), a point keeps the
+track of its id; a point with an id never seen before may still continue a track that lost
+its point (the systems start a new id when a marker comes back from an occlusion -- with
+flickering markers, every few frames): it is associated with the tracks left over by the same
+gated assignment, and its id becomes an alias of that track.
 The gate of a track seen ``dt`` ago is ``gate_m + gate_speed_factor |v| dt`` at the stream's
 own frame interval. When the update comes ``x`` later than that interval after the previous
 one (frames were skipped by a slow consumer, or lost) every gate grows by ``accel_mps2 x^2 / 2`` -- how far an acceleration can
@@ -49,6 +54,8 @@ class Tracker:
         self.reset()
 
     def reset(self) -> None:
+        self.alias_in = np.zeros(0, dtype=np.int64)     # input ids (sorted) that continue a track ...
+        self.alias_to = np.zeros(0, dtype=np.int64)     # ... and the track ids they continue
         self.ids = np.zeros(0, dtype=np.int64)
         self.pos = np.zeros((0, 3))
         self.vel = np.zeros((0, 3))
@@ -80,16 +87,25 @@ class Tracker:
         match = np.full(n, -1, dtype=np.int64)        # index into current tracks
         if ids is not None:
             ids = np.asarray(ids, dtype=np.int64).reshape(-1)
-            where = {int(k): i for i, k in enumerate(self.ids)}
-            match = np.array([where.get(int(k), -1) for k in ids], dtype=np.int64)
-        elif self.ids.size and n:
-            pred = self.predicted(t)
-            cost = np.linalg.norm(pred[:, None, :] - xyz[None, :, :], axis=-1)          # (K, n)
-            gate = self.gate(t)
-            big = 1e6
-            r, c = linear_sum_assignment(np.where(cost <= gate[:, None], cost, big))
+            if self.alias_in.size:
+                pos = np.minimum(np.searchsorted(self.alias_in, ids), self.alias_in.size - 1)
+                ids = np.where(self.alias_in[pos] == ids, self.alias_to[pos], ids)
+            if self.ids.size and n:
+                order = np.argsort(self.ids)
+                pos = np.minimum(np.searchsorted(self.ids[order], ids), self.ids.size - 1)
+                hit = self.ids[order][pos] == ids
+                match[hit] = order[pos[hit]]
+        free_pts = np.flatnonzero(match < 0)
+        free_trk = np.setdiff1d(np.arange(self.ids.size), match[match >= 0])
+        if free_pts.size and free_trk.size:
+            pred = self.predicted(t)[free_trk]
+            cost = np.linalg.norm(pred[:, None, :] - xyz[free_pts][None, :, :], axis=-1)   # (K, n)
+            gate = self.gate(t)[free_trk]
+            r, c = linear_sum_assignment(np.where(cost <= gate[:, None], cost, 1e6))
             ok = cost[r, c] <= gate[r]
-            match[c[ok]] = r[ok]
+            match[free_pts[c[ok]]] = free_trk[r[ok]]
+            if ids is not None and ok.any():           # new ids that continue a track
+                self._add_alias(ids[free_pts[c[ok]]], self.ids[free_trk[r[ok]]])
         states = np.full((n, 6), np.nan)
         states[:, :3] = xyz
         m = match >= 0
@@ -117,6 +133,9 @@ class Tracker:
         self.misses[~seen] += 1
         keep = self.misses <= self.settings.max_misses
         lost = self.ids[~keep]
+        if self.alias_in.size and lost.size:
+            live = ~np.isin(self.alias_to, lost)
+            self.alias_in, self.alias_to = self.alias_in[live], self.alias_to[live]
         self.ids, self.pos, self.vel, self.known = self.ids[keep], self.pos[keep], self.vel[keep], self.known[keep]
         self.last_t, self.misses = self.last_t[keep], self.misses[keep]
         self.ids = np.concatenate([self.ids, track_ids[new]])
@@ -131,6 +150,12 @@ class Tracker:
                 step - self.frame_dt, -self.frame_dt, self.frame_dt))
         self.t = t
         return TrackUpdate(track_ids, states, new, lost)
+
+    def _add_alias(self, new_ids: np.ndarray, track_ids: np.ndarray) -> None:
+        keys = np.concatenate([self.alias_in, new_ids])
+        vals = np.concatenate([self.alias_to, track_ids])
+        order = np.argsort(keys, kind="stable")
+        self.alias_in, self.alias_to = keys[order], vals[order]
 
     def position_of(self, track_id: int, t: float) -> np.ndarray:
         """Predicted position of a (possibly coasting) track, NaN if unknown."""

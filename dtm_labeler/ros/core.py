@@ -29,6 +29,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.parameter import Parameter
 
 from ..labeling.bank_labeler import bank_settings_from_params
+from ..labeling.recovery import keep_spare_worker
 from . import params as P
 from .diagnostics import DiagnosticsBuilder, NodeState, NodeStats
 from .engine import NodeSettings, Source
@@ -103,6 +104,8 @@ class LabelerCore:
         self.stats = NodeStats()
         self.values = declare_parameters(node)
         self.settings = node_settings(self.values)
+        # a recovery worker process started now is up (imports done) when the first model arrives
+        keep_spare_worker(self.values["recovery"] in ("auto", "background"))
         self.guard = StampGuard(self.values["max_gap_s"], self.values["stamp_source"])
         self.sources = SourceLock()
         self.model: Dict[str, Any] = dict(status="no model", path="", error="", labels=(), actions=(), active="")
