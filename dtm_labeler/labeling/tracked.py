@@ -110,6 +110,7 @@ class FrameInput:
     reason: str               # why the window was reset, if it was
     n_ignored: int            # finite points beyond max_points
     dt: float | None          # seconds since the previous frame
+    ids: np.ndarray           # (n,) the ids reported: the input's, else the tracker's
 
 
 @dataclass
@@ -360,7 +361,7 @@ class TrackedLabeler:
         keep, n_in = inp.keep, inp.n_in
         return self.result_type(
             labels=scatter(pub, keep, n_in, -1), confidence=scatter(conf, keep, n_in, 0.0),
-            track_ids=scatter(inp.upd.track_ids, keep, n_in, -1),
+            track_ids=scatter(inp.ids, keep, n_in, -1),
             search_labels=scatter(search_labels, keep, n_in, -1), assignment=_input_index(assign, keep),
             log_likelihood=float(best.fitness), latency_ms=(time.perf_counter() - t0) * 1e3,
             full_search=found.full, generations=found.generations, evaluations=found.evaluations,
@@ -688,7 +689,8 @@ class TrackedLabeler:
         # points whose velocity is first known this frame (their track began last frame)
         self._event_points = np.flatnonzero(np.isin(upd.track_ids, self._new_tracks))
         self._new_tracks = upd.track_ids[upd.new]
-        return FrameInput(xyz.shape[0], finite, keep, pts, upd, reason, n_ignored, dt)
+        out_ids = upd.track_ids if ids is None else np.asarray(ids, dtype=np.int64)[keep]
+        return FrameInput(xyz.shape[0], finite, keep, pts, upd, reason, n_ignored, dt, out_ids)
 
     def _seeds(self, track_ids: np.ndarray, n: int) -> np.ndarray | None:
         """Warm start: the labels the tracks carried last frame (vectorised lookup); None when

@@ -25,6 +25,10 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 
+#: the longest skip the gates are widened for (a longer pause is a gap: the stream is reset)
+MAX_SKIP_S = 0.25
+
+
 @dataclass
 class TrackerSettings:
     gate_m: float = 0.06               # base association radius (metres)
@@ -76,7 +80,7 @@ class Tracker:
         dt = t - self.last_t
         # skipped time: how much longer than usual since the tracker's last update (not since each
         # track was last seen: an occluded marker's coasting track keeps its ordinary gate)
-        extra = max(t - self.t - self.frame_dt, 0.0) if self.frame_dt and self.t is not None else 0.0
+        extra = min(max(t - self.t - self.frame_dt, 0.0), MAX_SKIP_S) if self.frame_dt and self.t is not None else 0.0
         speed = s.gate_speed_factor * np.linalg.norm(self.vel, axis=1)
         return (s.gate_m + speed * dt + 0.5 * s.accel_mps2 * extra * extra
                 + np.where(self.known, 0.0, s.new_track_speed_mps * extra))
@@ -158,7 +162,11 @@ class Tracker:
         self.alias_in, self.alias_to = keys[order], vals[order]
 
     def position_of(self, track_id: int, t: float) -> np.ndarray:
-        """Predicted position of a (possibly coasting) track, NaN if unknown."""
+        """Predicted position of a (possibly coasting) track (or of an input id that continues
+        one), NaN if unknown."""
+        a = np.flatnonzero(self.alias_in == track_id)
+        if a.size:
+            track_id = int(self.alias_to[a[0]])
         i = np.flatnonzero(self.ids == track_id)
         if i.size == 0:
             return np.full(3, np.nan)

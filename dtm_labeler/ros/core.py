@@ -292,7 +292,7 @@ class LabelerCore:
         if old["latency_window"] != values["latency_window"]:
             self.handler.resize(values["latency_window"])
         if (old["max_gap_s"], old["stamp_source"]) != (values["max_gap_s"], values["stamp_source"]):
-            self.guard = StampGuard(values["max_gap_s"], values["stamp_source"])
+            self.guard.configure(values["max_gap_s"], values["stamp_source"])
         if changed:
             self.log.info("parameters set: " + ", ".join(f"{n}={P.format_value(values[n])}" for n in changed))
 
@@ -473,6 +473,7 @@ class LabelerCore:
             model_path=m["path"], model_error=m["error"], labels=tuple(m["labels"]),
             active_model=(engine.active_model if engine else "") or v["model_name"],
             actions=engine.actions if engine else (), active=self.active, input_error=self.input_error,
+            recovery_error=engine.recovery_failed if engine else "",
             time_base=self.guard.time_base, publishers=self._publishers(),
             since_input_s=now - self._t_input if self._t_input is not None else float("inf"),
             failing_s=now - h.t_failing if h.t_failing is not None else 0.0,
