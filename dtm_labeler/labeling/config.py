@@ -177,10 +177,10 @@ PARAMS: Tuple[Param, ...] = (
           "with the best labeling known, flagged doubtful, and the result joins a later frame: what a "
           "live stream needs) or auto (background in the node, inline offline).", choices=RECOVERY,
           flag="--recovery"),
-    Param("audit_period_s", 1.0, "Background recovery only: a full search from scratch at least this "
-          "often (stream seconds) while the labeling looks fine; its result replaces the labeling "
-          "when the frame scores it higher. Catches a wrong labeling the running level has adapted "
-          "to. 0 = off.", range=(0.0, 3600.0)),
+    Param("audit_period_s", 1.0, "Background recovery only: while the labeling looks fine, the worker "
+          "checks it four times per this many stream seconds -- exact region sweeps, the fourth a full "
+          "search from scratch -- and a better labeling replaces it. Catches a wrong labeling the "
+          "running level has adapted to. 0 = off.", range=(0.0, 3600.0)),
     Param("confidence_temperature", 3.0, "Temperature (nats) of the local label posterior behind "
           "the published confidences (see labeling/confidence.py); the calibrated constant.",
           range=(0.01, 1000.0)),

@@ -423,16 +423,17 @@ class TrackedLabeler:
         return fast
 
     def _maybe_audit(self, problems, inp, searched, fast: FrameSearch) -> FrameSearch:
-        """Audits of a labeling the fast path accepted, every ``audit_period_s`` / 4 of stream
-        time: an exact region sweep from it (every label's region relabelled given the rest),
-        and every fourth time a full search from scratch. The running level adapts to a wrong
-        labeling that tracking carries on -- a limb's labels shifted one marker, a ghost holding
-        a hidden marker's label; an independent search does not. Inline the audit runs in this
-        frame and its result is taken when it fits better; in the background it joins a later
-        frame the same way (:meth:`_join`)."""
+        """Background recovery: audits of a labeling the fast path accepted, every
+        ``audit_period_s`` / 4 of stream time while the worker is idle -- an exact region sweep
+        from it (every label's region relabelled given the rest), and every fourth time a full
+        search from scratch; the result joins a later frame when it fits better (:meth:`_join`).
+        The running level adapts to a wrong labeling that tracking carries on -- a limb's labels
+        shifted one marker, a ghost holding a hidden marker's label; an independent search does
+        not. The worker's core would be idle otherwise. Inline (offline) there are none: every
+        frame's labeling is already the search's."""
         period = self.settings.audit_period_s / AUDITS_PER_PERIOD
-        if period <= 0 or self.recovery.busy or self._provisional or self.settings.method != "cbga" or \
-                not (self.recovery.inline or self.recovery.background_ready):
+        if period <= 0 or self.recovery.inline or self.recovery.busy or self._provisional or \
+                self.settings.method != "cbga" or not self.recovery.background_ready:
             return fast
         now = self.last_stamp
         if self._last_search_stamp is not None and now - self._last_search_stamp < period:
@@ -440,17 +441,7 @@ class TrackedLabeler:
         self._audits += 1
         kind = "audit" if self._audits % AUDITS_PER_PERIOD == 0 else "sweep"
         best = fast.best.assignment
-        request = self._request(problems, inp, searched, best[None], kind)
-        if not self.recovery.inline:
-            self.recovery.submit(request)
-            return fast
-        res = self.recover(request, problems=problems)
-        found = FrameSearch({m: Candidate(a, f) for m, (a, f) in res.candidates.items()}, res.full,
-                            res.generations, res.evaluations + fast.evaluations)
-        if found.best.fitness > fast.best.fitness + 1e-9:
-            self._since_search = 0
-            return found
-        fast.evaluations = found.evaluations
+        self.recovery.submit(self._request(problems, inp, searched, best[None], kind))
         return fast
 
     def _request(self, problems, inp, searched, seeds, kind: str) -> RecoveryRequest:
