@@ -22,11 +22,42 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.optimize import linear_sum_assignment
 
 
 #: the longest skip the gates are widened for (a longer pause is a gap: the stream is reset)
 MAX_SKIP_S = 0.25
+
+
+_OUTSIDE = 1e6               # cost of a pair outside the gate (never chosen unless forced)
+
+
+@njit(cache=True, nogil=True)
+def gated_cost(pos, vel, last_t, gate, t, xyz, match):  # pragma: no cover - compiled
+    """(K, n) distance of every point from every track's constant-velocity prediction at ``t``;
+    ``_OUTSIDE`` beyond the track's gate, for points already matched (``match >= 0``) and for
+    tracks they hold."""
+    K, n = pos.shape[0], xyz.shape[0]
+    cost = np.full((K, n), _OUTSIDE)
+    held = np.zeros(K, dtype=np.bool_)
+    for c in range(n):
+        if match[c] >= 0:
+            held[match[c]] = True
+    for r in range(K):
+        if held[r]:
+            continue
+        dt = t - last_t[r]
+        px = pos[r, 0] + vel[r, 0] * dt
+        py = pos[r, 1] + vel[r, 1] * dt
+        pz = pos[r, 2] + vel[r, 2] * dt
+        for c in range(n):
+            if match[c] >= 0:
+                continue
+            d = np.sqrt((px - xyz[c, 0]) ** 2 + (py - xyz[c, 1]) ** 2 + (pz - xyz[c, 2]) ** 2)
+            if d <= gate[r]:
+                cost[r, c] = d
+    return cost
 
 
 @dataclass
@@ -99,55 +130,55 @@ class Tracker:
                 pos = np.minimum(np.searchsorted(self.ids[order], ids), self.ids.size - 1)
                 hit = self.ids[order][pos] == ids
                 match[hit] = order[pos[hit]]
-        free_pts = np.flatnonzero(match < 0)
-        free_trk = np.setdiff1d(np.arange(self.ids.size), match[match >= 0])
-        if free_pts.size and free_trk.size:
-            pred = self.predicted(t)[free_trk]
-            cost = np.linalg.norm(pred[:, None, :] - xyz[free_pts][None, :, :], axis=-1)   # (K, n)
-            gate = self.gate(t)[free_trk]
-            r, c = linear_sum_assignment(np.where(cost <= gate[:, None], cost, 1e6))
-            ok = cost[r, c] <= gate[r]
-            match[free_pts[c[ok]]] = free_trk[r[ok]]
+        if self.ids.size and n and (ids is None or (match < 0).any()):
+            cost = gated_cost(self.pos, self.vel, self.last_t, self.gate(t), t, xyz, match)
+            r, c = linear_sum_assignment(cost)
+            ok = cost[r, c] < _OUTSIDE
             if ids is not None and ok.any():           # new ids that continue a track
-                self._add_alias(ids[free_pts[c[ok]]], self.ids[free_trk[r[ok]]])
+                self._add_alias(ids[c[ok]], self.ids[r[ok]])
+            match[c[ok]] = r[ok]
+        m = match >= 0
         states = np.full((n, 6), np.nan)
         states[:, :3] = xyz
-        m = match >= 0
-        dt = t - self.last_t[match[m]]
+        mm = match[m]
+        dt = t - self.last_t[mm]
         with np.errstate(invalid="ignore", divide="ignore"):
-            v = (xyz[m] - self.pos[match[m]]) / np.where(dt > 0, dt, np.nan)[:, None]
+            v = (xyz[m] - self.pos[mm]) / np.where(dt > 0, dt, np.nan)[:, None]
         states[m, 3:] = v
         track_ids = np.empty(n, dtype=np.int64)
-        track_ids[m] = self.ids[match[m]]
+        track_ids[m] = self.ids[mm]
         new = ~m
+        n_new = int(new.sum())
         if ids is not None:
             track_ids[new] = ids[new]
-            self._next_id = max(self._next_id, int(ids.max()) + 1 if n else self._next_id)
+            if n:
+                self._next_id = max(self._next_id, int(ids.max()) + 1)
         else:
-            track_ids[new] = np.arange(self._next_id, self._next_id + new.sum())
-            self._next_id += int(new.sum())
-        # update the track table
-        seen = np.zeros(self.ids.size, dtype=bool)
-        seen[match[m]] = True
-        self.pos[match[m]] = xyz[m]
-        self.vel[match[m]] = np.where(np.isfinite(v), v, 0.0)
-        self.known[match[m]] = np.isfinite(v).all(1)
-        self.last_t[match[m]] = t
-        self.misses[match[m]] = 0
-        self.misses[~seen] += 1
+            track_ids[new] = np.arange(self._next_id, self._next_id + n_new)
+            self._next_id += n_new
+        # the track table: matched tracks move on, the others coast, old ones go, new ones come
+        self.pos[mm] = xyz[m]
+        finite = np.isfinite(v).all(1)
+        self.vel[mm] = np.where(finite[:, None], v, 0.0)
+        self.known[mm] = finite
+        self.last_t[mm] = t
+        self.misses += 1
+        self.misses[mm] = 0
         keep = self.misses <= self.settings.max_misses
         lost = self.ids[~keep]
-        if self.alias_in.size and lost.size:
-            live = ~np.isin(self.alias_to, lost)
-            self.alias_in, self.alias_to = self.alias_in[live], self.alias_to[live]
-        self.ids, self.pos, self.vel, self.known = self.ids[keep], self.pos[keep], self.vel[keep], self.known[keep]
-        self.last_t, self.misses = self.last_t[keep], self.misses[keep]
-        self.ids = np.concatenate([self.ids, track_ids[new]])
-        self.pos = np.vstack([self.pos, xyz[new]])
-        self.vel = np.vstack([self.vel, np.zeros((int(new.sum()), 3))])
-        self.known = np.concatenate([self.known, np.zeros(int(new.sum()), dtype=bool)])
-        self.last_t = np.concatenate([self.last_t, np.full(int(new.sum()), t)])
-        self.misses = np.concatenate([self.misses, np.zeros(int(new.sum()), dtype=np.int64)])
+        if lost.size:
+            if self.alias_in.size:
+                live = ~np.isin(self.alias_to, lost)
+                self.alias_in, self.alias_to = self.alias_in[live], self.alias_to[live]
+            self.ids, self.pos, self.vel, self.known = self.ids[keep], self.pos[keep], self.vel[keep], self.known[keep]
+            self.last_t, self.misses = self.last_t[keep], self.misses[keep]
+        if n_new:
+            self.ids = np.concatenate([self.ids, track_ids[new]])
+            self.pos = np.concatenate([self.pos, xyz[new]])
+            self.vel = np.concatenate([self.vel, np.zeros((n_new, 3))])
+            self.known = np.concatenate([self.known, np.zeros(n_new, dtype=bool)])
+            self.last_t = np.concatenate([self.last_t, np.full(n_new, t)])
+            self.misses = np.concatenate([self.misses, np.zeros(n_new, dtype=np.int64)])
         if self.t is not None and t > self.t:                 # the typical interval: a slow running median
             step = t - self.t
             self.frame_dt = step if self.frame_dt is None else self.frame_dt + 0.05 * float(np.clip(

@@ -76,7 +76,6 @@ class FrameProblem:
         self.anchor: float | None = None           # yaw that candidates within ``snap`` of it are scored at
         self.states = np.vstack([states, np.full((1, STATE_DIM), np.nan)])       # row n = missing
         self.codes = observation_state(self.states)
-        self._clean = np.nan_to_num(self.states, nan=0.0)
         xyz = self.states[:, :3]
         d = np.linalg.norm(xyz[:, None] - xyz[None], axis=-1)
         d[-1, :] = d[:, -1] = 0.0                              # "missing" is never too far
