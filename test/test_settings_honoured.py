@@ -51,6 +51,7 @@ CHANGES = {
     "release_moves": True,
     "recovery": "background",
     "audit_period_s": 0.05,
+    "misfit_nats": 0.01,
     "confidence_temperature": 0.3,
     "region_checks": 0,
     "region_size": 2,

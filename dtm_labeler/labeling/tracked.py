@@ -63,6 +63,8 @@ ACCEPT_SCATTERS, REFIT_SCATTERS = 5.0, 8.0
 POSITION_ONLY_WEIGHT = 0.5
 #: audits per audit period: region sweeps, the last of them a full search from scratch
 AUDITS_PER_PERIOD = 4
+#: frames in a row with a label far below its floors before a background audit is asked at once
+MISFIT_FRAMES = 3
 
 
 @dataclass(frozen=True)
@@ -270,6 +272,7 @@ class TrackedLabeler:
         self._epoch = getattr(self, "_epoch", 0) + 1   # results of searches asked before are dropped
         self._last_search_stamp = None
         self._audits = 0
+        self._misfit_run = 0                       # frames in a row with a label below its floors
         self._reset_levels()
 
     def _reset_levels(self) -> None:
@@ -437,7 +440,8 @@ class TrackedLabeler:
                 self.settings.method != "cbga" or not self.recovery.background_ready:
             return fast
         now = self.last_stamp
-        if self._last_search_stamp is not None and now - self._last_search_stamp < period:
+        due = self._last_search_stamp is None or now - self._last_search_stamp >= period
+        if not due and self._misfit_run < MISFIT_FRAMES:
             return fast
         self._audits += 1
         kind = "audit" if self._audits % AUDITS_PER_PERIOD == 0 else "sweep"
@@ -739,7 +743,7 @@ class TrackedLabeler:
         moves = self._moves(problem, seed)
         ind, f, evals = polish(problem, seed, None, self.settings.fast_rounds, neighbours=moves, last=last)
         if self.settings.region_checks > 0 and problem.M > 3:
-            centres = self._event_centres(problem, ind)
+            centres = self._event_centres(problem, ind) + self._misfit_centres(problem, ind)
             if self._region_checks_due(problem.M):
                 self._region_cursor = (self._region_cursor + 1) % problem.M
                 centres = [self._region_cursor] + [c for c in centres if c != self._region_cursor]
@@ -756,6 +760,20 @@ class TrackedLabeler:
         if not self.settings.release_moves:
             return np.zeros(0, dtype=np.int64)
         return np.flatnonzero(ind < problem.n)
+
+    def _misfit_centres(self, problem: FrameProblem, ind: np.ndarray) -> list[int]:
+        """The label that fits worst against what the model expects of a right labeling
+        (:func:`~.fit_check.label_misfit`), when it falls more than ``misfit_nats`` below its
+        triangles' floors: per label, not the frame's total against a running level that adapts
+        to a wrong labeling. Its region is checked exactly this frame; a misfit that stays for
+        ``MISFIT_FRAMES`` frames asks for a background audit at once."""
+        thr = self.settings.misfit_nats
+        if thr <= 0:
+            return []
+        mis = label_misfit(problem, ind, self.engine.floors[self.models.index(problem.model)])
+        worst = int(np.argmax(mis))
+        self._misfit_run = self._misfit_run + 1 if mis[worst] > thr else 0
+        return [worst] if mis[worst] > thr else []
 
     def _event_centres(self, problem: FrameProblem, ind: np.ndarray) -> list[int]:
         """Labels where this frame's labeling is least settled: for each point whose track
