@@ -128,3 +128,26 @@ def test_confidence_reliability_is_measured():
     m = acc.metrics()
     assert m.calibration_error == pytest.approx(0.5 * 0.05 + 0.5 * 0.15)
     assert [r[2] for r in m.reliability] == [2, 2]
+
+
+def test_worker_rebuilds_a_bank_labeler_from_its_spec(model, walker):
+    """What a worker process gets (model file bytes, names, settings) rebuilds the same kind of
+    labeler -- a bank with its actions -- searching inline, and it answers a request."""
+    from dtm_labeler.labeling.bank_labeler import BankLabeler, BankSettings
+    from dtm_labeler.labeling.recovery import build_worker_labeler, worker_spec
+    from dtm_labeler.model.bank import ModelBank
+    bank = ModelBank({"walk": model, "walk2": model})
+    lab = BankLabeler(bank, LabelerSettings(recovery="inline", audit_period_s=0), BankSettings(min_share=2))
+    w = build_worker_labeler(worker_spec(lab))
+    assert isinstance(w, BankLabeler) and w.actions == ["walk", "walk2"] and w.recovery.inline
+    rng = np.random.default_rng(3)
+    for k in range(3):
+        xyz, truth = shuffled(walker, k, rng)
+        lab.process(xyz, k / walker.rate)
+    problems, inp, _ = lab.last_frame
+    req = lab._request(problems, inp, [0, 1], None, "full")
+    res = w.recover(req, rng=np.random.default_rng(req.seed))
+    assert set(res.candidates) == {0, 1} and res.full and "shares" in res.state
+    best = max(res.candidates.values(), key=lambda c: c[1])[0]
+    pts = inp.keep[best[best < len(inp.keep)]]
+    assert np.mean(truth[pts] == np.flatnonzero(best < len(inp.keep))) >= 0.9
