@@ -41,7 +41,7 @@ import numpy as np
 
 from ..model.dtm import TriangulatedModel
 from ..model.features import FULL, POSITION_ONLY
-from ..search import frame_kernels, label_ops
+from ..search import dp_kernels, frame_kernels, label_ops
 from ..search.dtm_dp import regions_of, relabel_regions
 from ..search.label_search import GASearch, LabelSearch, SearchOutcome, make_search, polish, targeted_moves
 from ..search.problem import FrameProblem
@@ -90,6 +90,7 @@ class Engine:
             raise ValueError("the models of one engine must share their labels, in order")
         models = tuple(m.with_noise(noise_mm * 1e-3).warm_up() for m in base)
         frame_kernels.warm_up()
+        dp_kernels.warm_up()
         return cls(names, base, models, float(noise_mm), tuple(term_floors(m) for m in models))
 
     def with_noise(self, noise_mm: float) -> "Engine":

@@ -15,12 +15,14 @@ Restricting each label to a few candidate points (:func:`local_candidates`: the 
 has now, its nearest neighbours, its mirror partner's point, "missing") turns the same DP
 into a cheap large-neighbourhood move: the best labeling among ``prod_l |C_l|`` candidates
 in ``sum_t |C_A| |C_B| |C_C|`` term evaluations. It reaches what single swaps cannot -- a
-chain of labels shifted one marker along a limb is corrected in one step.
+chain of labels shifted one marker along a limb is corrected in one step. The grids and the
+elimination are compiled (:mod:`.dp_kernels`).
 """
 from __future__ import annotations
 
 import numpy as np
 
+from .dp_kernels import dp_solve, grid_keys
 from .problem import FrameProblem
 from . import label_ops as ops
 
@@ -36,57 +38,20 @@ def max_product(problem: FrameProblem, candidates: list[np.ndarray], heading_bin
         raise ValueError("every label needs at least one candidate (n = missing)")
     if len(cand) != M:
         raise ValueError(f"{len(cand)} candidate lists for {M} labels")
-    gain = problem.label_gain
-    dist, bounds = problem.dist, problem.bounds
     # a triangle whose three labels have one candidate each only adds a constant: skipped
     sizes = np.array([c.size for c in cand])
-    active = [t for t in range(problem.T) if t == 0 or (sizes[tri[t]] > 1).any()]
-    # each active triangle's table over its candidate grid (one broadcast per triangle);
-    # triples beyond the distance bounds or using a point twice are excluded
-    specs = []
-    for t in active:
-        a, b, c = (int(x) for x in tri[t])
-        ca, cb, cc = cand[a], cand[b], cand[c]
-        A, B, C = ca[:, None], cb[None, :], cc[None, :]
-        ab = (dist[A, B] <= bounds[a, b]) & ((A != B) | (A == n))
-        ac = (dist[A, C] <= bounds[a, c]) & ((A != C) | (A == n))
-        bc = (dist[cb[:, None], C] <= bounds[b, c]) & ((cb[:, None] != C) | (cb[:, None] == n))
-        specs.append((t, ca, cb, cc, ab[:, :, None] & ac[:, None, :] & bc[None, :, :]))
-    tables = {}
-    for (t, ca, cb, cc, ok), val in zip(specs, problem.grid_terms(heading_bin, specs)):
-        val += gain[ca][:, None, None]
-        if t == 0:
-            val += gain[cb][None, :, None] + gain[cc][None, None, :]
-        tables[t] = np.where(ok, val, -np.inf)
-
-    msgs: dict[tuple[int, int], np.ndarray] = {}          # edge (u < v) -> table [x_u, x_v]
-
-    def msg(u: int, v: int) -> np.ndarray:
-        m = msgs.get((min(u, v), max(u, v)))
-        if m is None:
-            return np.zeros((sizes[u], sizes[v]))
-        return m if u < v else m.T
-
-    def send(u: int, v: int, table: np.ndarray) -> None:
-        key = (min(u, v), max(u, v))
-        msgs[key] = msgs.get(key, 0.0) + (table if u < v else table.T)
-
-    argbest = {}
-    for t in reversed(active[1:]):                       # eliminate A_t (free in its clique)
-        a, b, c = (int(x) for x in tri[t])
-        tot = tables[t] + msg(a, b)[:, :, None] + msg(a, c)[:, None, :]
-        argbest[t] = tot.argmax(0)
-        send(b, c, tot.max(0))
-    a, b, c = (int(x) for x in tri[0])
-    tot = tables[0] + msg(a, b)[:, :, None] + msg(a, c)[:, None, :] + msg(b, c)[None]
-    if not np.isfinite(tot).any():
+    active = np.array([t for t in range(problem.T) if t == 0 or (sizes[tri[t]] > 1).any()], dtype=np.int64)
+    flat = np.concatenate(cand)
+    off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    goff, keys = grid_keys(flat, off, active, tri, problem.dist, problem.bounds, n, problem.T, n + 1,
+                           int(heading_bin))
+    vals = np.full(keys.size, -np.inf)
+    valid = keys >= 0
+    if valid.any():
+        vals[valid] = problem.triple_terms(keys[valid])
+    pick = dp_solve(vals, goff, active, tri, flat, off, problem.label_gain, M)
+    if pick[0] < 0:
         raise ValueError("no candidate labeling satisfies the distance bounds")
-    xa, xb, xc = np.unravel_index(int(np.argmax(tot)), tot.shape)
-    pick = np.zeros(M, dtype=np.int64)
-    pick[[a, b, c]] = (xa, xb, xc)
-    for t in active[1:]:
-        a, b, c = (int(x) for x in tri[t])
-        pick[a] = argbest[t][pick[b], pick[c]]
     assign = np.array([cand[lab][pick[lab]] for lab in range(M)], dtype=np.int64)
     return resolve_duplicates(problem, assign)
 

@@ -138,39 +138,22 @@ class FrameProblem:
             table_fill(c.keys, c.vals, pop, bins, self.tri, ts, self.n + 1, self.T, out)
         return out
 
-    def triple_terms(self, bins, ts, i, j, k) -> np.ndarray:
-        """Terms of triangles ``ts`` with points ``(i, j, k)`` (``n`` = missing) at heading
-        ``bins``; broadcast arrays, cached for the frame. What :meth:`triangle_table` and the
-        max-product DP (:mod:`dtm_labeler.search.dtm_dp`) evaluate."""
-        n1 = self.n + 1
-        keys = (((np.asarray(bins) * self.T + ts) * n1 + i) * n1 + j) * n1 + k
-        shape = keys.shape
+    def triple_terms(self, keys: np.ndarray) -> np.ndarray:
+        """Terms of the frame's term-cache ``keys`` (:meth:`term_key`), computed once per frame
+        (one kernel call per observation pattern for the new ones). What the max-product DP
+        (:mod:`dtm_labeler.search.dtm_dp`) evaluates."""
         keys = np.ascontiguousarray(keys, dtype=np.int64).reshape(-1)
         vals, miss = table_lookup_keys(self.cache.keys, self.cache.vals, keys)
         if miss.size:
             self.cache.insert(miss, self._compute(miss))
             vals, _ = table_lookup_keys(self.cache.keys, self.cache.vals, keys)
-        return vals.reshape(shape)
+        return vals
 
-    def grid_terms(self, heading_bin: int, grids: list[tuple]) -> list[np.ndarray]:
-        """Terms over candidate grids at one heading bin: for each ``(t, ca, cb, cc, mask)``
-        the (|ca|, |cb|, |cc|) terms of triangle ``t`` for every combination of candidate
-        points (``n`` = missing) where ``mask`` is true (elsewhere -inf). All grids go
-        through one :meth:`triple_terms` call (cached, one kernel call per observation
-        pattern)."""
-        out, idx = [], []
-        for t, ca, cb, cc, mask in grids:
-            ia, ib, ic = np.nonzero(mask)
-            idx.append((t, ca[ia], cb[ib], cc[ic]))
-            out.append(np.full(mask.shape, -np.inf))
-        counts = [w[1].size for w in idx]
-        if sum(counts):
-            ts = np.repeat([w[0] for w in idx], counts)
-            pts = [np.concatenate([w[r] for w in idx]) for r in (1, 2, 3)]
-            vals = np.split(self.triple_terms(heading_bin, ts, *pts), np.cumsum(counts)[:-1])
-            for g, (_, _, _, _, mask), v in zip(out, grids, vals):
-                g[mask] = v
-        return out
+    def term_key(self, bins, ts, i, j, k) -> np.ndarray:
+        """Term-cache keys of triangles ``ts`` with points ``(i, j, k)`` (``n`` = missing) at
+        heading ``bins`` (broadcast arrays)."""
+        n1 = self.n + 1
+        return (((np.asarray(bins) * self.T + ts) * n1 + i) * n1 + j) * n1 + k
 
     def _compute(self, keys: np.ndarray) -> np.ndarray:
         """Terms of new keys: the triples' canonical states (:func:`triple_states`), one
