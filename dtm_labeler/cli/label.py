@@ -1,9 +1,13 @@
-"""``dtm-label``: label recordings as unlabeled streams with a trained model and score the result.
+"""``dtm-label``: label captures as unlabeled streams with a trained model; score them, write them labelled.
 
-The input's own labels are stripped (only the model's points are kept, derived to the 14 body
-points when the model uses them), each frame is optionally corrupted (hidden points, ghost
-points, noise) and shuffled, labelled frame by frame by the same engine the ROS node runs, and
-the published labels are compared with the input's labels.
+Each take's own labels are stripped (the model's points are kept, derived to the 14 body
+points when the model uses them); its unlabelled points (C3D ``*`` channels, unnamed CSV
+columns, markers the model does not know) join the stream as points that must stay
+unlabelled; each frame is optionally corrupted (hidden points, ghost points, noise) and
+shuffled, labelled frame by frame by the same engine the ROS node runs, and the published
+labels are compared with the take's labels (when it has names). ``--out`` writes the labelled
+capture (C3D or CSV, the input's rate, units and axes). Folders and many takes run as one job
+per take: here, in ``--jobs N`` local processes, or on a dask cluster (``--dask``).
 """
 from __future__ import annotations
 
@@ -15,22 +19,29 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ..evaluation.pipeline import ClipRun, label_clip_run, model_clip
+from ..evaluation.archive import LabelJob, TakeResult, default_workers, label_take, run_jobs
+from ..evaluation.labelled_capture import OUTPUT_SUFFIXES
+from ..evaluation.pipeline import ClipRun, model_clip
 from ..evaluation.metrics import Metrics, MetricsAccumulator
 from ..labeling.stream import METHODS, MODES, LabelerSettings
 from ..model.io import load_model
 from ..motion.load import load_clip
 from ..search.label_search import GASettings
-from .common import CliError, HelpFormatter, expand_inputs, parse_frames, run_main
+from .common import (CliError, HelpFormatter, add_capture_options, capture_kwargs, expand_inputs, expand_inputs_rel,
+                     parse_frames, run_main)
 
 EPILOG = """examples:
   dtm-train walk.bvh --frames 0:90% --out walk.npz
   dtm-label walk.npz walk.bvh --frames 90%: --json
-  dtm-label walk.npz walk.bvh --frames 90%: --occlude 3 --clutter 2 --noise-mm 2 --out labels.csv
+  dtm-label walk.npz walk.bvh --frames 90%: --occlude 3 --clutter 2 --noise-mm 2 --out-points labels.csv
   dtm-label walk.npz walk.bvh run.bvh --frames 0:50 --mode single --method greedy
   dtm-train capture.c3d --points all --frames 0:90% --out m41.npz && dtm-label m41.npz capture.c3d --frames 90%:
-output (--json): method, mode, frames, labels, accuracy, ghost_rejection, swaps_per_min, search_errors,
-  search_error_rate, latency_ms {p50, p99, max, mean}, fps, per_label, inputs (one entry per input).
+  dtm-label m41.npz unlabelled.c3d --out labelled.c3d            # '*' channels in, named channels out
+  dtm-label m41.npz archive/ --out labelled/ --jobs 2 --json     # one labelled file per take
+  dtm-label m41.npz archive/ --out labelled/ --dask tcp://scheduler:8786
+output (--json): method, mode, frames, labels, accuracy, ghosts, ghost_rejection, swaps_per_min, search_errors,
+  search_error_rate, latency_ms {p50, p99, max, mean}, fps, per_label, inputs (one entry per input: source,
+  frame_range, named, unlabelled_points, out, error, and its own figures).
 """
 
 
@@ -71,7 +82,27 @@ def build_parser() -> argparse.ArgumentParser:
                         "when the inputs' classes are bank actions")
     p.add_argument("--bank-strategy", choices=("spread", "hard"), default="spread",
                    help="spread: population over all action models with migration; hard: one model at a time")
-    p.add_argument("--out", default=None, metavar="FILE.csv", help="write per-frame, per-point labels as CSV")
+    p.add_argument("--out", default=None, metavar="FILE|DIR",
+                   help="write the labelled capture: FILE.c3d or FILE.csv (one input), or a folder for many "
+                        "(one file per take, the archive's layout kept); channels named by the model's labels, "
+                        "unlabelled points as *N, the input's rate, units and axes")
+    p.add_argument("--out-format", choices=("c3d", "csv"), default=None,
+                   help="file type in an --out folder (default: as the input; c3d for BVH/AMC)")
+    p.add_argument("--out-points", default=None, metavar="FILE.csv",
+                   help="write per-frame, per-point labels as CSV (true label, label, confidence, track id)")
+    p.add_argument("--drop-unlabelled", action="store_true",
+                   help="feed only the model's points (ignore * channels, unnamed columns and markers the model "
+                        "does not know)")
+    p.add_argument("--ignore-names", action="store_true",
+                   help="label every point of the takes as an unnamed one (takes named in another convention); "
+                        "nothing is scored")
+    add_capture_options(p)
+    a = p.add_argument_group("archives")
+    a.add_argument("--jobs", type=int, default=1, metavar="N",
+                   help="label N takes at once in local processes (0: one per CPU)")
+    a.add_argument("--dask", default=None, metavar="ADDRESS",
+                   help="run the takes on a dask.distributed cluster: a scheduler address (tcp://host:8786) or "
+                        "'local' (a LocalCluster of --jobs workers started for this run)")
     p.add_argument("--json", action="store_true", help="print one JSON object with the scores")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -102,7 +133,7 @@ def _load(args, labels):
     clips = []
     for path in expand_inputs(args.inputs):
         try:
-            clip = load_clip(path)
+            clip = load_clip(path, **capture_kwargs(args))
         except (ValueError, KeyError, OSError) as e:
             raise CliError(f"{path}: {e}") from None
         try:
@@ -130,7 +161,7 @@ def _metrics_json(m: Metrics) -> dict:
     return d
 
 
-def _write_csv(path: str, runs: list[ClipRun], names: tuple[str, ...], multi: bool) -> None:
+def _write_csv(path: str, runs: list, names: tuple[str, ...], multi: bool) -> None:
     name = lambda i: names[i] if i >= 0 else ""  # noqa: E731
     try:
         fh = open(path, "w", newline="", encoding="utf-8")
@@ -152,9 +183,70 @@ def _write_csv(path: str, runs: list[ClipRun], names: tuple[str, ...], multi: bo
                         f"{r.confidence[i]:.4f}", int(r.track_ids[i]), name(int(r.search_labels[i]))])
 
 
+def _out_paths(args) -> list[tuple[Path, str | None]]:
+    """(take, labelled file to write or None) for every input."""
+    takes = expand_inputs_rel(args.inputs)
+    if not args.out:
+        return [(f, None) for f, _ in takes]
+    out = Path(args.out)
+    if out.suffix.lower() in OUTPUT_SUFFIXES and not out.is_dir():
+        if len(takes) != 1:
+            raise CliError(f"--out {out}: {len(takes)} takes need a folder (--out DIR)")
+        return [(takes[0][0], str(out))]
+    if out.suffix and not out.is_dir():
+        raise CliError(f"--out {out}: write a .c3d or .csv file, or give a folder")
+    paths = []
+    for f, rel in takes:
+        kind = args.out_format or (f.suffix.lower().lstrip(".") if f.suffix.lower() in OUTPUT_SUFFIXES else "c3d")
+        paths.append((f, str(out / rel.with_suffix("." + kind))))
+    dup = {p for _, p in paths if [q for _, q in paths].count(p) > 1}
+    if dup:
+        raise CliError(f"--out {out}: several takes would write {sorted(dup)[0]}")
+    return paths
+
+
+def _jobs(args, settings, takes) -> list[LabelJob]:
+    load = capture_kwargs(args)
+    return [LabelJob(index=i, source=str(f), settings=settings, frames=args.frames, occlude=args.occlude,
+                     clutter=args.clutter, noise_mm=args.noise_mm, gap_frames=args.gap_frames, seed=args.seed + i,
+                     use_ids=args.track_ids, keep_unlabelled=not args.drop_unlabelled,
+                     ignore_names=args.ignore_names, out=out,
+                     keep_records=args.out_points is not None, load=load)
+            for i, (f, out) in enumerate(takes)]
+
+
+def _run_takes(args, jobs: list[LabelJob], model_bytes: bytes) -> list[TakeResult]:
+    """All takes, one progress bar (frames for one take here, takes otherwise)."""
+    workers = default_workers() if args.jobs == 0 else args.jobs
+    quiet = True if args.quiet else None
+    if len(jobs) == 1 and workers <= 1 and not args.dask:
+        bar = tqdm(desc="labeling", unit="frame", file=sys.stderr, disable=quiet, leave=False)
+
+        def frames(done: int, total: int) -> None:
+            bar.total = total
+            bar.update(done - bar.n)
+        try:
+            return [label_take(jobs[0], model_bytes, frames)]
+        finally:
+            bar.close()
+    bar = tqdm(total=len(jobs), desc="labeling", unit="take", file=sys.stderr, disable=quiet, leave=False)
+
+    def takes(done: int, total: int, r: TakeResult) -> None:
+        bar.set_postfix_str(Path(r.source).name[:30])
+        bar.update(done - bar.n)
+    try:
+        return run_jobs(label_take, jobs, model_bytes, workers=workers, dask=args.dask, progress=takes)
+    except (OSError, RuntimeError, TimeoutError) as e:
+        raise CliError(f"{'--dask ' + args.dask if args.dask else '--jobs'}: {e}") from None
+    finally:
+        bar.close()
+
+
 def _main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     settings = _settings(args)
+    if args.jobs < 0:
+        raise CliError("--jobs must be >= 0 (0: one per CPU)")
     if args.bank is not None:
         if args.model is not None:
             args.inputs = [args.model] + list(args.inputs)
@@ -167,55 +259,49 @@ def _main(argv=None) -> int:
     except (OSError, ValueError, KeyError) as e:
         msg = str(e).strip("'\"")
         raise CliError(msg if str(args.model) in msg else f"{args.model}: cannot read model: {msg}") from None
-    clips = _load(args, model.labels)
-    total = sum(c.n_frames for c in clips)
-    bar = tqdm(total=total, desc="labeling", unit="frame", file=sys.stderr, disable=True if args.quiet else None,
-               leave=False)
-
-    def progress(done: int, _total: int) -> None:
-        bar.update(done - bar.n)
-
-    runs: list[ClipRun] = []
-    done = 0
-    try:
-        for i, clip in enumerate(clips):
-            run = label_clip_run(model, clip, settings, occlude=args.occlude, clutter=args.clutter,
-                                 noise_mm=args.noise_mm, seed=args.seed + i, progress=progress,
-                                 use_ids=args.track_ids, gap_frames=args.gap_frames,
-                                 keep_records=args.out is not None, done=done, total=total)
-            run.settings.update(frame_offset=clip.meta["frame_range"][0], rate=clip.rate,
-                                frame_range=clip.meta["frame_range"])
-            runs.append(run)
-            done += clip.n_frames
-    except ValueError as e:
-        raise CliError(str(e)) from None
-    finally:
-        bar.close()
+    takes = _out_paths(args)
+    jobs = _jobs(args, settings, takes)
+    results = _run_takes(args, jobs, Path(args.model).read_bytes())
+    failed = [r for r in results if r.error]
+    runs = [r for r in results if not r.error]
+    for r in failed:
+        print(f"error: {r.error if r.source in r.error else r.source + ': ' + r.error}", file=sys.stderr)
+    if not runs:
+        raise CliError(failed[0].error if len(failed) == 1 else f"all {len(failed)} takes failed")
+    for r in runs:
+        if r.note and not args.json:
+            print(f"note: {r.note}", file=sys.stderr)
     pooled = MetricsAccumulator.merge(r.accumulator for r in runs).metrics()
-    if args.out:
-        _write_csv(args.out, runs, model.labels, multi=len(runs) > 1)
+    if args.out_points:
+        _write_csv(args.out_points, runs, model.labels, multi=len(runs) > 1)
 
     out = {"method": args.method, "mode": args.mode, "model": str(args.model)} | _metrics_json(pooled)
     out |= {"occlude": args.occlude, "clutter": args.clutter, "noise_mm": args.noise_mm,
             "gap_frames": args.gap_frames, "window": args.window, "seed": args.seed, "track_ids": args.track_ids,
-            "inputs": [{"source": r.source, "frame_range": r.settings["frame_range"]} | _metrics_json(r.metrics)
-                       for r in runs]}
+            "drop_unlabelled": args.drop_unlabelled, "jobs": args.jobs, "dask": args.dask,
+            "inputs": [r.summary() | (_metrics_json(r.accumulator.metrics()) if r.accumulator else {})
+                       for r in results]}
     for item in out["inputs"]:
         for k in ("per_label", "label_names", "labels"):
             item.pop(k, None)
     if args.out:
         out["out"] = str(args.out)
+    if failed:
+        out["errors"] = len(failed)
     if args.json:
         print(json.dumps(out, indent=1))
-        return 0
-    _print_summary(args, model, pooled, runs)
-    return 0
+    else:
+        _print_summary(args, model, pooled, runs)
+    return 1 if failed else 0
 
 
 def _bank_main(args, settings) -> int:
     from ..evaluation.switching import label_clip_bank
     from ..labeling.bank_labeler import BankSettings
     from ..model.bank import BankFileError, load_bank
+    if args.out or args.jobs != 1 or args.dask:
+        raise CliError("--bank labels takes one after the other and writes no labelled capture "
+                       "(--out, --jobs, --dask are for a single model)")
     if settings.method not in ("cbga", "tracker"):
         raise CliError("--bank searches with the CBGA: use --method cbga or tracker")
     try:
@@ -234,7 +320,7 @@ def _bank_main(args, settings) -> int:
                                   occlude=args.occlude, clutter=args.clutter, noise_mm=args.noise_mm,
                                   seed=args.seed + i, progress=lambda d, _t: bar.update(d - bar.n),
                                   use_ids=args.track_ids, gap_frames=args.gap_frames,
-                                  keep_records=args.out is not None, done=done, total=total)
+                                  keep_records=args.out_points is not None, done=done, total=total)
             run.settings.update(frame_offset=clip.meta["frame_range"][0], rate=clip.rate,
                                 frame_range=clip.meta["frame_range"])
             runs.append(run)
@@ -244,8 +330,8 @@ def _bank_main(args, settings) -> int:
     finally:
         bar.close()
     pooled = MetricsAccumulator.merge(r.accumulator for r in runs).metrics()
-    if args.out:
-        _write_csv(args.out, runs, bank.labels, multi=len(runs) > 1)
+    if args.out_points:
+        _write_csv(args.out_points, runs, bank.labels, multi=len(runs) > 1)
     known = [r for r in runs if r.settings["active_action_accuracy"] is not None]
     agree = (sum(r.settings["active_action_accuracy"] * r.metrics.frames for r in known)
              / sum(r.metrics.frames for r in known)) if known else None
@@ -262,8 +348,8 @@ def _bank_main(args, settings) -> int:
     for item in out["inputs"]:
         for k in ("per_label", "label_names", "labels"):
             item.pop(k, None)
-    if args.out:
-        out["out"] = str(args.out)
+    if args.out_points:
+        out["out_points"] = str(args.out_points)
     if args.json:
         print(json.dumps(out, indent=1))
         return 0
@@ -278,7 +364,7 @@ def _bank_main(args, settings) -> int:
     return 0
 
 
-def _print_summary(args, model, m: Metrics, runs: list[ClipRun]) -> None:
+def _print_summary(args, model, m: Metrics, runs: list) -> None:
     lat = m.latency_ms
     print(f"model          {args.model} ({len(model.labels)} labels)")
     print(f"method         {args.method}, {args.mode} mode" + (f", window {args.window}" if args.mode == "stream"
@@ -295,6 +381,13 @@ def _print_summary(args, model, m: Metrics, runs: list[ClipRun]) -> None:
         r0, (a, b) = runs[0], runs[0].settings["frame_range"]
         print(f"input          {Path(r0.source).name} frames {a}:{b}")
     print(f"frames         {m.frames} ({m.duration_s:.1f} s of recording)")
+    unl = sum(getattr(r, "unlabelled_points", 0) for r in runs)
+    if unl:
+        print(f"unlabelled     {unl} point{'s' if unl > 1 else ''} of the take{'s' if len(runs) > 1 else ''} "
+              "(* channels, unnamed columns, markers not in the model) fed as ghosts")
+    unnamed = [r for r in runs if not getattr(r, "named", True)]
+    if unnamed:
+        print(f"not scored     {len(unnamed)} take{'s' if len(unnamed) > 1 else ''} without names")
     print(f"accuracy       {_pct(m.accuracy)} of {m.points} visible markers; all right in "
           f"{_pct(m.frame_accuracy)} of frames; search alone {_pct(m.search_accuracy)}")
     print("ghosts         " + (f"{_pct(m.ghost_rejection)} of {m.ghosts} left unlabelled" if m.ghosts else "none"))
@@ -308,8 +401,11 @@ def _print_summary(args, model, m: Metrics, runs: list[ClipRun]) -> None:
         pairs = m.confused_pairs(4)
         if pairs:
             print("confusions     " + ", ".join(f"{t}->{p} {c}" for t, p, c in pairs))
-    if args.out:
-        print(f"wrote          {args.out}")
+    for r in runs:
+        if getattr(r, "out", None):
+            print(f"wrote          {r.out}")
+    if getattr(args, "out_points", None):
+        print(f"wrote          {args.out_points}")
 
 
 def main(argv=None) -> int:

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import time
+from pathlib import Path
 from dataclasses import asdict, dataclass, field, replace
 from typing import Callable, Sequence
 
@@ -43,6 +44,7 @@ from ..motion.clip import MotionClip
 from ..model.dtm import TriangulatedModel
 from ..model.features import (FULL, canonicalise, lateral_yaw, observation_state, point_states,
                        triangle_features)
+from ..motion.naming import common_names
 from ..motion.pointsets import BODY14, left_right_pairs
 from ..model.mixture import GaussianMixture
 from ..model.mixture_em import make_estimator
@@ -133,6 +135,7 @@ class TrainSummary:
     message_length: list[float]
     seconds: float
     sources: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -343,11 +346,9 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
     t0 = time.perf_counter()
     if not clips:
         raise ValueError("no training clips")
-    labels = list(clips[0].names)
-    for c in clips[1:]:
-        if list(c.names) != labels:
-            raise ValueError(f"{c.source}: point names differ from {clips[0].source}; "
-                             "select one point set for all clips")
+    labels, names_note = common_names([c.names for c in clips], [Path(c.source).name or f"clip {i + 1}"
+                                                                for i, c in enumerate(clips)])
+    clips = [c if list(c.names) == labels else c.select(labels) for c in clips]
     if len(labels) < 3:
         raise ValueError("a triangulated model needs at least 3 points")
     config = config.resolved(labels)
@@ -425,5 +426,5 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         structure=structure.names(labels), structure_method=config.structure,
         structure_loglik_per_frame=struct_ll, components=model.components_per_triangle(),
         loglik_per_frame=float(np.mean(ll)), message_length=lengths,
-        seconds=time.perf_counter() - t0, sources=[c.source for c in clips])
+        seconds=time.perf_counter() - t0, sources=[c.source for c in clips], notes=[names_note] if names_note else [])
     return model, summary
