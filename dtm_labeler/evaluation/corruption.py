@@ -128,6 +128,43 @@ def occlusion_mask(available: np.ndarray, k: int, rng: np.random.Generator, gap_
     return hidden
 
 
+def realistic_gaps(n_frames: int, n_points: int, rate: float, missing: float = 0.5, mean_gap_s: float = 0.25,
+                   spread: float = 8.0, seed: int = 0) -> np.ndarray:
+    """(F, M) bool: True where a marker is occluded, the way a capture's gaps look.
+
+    Each marker gets its own missing share (Beta distributed around ``missing``, concentration
+    ``spread``: some markers are hidden most of the time, others rarely), and alternates
+    seen and hidden runs whose lengths are log-normal (sigma 1: many flickers of a few frames
+    and a tail of occlusions of a second or more); hidden runs have the mean ``mean_gap_s``,
+    seen runs the mean that gives the marker its share. Markers start in a random phase."""
+    if not 0.0 <= missing < 1.0:
+        raise ValueError("missing must be in [0, 1)")
+    rng = np.random.default_rng(seed)
+    hidden = np.zeros((n_frames, n_points), dtype=bool)
+    if missing == 0.0 or n_frames == 0:
+        return hidden
+    share = np.clip(rng.beta(missing * spread, (1.0 - missing) * spread, size=n_points), 0.02, 0.95)
+    gap = max(1.0, mean_gap_s * rate)
+    sigma = 1.0
+    for p in range(n_points):
+        means = (gap, gap * (1.0 - share[p]) / share[p])          # hidden, seen
+        state = rng.random() < share[p]
+        t = 0
+        first = True
+        while t < n_frames:
+            mean = means[0] if state else means[1]
+            length = rng.lognormal(np.log(mean) - sigma ** 2 / 2, sigma)
+            if first:                                             # a random phase into the first run
+                length *= rng.random()
+                first = False
+            n = max(1, int(round(length)))
+            if state:
+                hidden[t:t + n, p] = True
+            t += n
+            state = not state
+    return hidden
+
+
 def _ghost_tracks(positions: np.ndarray, visible: np.ndarray, k: int, rate: float, rng: np.random.Generator,
                   offset_m: tuple[float, float], life_s: tuple[float, float], jitter_mm: float):
     """(F, k, 3) ghost positions and (F, k) generation number per slot (a new generation =
