@@ -5,6 +5,8 @@ import argparse
 import json
 import sys
 
+import numpy as np
+
 from tqdm import tqdm
 
 from ..model.io import save_model
@@ -145,6 +147,11 @@ def _main(argv=None) -> int:
     print(f"clips     {len(clips)}: " + ", ".join(c.source.split('/')[-1] for c in clips))
     print(f"frames    {s['frames_total']} ({s['frames_complete']} with every point seen)")
     print(f"labels    {len(s['labels'])}: {' '.join(s['labels'])}")
+    cov = sorted(s["coverage"].items(), key=lambda kv: kv[1])
+    if cov and cov[0][1] < 0.999:
+        print(f"coverage  seen in {100 * float(np.median([v for _, v in cov])):.0f} % of frames (median); least: "
+              + ", ".join(f"{k} {100 * v:.0f} %" for k, v in cov[:5])
+              + f"; structure scored on {s['structure_scored_on']}")
     print(f"structure {s['structure_method']}: " + "  ".join("(" + ",".join(t) + ")" for t in s["structure"]))
     print(f"K         {s['components']}  (mixture: {args.mixture})")
     print(f"loglik    {s['loglik_per_frame']:.2f} per frame (model); structure score "

@@ -418,7 +418,10 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
                     "body_tree": None if parents is None else
                     [[labels[p], labels[c]] for c, p in enumerate(parents) if p >= 0],
                     "rates_hz": sorted({float(c.rate) for c in clips})})
-    ll = model.frame_log_likelihood(states[complete]) if complete.any() else np.array([np.nan])
+    if scored_on == "complete frames" or not scored_on:
+        ll = model.frame_log_likelihood(states[complete]) if complete.any() else np.array([np.nan])
+    else:                                           # gappy takes: marginalised over what each frame misses
+        ll = model.frame_log_likelihood(states[np.isfinite(states).all(-1).sum(1) >= 3])
     # the typical model log-likelihood per labelled point: the stream labeler's starting level
     model.settings["loglik_per_label"] = float(np.median(ll) / len(labels)) if scored_on == "complete frames" \
         else loglik_per_label(model, states)
