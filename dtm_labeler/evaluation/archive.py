@@ -7,7 +7,7 @@ corruption seed of that take. :func:`label_take` loads the take, splits it for t
 if asked and returns a :class:`TakeResult` whose metrics accumulator the caller merges in
 input order -- so every figure except the timings is the same whichever way the jobs run.
 
-:func:`run_jobs` runs any such function over jobs:
+:class:`JobRunner` (:func:`run_jobs` for one batch) runs any such function over jobs:
 
 * ``workers=1`` and no ``dask``: in this process, one after the other;
 * ``workers=N``: a ``concurrent.futures`` process pool of N local processes;
@@ -25,6 +25,7 @@ from __future__ import annotations
 import hashlib
 import io
 import os
+import socket
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -82,6 +83,7 @@ class TakeResult:
     records: list = field(default_factory=list)
     wall_s: float = 0.0
     rate: float = 0.0
+    worker: str = ""                   # host:pid of the process that labelled the take
 
     @property
     def metrics(self):
@@ -96,7 +98,8 @@ class TakeResult:
         """JSON-ready description of the take (metrics are added by the caller)."""
         d = {"source": self.source, "frame_range": list(self.frame_range), "named": self.named,
              "unlabelled_points": self.unlabelled_points, "unlabelled_samples": self.unlabelled_samples,
-             "copies_left_out": self.copies_left_out, "up_axis": self.up_axis, "wall_s": self.wall_s}
+             "copies_left_out": self.copies_left_out, "up_axis": self.up_axis, "wall_s": self.wall_s,
+             "worker": self.worker}
         if self.out:
             d["out"] = self.out
         if self.note:
@@ -122,7 +125,7 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
                ) -> TakeResult:
     """Load, split, label (and write) one take; errors in the take are returned, not raised."""
     t0 = time.perf_counter()
-    res = TakeResult(job.index, job.source)
+    res = TakeResult(job.index, job.source, worker=f"{socket.gethostname()}:{os.getpid()}")
     try:
         model = model_from_bytes(model_bytes)
         clip = load_clip(job.source, **job.load)
@@ -150,56 +153,92 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
     return res
 
 
-def _start_dask(address: str, workers: int):
-    try:
-        from distributed import Client, LocalCluster
-    except ImportError as e:                                 # pragma: no cover - pinned in requirements
-        raise RuntimeError(f"--dask needs dask.distributed ({e})") from None
-    if address == "local":
-        cluster = LocalCluster(n_workers=max(1, workers), threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=40)
-        return Client(cluster), cluster
-    return Client(address, timeout="30s"), None
+class JobRunner:
+    """Runs ``fn(job, shared)`` over jobs here, in local processes or on dask (module doc);
+    a context manager, so the pool or cluster serves every :meth:`map` until it closes."""
 
+    def __init__(self, workers: int = 1, dask: str | None = None):
+        self.workers, self.dask = max(1, int(workers)), dask
+        self._pool = self._client = self._cluster = None
 
-def run_jobs(fn: Callable, jobs: Sequence, shared: Any = None, workers: int = 1, dask: str | None = None,
-             progress: Progress | None = None) -> list:
-    """``[fn(job, shared) for job in jobs]`` serially, in ``workers`` processes, or on dask
-    (module doc); results in job order."""
-    jobs = list(jobs)
-    out: list = [None] * len(jobs)
-    done = 0
+    def __enter__(self) -> "JobRunner":
+        return self
 
-    def finished(i: int, r) -> None:
-        nonlocal done
-        out[i] = r
-        done += 1
-        if progress is not None:
-            progress(done, len(jobs), r)
+    def __exit__(self, *exc) -> None:
+        self.close()
 
-    if dask:
-        client, cluster = _start_dask(dask, workers)
-        try:
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(cancel_futures=True)
+        if self._client is not None:
+            self._client.close()
+        if self._cluster is not None:
+            self._cluster.close()
+        self._pool = self._client = self._cluster = None
+
+    @property
+    def parallel(self) -> bool:
+        return bool(self.dask) or self.workers > 1
+
+    def _dask_client(self):
+        if self._client is None:
+            try:
+                from distributed import Client, LocalCluster
+            except ImportError as e:                         # pragma: no cover - pinned in requirements
+                raise RuntimeError(f"--dask needs dask.distributed ({e})") from None
+            if self.dask == "local":
+                self._cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
+                                             dashboard_address=None, silence_logs=40)
+                self._client = Client(self._cluster)
+            else:
+                self._client = Client(self.dask, timeout="30s")
+        return self._client
+
+    def map(self, fn: Callable, jobs: Sequence, shared: Any = None, progress: Progress | None = None) -> list:
+        """``[fn(job, shared) for job in jobs]``, in job order; ``progress(done, total, result)``
+        after each job."""
+        jobs = list(jobs)
+        out: list = [None] * len(jobs)
+        done = 0
+
+        def finished(i: int, r) -> None:
+            nonlocal done
+            out[i] = r
+            done += 1
+            if progress is not None:
+                progress(done, len(jobs), r)
+
+        if self.dask:
             from distributed import as_completed as dask_completed
+            client = self._dask_client()
             ref = client.scatter(shared, broadcast=True) if shared is not None else None
             futs = client.map(fn, jobs, [ref] * len(jobs), pure=False)
             index = {f.key: i for i, f in enumerate(futs)}
             for f in dask_completed(futs):
                 finished(index[f.key], f.result())
-        finally:
-            client.close()
-            if cluster is not None:
-                cluster.close()
+        elif self.workers <= 1 or len(jobs) <= 1:
+            for i, job in enumerate(jobs):
+                finished(i, fn(job, shared))
+        else:
+            if self._pool is None:
+                self._pool = ProcessPoolExecutor(max_workers=self.workers)
+            futs = {self._pool.submit(fn, job, shared): i for i, job in enumerate(jobs)}
+            for f in as_completed(futs):
+                finished(futs[f], f.result())
         return out
-    if workers <= 1 or len(jobs) <= 1:
-        for i, job in enumerate(jobs):
-            finished(i, fn(job, shared))
-        return out
-    with ProcessPoolExecutor(max_workers=min(workers, len(jobs))) as pool:
-        futs = {pool.submit(fn, job, shared): i for i, job in enumerate(jobs)}
-        for f in as_completed(futs):
-            finished(futs[f], f.result())
-    return out
+
+
+def run_jobs(fn: Callable, jobs: Sequence, shared: Any = None, workers: int = 1, dask: str | None = None,
+             progress: Progress | None = None) -> list:
+    """One :meth:`JobRunner.map` with a runner opened and closed for it."""
+    with JobRunner(workers, dask) as runner:
+        return runner.map(fn, jobs, shared, progress)
+
+
+def call_task(task: tuple, shared: Any = None):
+    """``fn(**kwargs)`` for a ``(fn, kwargs)`` task (a job function for :class:`JobRunner`)."""
+    fn, kwargs = task
+    return fn(**kwargs)
 
 
 def default_workers() -> int:
