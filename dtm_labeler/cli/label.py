@@ -22,13 +22,16 @@ from tqdm import tqdm
 from ..evaluation.archive import LabelJob, TakeResult, default_workers, label_take, run_jobs
 from ..evaluation.labelled_capture import OUTPUT_SUFFIXES
 from ..evaluation.pipeline import ClipRun, model_clip
+from ..evaluation.switching import label_clip_bank
 from ..evaluation.metrics import Metrics, MetricsAccumulator
-from ..labeling.stream import METHODS, MODES, LabelerSettings
+from ..labeling import config
+from ..labeling.bank_labeler import BankSettings, bank_settings_from_params
+from ..labeling.config import LabelerSettings
+from ..model.bank import BankFileError, load_bank
 from ..model.io import load_model
 from ..motion.load import load_clip
-from ..search.label_search import GASettings
-from .common import (CliError, HelpFormatter, add_capture_options, capture_kwargs, expand_inputs, expand_inputs_rel,
-                     parse_frames, run_main)
+from .common import (CliError, HelpFormatter, add_capture_options, add_corruption_arguments, capture_kwargs,
+                     expand_inputs, expand_inputs_rel, parse_frames, run_main)
 
 EPILOG = """examples:
   dtm-train walk.bvh --frames 0:90% --out walk.npz
@@ -41,7 +44,7 @@ EPILOG = """examples:
   dtm-label m41.npz archive/ --out labelled/ --dask tcp://scheduler:8786
 output (--json): method, mode, frames, labels, accuracy, ghosts, ghost_rejection, swaps_per_min, search_errors,
   search_error_rate, latency_ms {p50, p99, max, mean}, fps, per_label, inputs (one entry per input: source,
-  frame_range, named, unlabelled_points, out, error, and its own figures).
+  frame_range, named, unlabelled_points, worker, out, error, and its own figures).
 """
 
 
@@ -53,35 +56,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="model file from dtm-train (.npz); omitted with --bank")
     p.add_argument("inputs", nargs="+", metavar="INPUT",
                    help="labelled recordings (.bvh .amc .c3d .csv) or folders of them")
-    p.add_argument("--method", choices=METHODS, default="cbga",
-                   help="cbga: constraint-based GA; sga: simple GA; greedy: Song et al. DP; exhaustive: all "
-                        "assignments (tiny models only); tracker: carry labels along tracks, search only to start")
-    p.add_argument("--mode", choices=MODES, default="stream",
-                   help="stream: tracks, warm start and votes over the window; single: every frame on its own")
     p.add_argument("--frames", default="0:100%", help="frame range A:B of every input, integers or percentages")
-    p.add_argument("--occlude", type=int, default=0, metavar="K", help="hide K true points per frame")
-    p.add_argument("--clutter", type=int, default=0, metavar="K", help="add K ghost points per frame")
-    p.add_argument("--noise-mm", type=float, default=0.0, metavar="S", help="Gaussian noise, std per coordinate (mm)")
-    p.add_argument("--assume-noise-mm", type=float, default=None, metavar="S",
-                   help="measurement noise the labeler is told about (widens the model); default: --noise-mm")
-    p.add_argument("--gap-frames", type=float, default=1.0, metavar="G",
-                   help="mean length of a simulated occlusion in frames (1: new hidden set every frame)")
-    p.add_argument("--window", type=int, default=LabelerSettings.window, metavar="W",
-                   help="vote window in frames (stream mode)")
-    full = LabelerSettings().full
-    p.add_argument("--population", type=int, default=full.population, metavar="P",
-                   help="GA population of the full search")
-    p.add_argument("--generations", type=int, default=full.max_generations, metavar="G",
-                   help="GA generation cap of the full search")
+    add_corruption_arguments(p)
     p.add_argument("--track-ids", action="store_true",
                    help="give the labeler the simulated mocap track ids instead of letting its tracker associate")
-    p.add_argument("--seed", type=int, default=0, help="seed of the corruption and of the search")
     p.add_argument("--bank", default=None, metavar="DIR",
                    help="label with a model bank (directory or single-file bank from dtm-train --action ... "
                         "--bank DIR): one model per action used at once; JSON adds active_action_accuracy "
                         "when the inputs' classes are bank actions")
-    p.add_argument("--bank-strategy", choices=("spread", "hard"), default="spread",
-                   help="spread: population over all action models with migration; hard: one model at a time")
+    config.add_arguments(p, layers=("labeler", "bank"))
     p.add_argument("--out", default=None, metavar="FILE|DIR",
                    help="write the labelled capture: FILE.c3d or FILE.csv (one input), or a folder for many "
                         "(one file per take, the archive's layout kept); channels named by the model's labels, "
@@ -108,23 +91,13 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _settings(args) -> LabelerSettings:
-    if args.occlude < 0 or args.clutter < 0 or args.noise_mm < 0:
-        raise CliError("--occlude, --clutter and --noise-mm must be >= 0")
-    if args.gap_frames < 1:
-        raise CliError("--gap-frames must be >= 1")
-    full = LabelerSettings().full
+def _settings(args) -> tuple[LabelerSettings, BankSettings]:
+    """Labeler and bank settings: ``--params-file``, then the flags given; the labeler is told
+    the noise the stream is given (``--noise-mm``) unless ``--assume-noise-mm`` says otherwise."""
     try:
-        if args.population is not None or args.generations is not None:
-            kw = dict(vars(full))
-            if args.population is not None:
-                kw["population"] = args.population
-            if args.generations is not None:
-                kw["max_generations"] = args.generations
-            full = GASettings(**kw)
-        assumed = args.noise_mm if args.assume_noise_mm is None else args.assume_noise_mm
-        return LabelerSettings(method=args.method, mode=args.mode, window=args.window, full=full, seed=args.seed,
-                               noise_mm=assumed)
+        values = config.params_from_args(args, layers=("labeler", "bank"))
+        values.setdefault("noise_mm", args.noise_mm)
+        return config.settings_from_params(values), bank_settings_from_params(values)
     except ValueError as e:
         raise CliError(str(e)) from None
 
@@ -166,7 +139,7 @@ def _write_csv(path: str, runs: list, names: tuple[str, ...], multi: bool) -> No
     try:
         fh = open(path, "w", newline="", encoding="utf-8")
     except OSError as e:
-        raise CliError(f"--out {path}: {e}") from None
+        raise CliError(f"--out-points {path}: {e}") from None
     with fh:
         w = csv.writer(fh)
         w.writerow((["input"] if multi else []) + ["frame", "time", "x", "y", "z", "true_label", "label",
@@ -181,6 +154,44 @@ def _write_csv(path: str, runs: list, names: tuple[str, ...], multi: bool) -> No
                         r.index + offset, f"{r.stamp + offset / run.settings.get('rate', 1.0):.6f}",
                         f"{x:.6f}", f"{y:.6f}", f"{z:.6f}", name(int(r.truth[i])), name(int(r.labels[i])),
                         f"{r.confidence[i]:.4f}", int(r.track_ids[i]), name(int(r.search_labels[i]))])
+
+
+def _main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    settings, bank_settings = _settings(args)
+    if args.bank is not None:
+        if args.model is not None:
+            args.inputs = [args.model] + list(args.inputs)
+            args.model = None
+        return _bank_main(args, settings, bank_settings)
+    if args.model is None:
+        raise CliError("MODEL is required (or --bank DIR)")
+    try:
+        model = load_model(args.model)
+    except (OSError, ValueError, KeyError) as e:
+        msg = str(e).strip("'\"")
+        raise CliError(msg if str(args.model) in msg else f"{args.model}: cannot read model: {msg}") from None
+    jobs = _jobs(args, settings, _out_paths(args))
+    results = _run_takes(args, jobs, Path(args.model).read_bytes())
+    failed = [r for r in results if r.error]
+    runs = [r for r in results if not r.error]
+    for r in failed:
+        print(f"error: {r.error if r.source in r.error else r.source + ': ' + r.error}", file=sys.stderr)
+    if not runs:
+        raise CliError(failed[0].error if len(failed) == 1 else f"all {len(failed)} takes failed")
+    for r in runs:
+        if r.note and not args.json:
+            print(f"note: {r.note}", file=sys.stderr)
+    pooled = MetricsAccumulator.merge(r.accumulator for r in runs).metrics()
+    if args.out_points:
+        _write_csv(args.out_points, runs, model.labels, multi=len(runs) > 1)
+    out = {"method": settings.method, "mode": settings.mode, "model": str(args.model)} | _metrics_json(pooled)
+    out |= {"drop_unlabelled": args.drop_unlabelled, "jobs": args.jobs, "dask": args.dask}
+    if failed:
+        out["errors"] = len(failed)
+    if _report(args, settings, out, results, []):
+        _print_summary(args, settings, model, pooled, runs)
+    return 1 if failed else 0
 
 
 def _out_paths(args) -> list[tuple[Path, str | None]]:
@@ -206,17 +217,19 @@ def _out_paths(args) -> list[tuple[Path, str | None]]:
 
 
 def _jobs(args, settings, takes) -> list[LabelJob]:
+    """One job per take: take ``i`` corrupted with ``seed + i`` (as a serial run)."""
     load = capture_kwargs(args)
     return [LabelJob(index=i, source=str(f), settings=settings, frames=args.frames, occlude=args.occlude,
-                     clutter=args.clutter, noise_mm=args.noise_mm, gap_frames=args.gap_frames, seed=args.seed + i,
+                     clutter=args.clutter, noise_mm=args.noise_mm, gap_frames=args.gap_frames, seed=settings.seed + i,
                      use_ids=args.track_ids, keep_unlabelled=not args.drop_unlabelled,
-                     ignore_names=args.ignore_names, out=out,
-                     keep_records=args.out_points is not None, load=load)
+                     ignore_names=args.ignore_names, out=out, keep_records=args.out_points is not None, load=load)
             for i, (f, out) in enumerate(takes)]
 
 
 def _run_takes(args, jobs: list[LabelJob], model_bytes: bytes) -> list[TakeResult]:
     """All takes, one progress bar (frames for one take here, takes otherwise)."""
+    if args.jobs < 0:
+        raise CliError("--jobs must be >= 0 (0: one per CPU)")
     workers = default_workers() if args.jobs == 0 else args.jobs
     quiet = True if args.quiet else None
     if len(jobs) == 1 and workers <= 1 and not args.dask:
@@ -242,73 +255,11 @@ def _run_takes(args, jobs: list[LabelJob], model_bytes: bytes) -> list[TakeResul
         bar.close()
 
 
-def _main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
-    settings = _settings(args)
-    if args.jobs < 0:
-        raise CliError("--jobs must be >= 0 (0: one per CPU)")
-    if args.bank is not None:
-        if args.model is not None:
-            args.inputs = [args.model] + list(args.inputs)
-            args.model = None
-        return _bank_main(args, settings)
-    if args.model is None:
-        raise CliError("MODEL is required (or --bank DIR)")
-    try:
-        model = load_model(args.model)
-    except (OSError, ValueError, KeyError) as e:
-        msg = str(e).strip("'\"")
-        raise CliError(msg if str(args.model) in msg else f"{args.model}: cannot read model: {msg}") from None
-    takes = _out_paths(args)
-    jobs = _jobs(args, settings, takes)
-    results = _run_takes(args, jobs, Path(args.model).read_bytes())
-    failed = [r for r in results if r.error]
-    runs = [r for r in results if not r.error]
-    for r in failed:
-        print(f"error: {r.error if r.source in r.error else r.source + ': ' + r.error}", file=sys.stderr)
-    if not runs:
-        raise CliError(failed[0].error if len(failed) == 1 else f"all {len(failed)} takes failed")
-    for r in runs:
-        if r.note and not args.json:
-            print(f"note: {r.note}", file=sys.stderr)
-    pooled = MetricsAccumulator.merge(r.accumulator for r in runs).metrics()
-    if args.out_points:
-        _write_csv(args.out_points, runs, model.labels, multi=len(runs) > 1)
-
-    out = {"method": args.method, "mode": args.mode, "model": str(args.model)} | _metrics_json(pooled)
-    out |= {"occlude": args.occlude, "clutter": args.clutter, "noise_mm": args.noise_mm,
-            "gap_frames": args.gap_frames, "window": args.window, "seed": args.seed, "track_ids": args.track_ids,
-            "drop_unlabelled": args.drop_unlabelled, "jobs": args.jobs, "dask": args.dask,
-            "inputs": [r.summary() | (_metrics_json(r.accumulator.metrics()) if r.accumulator else {})
-                       for r in results]}
-    for item in out["inputs"]:
-        for k in ("per_label", "label_names", "labels"):
-            item.pop(k, None)
-    if args.out:
-        out["out"] = str(args.out)
-    if failed:
-        out["errors"] = len(failed)
-    if args.json:
-        print(json.dumps(out, indent=1))
-    else:
-        _print_summary(args, model, pooled, runs)
-    return 1 if failed else 0
-
-
-def _bank_main(args, settings) -> int:
-    from ..evaluation.switching import label_clip_bank
-    from ..labeling.bank_labeler import BankSettings
-    from ..model.bank import BankFileError, load_bank
-    if args.out or args.jobs != 1 or args.dask:
-        raise CliError("--bank labels takes one after the other and writes no labelled capture "
-                       "(--out, --jobs, --dask are for a single model)")
-    if settings.method not in ("cbga", "tracker"):
-        raise CliError("--bank searches with the CBGA: use --method cbga or tracker")
-    try:
-        bank = load_bank(args.bank)
-    except (BankFileError, OSError) as e:
-        raise CliError(str(e)) from None
-    clips = _load(args, bank.labels)
+def _label_all(args, settings, labels, label_one):
+    """Every input through ``label_one(clip, **corruption, seed, progress, ...)`` (input ``i``
+    corrupted with ``seed + i``), one progress bar; returns the runs and the pooled metrics;
+    ``--out`` written."""
+    clips = _load(args, labels)
     total = sum(c.n_frames for c in clips)
     bar = tqdm(total=total, desc="labeling", unit="frame", file=sys.stderr, disable=True if args.quiet else None,
                leave=False)
@@ -316,11 +267,10 @@ def _bank_main(args, settings) -> int:
     done = 0
     try:
         for i, clip in enumerate(clips):
-            run = label_clip_bank(bank, clip, settings, BankSettings(strategy=args.bank_strategy),
-                                  occlude=args.occlude, clutter=args.clutter, noise_mm=args.noise_mm,
-                                  seed=args.seed + i, progress=lambda d, _t: bar.update(d - bar.n),
-                                  use_ids=args.track_ids, gap_frames=args.gap_frames,
-                                  keep_records=args.out_points is not None, done=done, total=total)
+            run = label_one(clip, occlude=args.occlude, clutter=args.clutter, noise_mm=args.noise_mm,
+                            seed=settings.seed + i, progress=lambda d, _t: bar.update(d - bar.n),
+                            use_ids=args.track_ids, gap_frames=args.gap_frames,
+                            keep_records=args.out_points is not None, done=done, total=total)
             run.settings.update(frame_offset=clip.meta["frame_range"][0], rate=clip.rate,
                                 frame_range=clip.meta["frame_range"])
             runs.append(run)
@@ -329,48 +279,70 @@ def _bank_main(args, settings) -> int:
         raise CliError(str(e)) from None
     finally:
         bar.close()
-    pooled = MetricsAccumulator.merge(r.accumulator for r in runs).metrics()
     if args.out_points:
-        _write_csv(args.out_points, runs, bank.labels, multi=len(runs) > 1)
-    known = [r for r in runs if r.settings["active_action_accuracy"] is not None]
-    agree = (sum(r.settings["active_action_accuracy"] * r.metrics.frames for r in known)
-             / sum(r.metrics.frames for r in known)) if known else None
-    out = {"method": args.method, "mode": args.mode, "bank": str(args.bank), "actions": bank.actions,
-           "bank_strategy": args.bank_strategy} | _metrics_json(pooled)
-    out |= {"active_action_accuracy": agree, "occlude": args.occlude, "clutter": args.clutter,
-            "noise_mm": args.noise_mm, "gap_frames": args.gap_frames, "window": args.window, "seed": args.seed,
+        _write_csv(args.out_points, runs, tuple(labels), multi=len(runs) > 1)
+    return runs, MetricsAccumulator.merge(r.accumulator for r in runs).metrics()
+
+
+def _report(args, settings, out: dict, runs: list, input_keys: list[str]) -> bool:
+    """Complete the JSON object (corruption, settings, one entry per input with ``input_keys``
+    of its run settings, or a take's own summary) and print it with ``--json``; True when a
+    text summary is due."""
+    out |= {"occlude": args.occlude, "clutter": args.clutter, "noise_mm": args.noise_mm,
+            "gap_frames": args.gap_frames, "window": settings.window, "seed": settings.seed,
             "track_ids": args.track_ids,
-            "inputs": [{"source": r.source, "frame_range": r.settings["frame_range"],
-                        "true_class": r.settings["true_class"],
-                        "active_action_accuracy": r.settings["active_action_accuracy"],
-                        "active_action_frames": r.settings["active_action_frames"]} | _metrics_json(r.metrics)
+            "inputs": [(r.summary() if isinstance(r, TakeResult) else
+                        {"source": r.source, "frame_range": r.settings["frame_range"]}
+                        | {k: r.settings[k] for k in input_keys})
+                       | (_metrics_json(r.metrics) if getattr(r, "accumulator", None) is not None else {})
                        for r in runs]}
     for item in out["inputs"]:
         for k in ("per_label", "label_names", "labels"):
             item.pop(k, None)
-    if args.out_points:
-        out["out_points"] = str(args.out_points)
+    for key in ("out", "out_points"):
+        if getattr(args, key, None):
+            out[key] = str(getattr(args, key))
     if args.json:
         print(json.dumps(out, indent=1))
+        return False
+    return True
+
+
+def _bank_main(args, settings, bank_settings) -> int:
+    if args.out or args.jobs != 1 or args.dask:
+        raise CliError("--bank labels takes one after the other and writes no labelled capture "
+                       "(--out, --jobs, --dask are for a single model)")
+    try:
+        bank = load_bank(args.bank)
+    except (BankFileError, OSError) as e:
+        raise CliError(str(e)) from None
+    runs, pooled = _label_all(args, settings, bank.labels,
+                              lambda clip, **kw: label_clip_bank(bank, clip, settings, bank_settings, **kw))
+    known = [r for r in runs if r.settings["active_action_accuracy"] is not None]
+    agree = (sum(r.settings["active_action_accuracy"] * r.metrics.frames for r in known)
+             / sum(r.metrics.frames for r in known)) if known else None
+    out = {"method": settings.method, "mode": settings.mode, "bank": str(args.bank), "actions": bank.actions,
+           "bank_strategy": bank_settings.strategy} | _metrics_json(pooled) | {"active_action_accuracy": agree}
+    if not _report(args, settings, out, runs, ["true_class", "active_action_accuracy", "active_action_frames"]):
         return 0
     print(f"bank           {args.bank} ({len(bank.actions)} actions: {', '.join(bank.actions)}; "
-          f"{args.bank_strategy})")
+          f"{bank_settings.strategy})")
     for r in runs:
         fr = r.settings["active_action_frames"]
         print(f"  {Path(r.source).name[:40]:40s} class {r.settings['true_class'] or '?':6s} active "
               + ", ".join(f"{a} {c}" for a, c in fr.items() if c) + f"; agreement {_pct(r.settings['active_action_accuracy'])}")
     args.model = args.bank
-    _print_summary(args, bank[bank.actions[0]], pooled, runs)
+    _print_summary(args, settings, bank[bank.actions[0]], pooled, runs)
     return 0
 
 
-def _print_summary(args, model, m: Metrics, runs: list) -> None:
+def _print_summary(args, settings, model, m: Metrics, runs: list) -> None:
     lat = m.latency_ms
     print(f"model          {args.model} ({len(model.labels)} labels)")
-    print(f"method         {args.method}, {args.mode} mode" + (f", window {args.window}" if args.mode == "stream"
+    print(f"method         {settings.method}, {settings.mode} mode" + (f", window {settings.window}" if settings.mode == "stream"
                                                                  else ""))
     print(f"corruption     occlude {args.occlude}, clutter {args.clutter}, noise {args.noise_mm:g} mm, "
-          f"seed {args.seed}")
+          f"seed {settings.seed}")
     if len(runs) > 1:
         print(f"{'input':34s} {'frames':>7s} {'accuracy':>9s} {'swaps/min':>9s} {'errors':>7s} {'p50 ms':>7s}")
         for r in runs:

@@ -1,8 +1,14 @@
 """Frame-to-frame point association, so every point gets a track id and (when it was seen
 before) a velocity for the eq. 12 features.
 
-Constant-velocity prediction, a gate that widens with the track's speed, and optimal
-assignment (``scipy.optimize.linear_sum_assignment``). When the input carries track ids
+Constant-velocity prediction, a gate that widens with the track's speed and with the time
+since it was last seen, and optimal assignment (``scipy.optimize.linear_sum_assignment``).
+The gate of a track seen ``dt`` ago is ``gate_m + gate_speed_factor |v| dt`` at the stream's
+own frame interval. When the update comes ``x`` later than that interval after the previous
+one (frames were skipped by a slow consumer, or lost) every gate grows by ``accel_mps2 x^2 / 2`` -- how far an acceleration can
+take a marker off its constant-velocity prediction -- and, for a track whose velocity is not
+known yet (seen once), by ``new_track_speed_mps x``: the tracks survive the skip instead of all
+breaking (which would force a fresh search, and a slower frame, and more skips). When the input carries track ids
 they are used instead. New, lost and re-appearing points are normal: a new track has no
 velocity (NaN, marginalised by the model), a lost one coasts for ``max_misses`` frames.
 """
@@ -19,10 +25,14 @@ class TrackerSettings:
     gate_m: float = 0.06               # base association radius (metres)
     gate_speed_factor: float = 0.5     # + this x predicted travel in the frame
     max_misses: int = 12               # frames a lost track coasts before deletion
+    accel_mps2: float = 50.0           # + accel dt^2 / 2: what acceleration adds to the prediction error
+    new_track_speed_mps: float = 2.0   # a track seen once may have moved this fast
 
     def __post_init__(self) -> None:
-        if not self.gate_m > 0 or self.gate_speed_factor < 0 or self.max_misses < 0:
-            raise ValueError("gate_m must be > 0, gate_speed_factor >= 0, max_misses >= 0")
+        if not self.gate_m > 0 or min(self.gate_speed_factor, self.max_misses, self.accel_mps2,
+                                      self.new_track_speed_mps) < 0:
+            raise ValueError("gate_m must be > 0; gate_speed_factor, max_misses, accel_mps2, "
+                             "new_track_speed_mps >= 0")
 
 
 @dataclass
@@ -44,12 +54,25 @@ class Tracker:
         self.vel = np.zeros((0, 3))
         self.last_t = np.zeros(0)
         self.misses = np.zeros(0, dtype=np.int64)
+        self.known = np.zeros(0, dtype=bool)           # velocity estimated (seen twice or more)
         self._next_id = 0
         self.t = None
+        self.frame_dt = None                           # running typical interval between updates
 
     def predicted(self, t: float) -> np.ndarray:
         dt = (t - self.last_t)[:, None]
         return self.pos + np.nan_to_num(self.vel) * dt
+
+    def gate(self, t: float) -> np.ndarray:
+        """(K,) association radius of every track at time ``t`` (see the module doc)."""
+        s = self.settings
+        dt = t - self.last_t
+        # skipped time: how much longer than usual since the tracker's last update (not since each
+        # track was last seen: an occluded marker's coasting track keeps its ordinary gate)
+        extra = max(t - self.t - self.frame_dt, 0.0) if self.frame_dt and self.t is not None else 0.0
+        speed = s.gate_speed_factor * np.linalg.norm(self.vel, axis=1)
+        return (s.gate_m + speed * dt + 0.5 * s.accel_mps2 * extra * extra
+                + np.where(self.known, 0.0, s.new_track_speed_mps * extra))
 
     def update(self, xyz: np.ndarray, t: float, ids: np.ndarray | None = None) -> TrackUpdate:
         xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
@@ -62,8 +85,7 @@ class Tracker:
         elif self.ids.size and n:
             pred = self.predicted(t)
             cost = np.linalg.norm(pred[:, None, :] - xyz[None, :, :], axis=-1)          # (K, n)
-            speed = np.linalg.norm(np.nan_to_num(self.vel), axis=1)
-            gate = self.settings.gate_m + self.settings.gate_speed_factor * speed * (t - self.last_t)
+            gate = self.gate(t)
             big = 1e6
             r, c = linear_sum_assignment(np.where(cost <= gate[:, None], cost, big))
             ok = cost[r, c] <= gate[r]
@@ -89,18 +111,24 @@ class Tracker:
         seen[match[m]] = True
         self.pos[match[m]] = xyz[m]
         self.vel[match[m]] = np.where(np.isfinite(v), v, 0.0)
+        self.known[match[m]] = np.isfinite(v).all(1)
         self.last_t[match[m]] = t
         self.misses[match[m]] = 0
         self.misses[~seen] += 1
         keep = self.misses <= self.settings.max_misses
         lost = self.ids[~keep]
-        self.ids, self.pos, self.vel = self.ids[keep], self.pos[keep], self.vel[keep]
+        self.ids, self.pos, self.vel, self.known = self.ids[keep], self.pos[keep], self.vel[keep], self.known[keep]
         self.last_t, self.misses = self.last_t[keep], self.misses[keep]
         self.ids = np.concatenate([self.ids, track_ids[new]])
         self.pos = np.vstack([self.pos, xyz[new]])
         self.vel = np.vstack([self.vel, np.zeros((int(new.sum()), 3))])
+        self.known = np.concatenate([self.known, np.zeros(int(new.sum()), dtype=bool)])
         self.last_t = np.concatenate([self.last_t, np.full(int(new.sum()), t)])
         self.misses = np.concatenate([self.misses, np.zeros(int(new.sum()), dtype=np.int64)])
+        if self.t is not None and t > self.t:                 # the typical interval: a slow running median
+            step = t - self.t
+            self.frame_dt = step if self.frame_dt is None else self.frame_dt + 0.05 * float(np.clip(
+                step - self.frame_dt, -self.frame_dt, self.frame_dt))
         self.t = t
         return TrackUpdate(track_ids, states, new, lost)
 
