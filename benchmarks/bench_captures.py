@@ -34,6 +34,7 @@ import argparse
 import json
 import os
 import platform
+import resource
 import subprocess
 import sys
 import tempfile
@@ -246,16 +247,18 @@ def run_archive(tmp: Path, quick: bool, repeats: int) -> dict:
     runs: dict = {}
     for name, extra in (("serial", []), ("--jobs 2", ["--jobs", "2"]), ("--dask local --jobs 2",
                                                                        ["--dask", "local", "--jobs", "2"])):
-        walls, d = [], None
+        walls, cpus, d = [], [], None
         for _ in range(repeats):
-            t0 = time.perf_counter()
+            r0, t0 = resource.getrusage(resource.RUSAGE_CHILDREN), time.perf_counter()
             p = subprocess.run([str(BIN / "dtm-label"), str(model_path), str(folder), "--json", "--quiet"] + extra,
                                capture_output=True, text=True)
             walls.append(time.perf_counter() - t0)
+            r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpus.append(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime)
             if p.returncode:
                 raise RuntimeError(p.stderr)
             d = json.loads(p.stdout)
-        runs[name] = {"wall_s": walls, "best_s": min(walls), "load": os.getloadavg()[0],
+        runs[name] = {"wall_s": walls, "best_s": min(walls), "cpu_s": cpus, "load": os.getloadavg()[0],
                       "figures": {k: d[k] for k in ("frames", "points", "correct", "accuracy", "ghosts", "swaps",
                                                     "search_errors")},
                       "per_take": [x["accuracy"] for x in d["inputs"]],
@@ -275,8 +278,9 @@ def pct(x) -> str:
 
 def write_md(res: dict, meta: dict) -> str:
     L = ["# Captures: gappy training, real ghosts, unnamed C3D -> labelled C3D, archives", "",
-         f"{meta['date']}, commit {meta['commit']}, {meta['machine']}; load average {meta['load_start']:.1f} at "
-         f"start, {meta['load_end']:.1f} at end (other jobs share the machine). `{meta['command']}`", ""]
+         f"{meta['machine']}; other jobs share the machine. Sections run: "
+         + "; ".join(f"{name} {r['date']} (commit {r['commit']}, load average {r['load_start']:.1f} -> "
+                     f"{r['load_end']:.1f})" for name, r in meta.get("runs", {}).items()) + ".", ""]
     if "gaps" in res:
         g = GAPS
         L += ["## Training on gappy captures", "",
@@ -337,12 +341,15 @@ def write_md(res: dict, meta: dict) -> str:
         a = res["archive"]
         L += ["## Archives: `--jobs`, `--dask local`", "",
               f"`dtm-label MODEL folder/ --json` over {a['takes']} HDM05 takes of {a['frames_per_take']} frames "
-              "(subprocesses; best wall time of the repeats).", "",
-              "| run | wall s (each) | best s | speed-up | same figures as serial | workers |",
-              "|---|---|---:|---:|---|---:|"]
+              "(subprocesses; best wall time of the repeats). CPU s = user + system time of the run and its "
+              "workers: CPU / wall is the number of cores the run got.", "",
+              "| run | wall s (each) | CPU s (each) | best s | speed-up | same figures as serial | workers | "
+              "load after |", "|---|---|---|---:|---:|---|---:|---:|"]
         for name, r in a["runs"].items():
-            L.append(f"| {name} | {', '.join(f'{w:.1f}' for w in r['wall_s'])} | {r['best_s']:.1f} | "
-                     f"{r['speedup']:.2f}x | {'yes' if r['same_figures'] else 'NO'} | {len(r['workers'])} |")
+            L.append(f"| {name} | {', '.join(f'{w:.1f}' for w in r['wall_s'])} | "
+                     f"{', '.join(f'{c:.1f}' for c in r.get('cpu_s', [])) or '–'} | {r['best_s']:.1f} | "
+                     f"{r['speedup']:.2f}x | {'yes' if r['same_figures'] else 'NO'} | {len(r['workers'])} | "
+                     f"{r['load']:.1f} |")
         L.append("")
     return "\n".join(L)
 
@@ -355,6 +362,8 @@ def main(argv=None) -> int:
     ap.add_argument("--ghost-takes", default="hdm05,qualisys")
     ap.add_argument("--repeats", type=int, default=2, help="archive runs per variant")
     ap.add_argument("--out", default=str(RESULTS / "captures"), help="output stem (.json, .md)")
+    ap.add_argument("--update", action="store_true",
+                    help="keep the other sections of an existing OUT.json (rerun some sections only)")
     args = ap.parse_args(argv)
     only = set(args.only.split(","))
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
@@ -377,6 +386,12 @@ def main(argv=None) -> int:
     meta["load_end"] = os.getloadavg()[0]
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
+    runs = {name: {k: meta[k] for k in ("date", "commit", "load_start", "load_end")} for name in res}
+    if args.update and out.with_suffix(".json").is_file():
+        old = json.loads(out.with_suffix(".json").read_text())
+        runs = old["meta"].get("runs", {}) | runs
+        res = old["results"] | res
+    meta["runs"] = runs
     out.with_suffix(".json").write_text(json.dumps({"meta": meta, "results": res}, indent=1, default=float))
     md = write_md(res, meta)
     out.with_suffix(".md").write_text(md + "\n")
