@@ -133,12 +133,19 @@ def node_env(extra: Optional[Dict[str, str]] = None) -> Dict[str, str]:
 
 
 class NodeProcess:
-    """The labeler node as a child process in namespace ``ns``."""
+    """The labeler node as a child process in namespace ``ns``. Every one started is killed at
+    the end of the test session if a test left it running (:func:`kill_leftovers`). Lock-step
+    tests (one frame, then its output) run the node's searches inline unless ``params`` say
+    otherwise: in the background mode the first frames are published unconfirmed until the
+    worker's search joins (tested on its own, under a real-time stream)."""
+
+    started: List["NodeProcess"] = []
 
     def __init__(self, ns: str, params: Optional[Dict[str, Any]] = None, params_file: Optional[Path] = None,
                  extra_args: Sequence[str] = (), console_script: bool = False, module: str = "dtm_labeler.ros.node",
                  cmd: Optional[Sequence[str]] = None, env: Optional[Dict[str, str]] = None):
         self.ns = ns.strip("/")
+        params = {"recovery": "inline"} | dict(params or {})
         self.log_path = _tmpdir() / f"node_{self.ns}_{time.monotonic_ns()}.log"
         script = Path(sys.executable).parent / "dtm-labeler-node"
         if cmd is not None:
@@ -161,7 +168,8 @@ class NodeProcess:
         self._log = open(self.log_path, "wb")
         self.t_start = time.monotonic()
         self.proc = subprocess.Popen(args, env=env or node_env(), stdout=self._log, stderr=subprocess.STDOUT,
-                                     cwd=str(REPO))
+                                     cwd=str(REPO), start_new_session=True)
+        NodeProcess.started.append(self)
 
     @property
     def fqn(self) -> str:
@@ -558,6 +566,17 @@ def _to_params(values: Dict[str, Any]):
         else:
             out.append(Parameter(k, value=v))
     return out
+
+
+def kill_leftovers() -> None:
+    """Kill node processes (with their recovery workers) that tests left running."""
+    for p in NodeProcess.started:
+        if p.alive():
+            try:
+                os.killpg(p.proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+    NodeProcess.started.clear()
 
 
 def start(ns: str, **kw) -> tuple:

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from dtm_labeler.search.problem import Background, FrameProblem, TermCache
+from dtm_labeler.search.frame_kernels import TermTable, table_lookup_keys
+from dtm_labeler.search.problem import Background, FrameProblem
 from dtm_labeler.model.features import canonicalise, lateral_yaw, point_states, rotation_z
 from dtm_labeler.training.train import TrainConfig, train_model
 from dtm_labeler.motion.synthetic import synthesize
@@ -101,7 +102,8 @@ def test_cache_consistency(model, frames):
     f1 = p.fitness(pop)
     size, evals = len(p.cache), p.evaluations
     assert size == evals > 0
-    assert np.all(np.diff(p.cache.keys) > 0), "keys sorted and unique"
+    live = p.cache.keys[p.cache.keys >= 0]
+    assert live.size == size and np.unique(live).size == size, "each key stored once"
     f2 = p.fitness(pop)
     assert np.array_equal(f1, f2)
     assert len(p.cache) == size and p.evaluations == evals         # nothing recomputed
@@ -110,10 +112,11 @@ def test_cache_consistency(model, frames):
     np.testing.assert_allclose([q.fitness(r)[0] for r in pop[::5]], f1[::5], atol=1e-9)
     # new assignments add only keys that were not there
     more = ops.sample(20, p.M, p.n, rng)
-    keys_before = set(p.cache.keys.tolist())
+    keys_before = set(p.cache.keys[p.cache.keys >= 0].tolist())
     p.fitness(more)
-    assert keys_before <= set(p.cache.keys.tolist())
-    assert len(p.cache) == len(set(p.cache.keys.tolist()))
+    after = p.cache.keys[p.cache.keys >= 0]
+    assert keys_before <= set(after.tolist())
+    assert len(p.cache) == after.size == np.unique(after).size
     assert p.evaluations == len(p.cache)
     f, bins = p.fitness(truth, return_bins=True)
     assert bins.shape == (1,) and 0 <= bins[0] < model.heading_bins
@@ -158,15 +161,18 @@ def test_heading_snap_scores_near_candidates_at_the_anchor(model, frames):
     assert z.anchor is None and z.candidate_bins(moved[None])[0] == z.heading_bin(np.array([own_yaw]))[0]
 
 
-def test_term_cache():
-    c = TermCache()
-    v, found = c.lookup(np.array([3, 1]))
-    assert not found.any() and np.isnan(v).all()
+def test_term_table():
+    c = TermTable(capacity=8)
+    v, miss = table_lookup_keys(c.keys, c.vals, np.array([3, 1]))
+    assert miss.tolist() == [1, 3] and np.isnan(v).all()
     c.insert(np.array([5, 1]), np.array([50.0, 10.0]))
     c.insert(np.array([3]), np.array([30.0]))
-    v, found = c.lookup(np.array([1, 2, 3, 5, 9]))
-    assert found.tolist() == [True, False, True, True, False]
-    assert v[[0, 2, 3]].tolist() == [10.0, 30.0, 50.0] and len(c) == 3
+    v, miss = table_lookup_keys(c.keys, c.vals, np.array([1, 2, 3, 5, 9]))
+    assert miss.tolist() == [2, 9] and v[[0, 2, 3]].tolist() == [10.0, 30.0, 50.0] and len(c) == 3
+    keys = np.arange(10, 2010, 7)                      # grows past its capacity, keeps every entry
+    c.insert(keys, keys * 0.5)
+    v, miss = table_lookup_keys(c.keys, c.vals, np.r_[keys, 5])
+    assert miss.size == 0 and np.allclose(v, np.r_[keys * 0.5, 50.0]) and len(c) == 3 + keys.size
 
 
 @settings(max_examples=12, deadline=None)

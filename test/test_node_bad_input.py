@@ -267,7 +267,8 @@ def test_labeler_exception_skips_the_frame_in_process():
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     node = LabelerNode(context=ctx, namespace="/t_inproc",
-                       parameter_overrides=[Parameter("model_path", value=str(wm.path))])
+                       parameter_overrides=[Parameter("model_path", value=str(wm.path)),
+                                            Parameter("recovery", value="inline")])
     published = []
     node.core.outputs.labeled.publish = published.append
     try:

@@ -43,6 +43,7 @@ def test_deferred_recovery_publishes_doubtful_frames_then_joins(model, walker):
     labelled at the start, flagged doubtful -- and the search's labeling joins ``delay``
     frames later through the track ids, after which the stream is labelled right."""
     lab = StreamLabeler(model, LabelerSettings(recovery="background", audit_period_s=0))
+    lab.recovery.close()
     lab.recovery = DeferredRecovery(lab, delay_frames=6)
     rng = np.random.default_rng(0)
     doubt, recovered, acc = [], [], []

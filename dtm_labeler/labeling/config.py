@@ -177,10 +177,14 @@ PARAMS: Tuple[Param, ...] = (
           "with the best labeling known, flagged doubtful, and the result joins a later frame: what a "
           "live stream needs) or auto (background in the node, inline offline).", choices=RECOVERY,
           flag="--recovery"),
-    Param("audit_period_s", 1.0, "Background recovery only: a full search from scratch at least this "
-          "often (stream seconds) while the labeling looks fine; its result replaces the labeling "
-          "when the frame scores it higher. Catches a wrong labeling the running level has adapted "
-          "to. 0 = off.", range=(0.0, 3600.0)),
+    Param("misfit_nats", 15.0, "A label whose triangles fall more than this many nats below what the "
+          "model expects of a right labeling (floors drawn from the model itself) gets an exact region "
+          "check at once; with background recovery, three such frames in a row ask for an audit. 0 = off.",
+          range=(0.0, 1e6)),
+    Param("audit_period_s", 1.0, "Background recovery only: while the labeling looks fine, the worker "
+          "checks it four times per this many stream seconds -- exact region sweeps, the fourth a full "
+          "search from scratch -- and a better labeling replaces it. Catches a wrong labeling the "
+          "running level has adapted to. 0 = off.", range=(0.0, 3600.0)),
     Param("confidence_temperature", 3.0, "Temperature (nats) of the local label posterior behind "
           "the published confidences (see labeling/confidence.py); the calibrated constant.",
           range=(0.01, 1000.0)),
@@ -320,6 +324,7 @@ class LabelerSettings:
     noise_mm: float = DEFAULTS["noise_mm"]
     heading_snap_deg: float = DEFAULTS["heading_snap_deg"]
     recovery: str = DEFAULTS["recovery"]
+    misfit_nats: float = DEFAULTS["misfit_nats"]
     audit_period_s: float = DEFAULTS["audit_period_s"]
     confidence_temperature: float = DEFAULTS["confidence_temperature"]
     seed: int = DEFAULTS["seed"]

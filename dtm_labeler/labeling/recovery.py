@@ -68,9 +68,15 @@ class Recovery:
 
     inline = False
     failed = ""
+    last_error = ""
 
     @property
     def busy(self) -> bool:
+        return False
+
+    @property
+    def background_ready(self) -> bool:
+        """A background worker is up to take requests (audits wait for it)."""
         return False
 
     def submit(self, request: RecoveryRequest) -> None:
@@ -117,6 +123,10 @@ class DeferredRecovery(Recovery):
     def busy(self) -> bool:
         return self._result is not None
 
+    @property
+    def background_ready(self) -> bool:
+        return True
+
     def submit(self, request: RecoveryRequest) -> None:
         state = self.labeler._search_state()
         rng = self.labeler.rng
@@ -160,55 +170,130 @@ def build_worker_labeler(spec: dict):
     return StreamLabeler(engine, settings)
 
 
-class ProcessRecovery(Recovery):
-    """Recovery in a worker process (``python -m dtm_labeler.labeling.recovery``)."""
+class WorkerProcess:
+    """A started worker process (``python -m dtm_labeler.labeling.recovery``) and, once it has
+    connected, the connection to it. Starting one costs 1-2 s of imports; :func:`keep_spare_worker`
+    keeps one started ahead, so that a labeler built later (a node's first model, a reload)
+    finds its worker already up."""
 
-    def __init__(self, labeler):
+    def __init__(self):
         self.failed = ""
-        self._labeler = labeler                 # runs requests inline until the worker is up
-        self._pending = False
-        self.ready = False                      # the worker has built its labeler
-        self._inline: RecoveryResult | None = None
-        self._conn: Connection | None = None
+        self.conn: Connection | None = None
         self._lock = threading.Lock()
-        self._spec = worker_spec(labeler)
-        self._base = labeler.engine.base
-        self._spec_sent = False
         key = os.urandom(16)
         self._listener = Listener(family="AF_UNIX", authkey=key)
         env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
-        self._proc = subprocess.Popen([sys.executable, "-m", "dtm_labeler.labeling.recovery",
-                                       self._listener.address], stdin=subprocess.PIPE, env=env,
-                                      start_new_session=True)
-        self._proc.stdin.write(key.hex().encode() + b"\n")
-        self._proc.stdin.close()
-        self._accepter = threading.Thread(target=self._accept, name="dtm_labeler_recovery_accept", daemon=True)
-        self._accepter.start()
+        self.proc = subprocess.Popen([sys.executable, "-m", "dtm_labeler.labeling.recovery",
+                                      self._listener.address], stdin=subprocess.PIPE, env=env,
+                                     start_new_session=True)
+        self.proc.stdin.write(key.hex().encode() + b"\n")
+        self.proc.stdin.close()
+        self.on_connect = None
+        threading.Thread(target=self._accept, name="dtm_labeler_recovery_accept", daemon=True).start()
 
     def _accept(self) -> None:
         try:
             conn = self._listener.accept()
         except (OSError, EOFError) as e:
-            if not self.failed:
-                self.failed = f"recovery worker did not connect: {e}"
+            self.failed = self.failed or f"recovery worker did not connect: {e}"
             return
         with self._lock:
-            self._conn = conn
-        self._ready()                           # the worker builds its labeler now, before any request
+            self.conn = conn
+            hook = self.on_connect
+        if hook is not None:
+            hook()
+
+    def alive(self) -> bool:
+        return not self.failed and self.proc.poll() is None
+
+    def close(self) -> None:
+        with self._lock:
+            conn, self.conn = self.conn, None
+            self.failed = self.failed or "closed"
+        if conn is not None:
+            try:
+                conn.send(("stop", None))
+            except (OSError, EOFError):
+                pass
+            conn.close()
+        if self.proc.poll() is None:
+            try:
+                self.proc.wait(1.0)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        try:
+            self._listener.close()
+        except OSError:
+            pass
+
+
+_spare: WorkerProcess | None = None
+_keep_spare = False
+_spare_lock = threading.Lock()
+
+
+def keep_spare_worker(keep: bool = True) -> None:
+    """Keep one worker process started ahead of need (a long-running node asks for this)."""
+    global _keep_spare, _spare
+    with _spare_lock:
+        _keep_spare = keep
+        if keep and (_spare is None or not _spare.alive()):
+            _spare = WorkerProcess()
+        elif not keep and _spare is not None:
+            _spare.close()
+            _spare = None
+
+
+def _take_worker() -> WorkerProcess:
+    global _spare
+    with _spare_lock:
+        w, _spare = _spare, None
+        if _keep_spare:
+            _spare = WorkerProcess()
+    return w if w is not None and w.alive() else WorkerProcess()
+
+
+class ProcessRecovery(Recovery):
+    """Recovery in a worker process. Until the worker has built its labeler (``ready``) and if
+    it ever fails, requests run inline, in the frame that asks."""
+
+    def __init__(self, labeler):
+        self.failed = ""
+        self._labeler = labeler                 # runs requests inline until the worker is up
+        self._sent = 0                          # requests sent
+        self._answered = 0                      # of them answered (results are read in order)
+        self.ready = False                      # the worker has built its labeler
+        self._inline: RecoveryResult | None = None
+        self._spec = worker_spec(labeler)
+        self._base = labeler.engine.base
+        self._spec_sent = False
+        self._worker = _take_worker()
+        self._worker.on_connect = self._ready
+        if self._worker.conn is not None:
+            self._ready()                       # the worker builds its labeler now, before any request
+
+    @property
+    def _conn(self) -> Connection | None:
+        return self._worker.conn
+
+    @property
+    def _proc(self):
+        return self._worker.proc
 
     def _ready(self) -> Connection | None:
         """The connection once the worker is up (with its current spec sent), else None."""
-        with self._lock:
-            conn = self._conn
-        if conn is None or self.failed:
+        conn = self._worker.conn
+        if conn is None or self.failed or self._worker.failed:
             return None
-        if not self._spec_sent:
-            try:
-                conn.send(("setup", self._spec))
-                self._spec_sent = True
-            except (OSError, EOFError) as e:
-                self._fail(e)
-                return None
+        with self._worker._lock:
+            if not self._spec_sent:
+                try:
+                    conn.send(("setup", self._spec))
+                    self._spec_sent = True
+                except (OSError, EOFError) as e:
+                    self._fail(e)
+                    return None
         return conn
 
     def configure(self, labeler) -> None:
@@ -227,20 +312,23 @@ class ProcessRecovery(Recovery):
                     conn.send(("settings", (labeler.settings, self._spec["bank_settings"])))
                 except (OSError, EOFError) as e:
                     self._fail(e)
-        self._pending = False                   # an answer to an older request is dropped by its epoch
 
     @property
     def busy(self) -> bool:
-        return self._pending
+        return self._answered < self._sent
+
+    @property
+    def background_ready(self) -> bool:
+        return self.ready and not self.failed
 
     def submit(self, request: RecoveryRequest) -> None:
-        conn = self._ready()
+        conn = self._ready() if self.ready else None
         if conn is None:                        # not up yet (or gone): search here and now
             self._inline = self._labeler.recover(request)
             return
         try:
             conn.send(("recover", request))
-            self._pending = True
+            self._sent += 1
         except (OSError, EOFError) as e:
             self._fail(e)
             self._inline = self._labeler.recover(request)
@@ -249,18 +337,19 @@ class ProcessRecovery(Recovery):
         if self._inline is not None:
             out, self._inline = self._inline, None
             return out
-        if self._conn is None or (self.ready and not self._pending):
+        if self._conn is None or (self.ready and not self.busy):
             return None
+        self._ready()
         try:
             while self._conn.poll():
                 kind, payload = self._conn.recv()
                 if kind == "ready":
                     self.ready = True
-                elif kind == "error":
-                    self._fail(payload)
-                    return None
+                elif kind == "error":             # that request failed; the worker goes on
+                    self._answered += 1
+                    self.last_error = str(payload)
                 elif kind == "result":
-                    self._pending = False
+                    self._answered += 1
                     return payload
         except (OSError, EOFError) as e:
             self._fail(e)
@@ -268,28 +357,11 @@ class ProcessRecovery(Recovery):
 
     def _fail(self, why) -> None:
         self.failed = f"recovery worker failed: {why}"
-        self._pending = False
+        self._answered = self._sent
 
     def close(self) -> None:
-        with self._lock:
-            conn, self._conn = self._conn, None
-            self.failed = self.failed or "closed"
-        if conn is not None:
-            try:
-                conn.send(("stop", None))
-            except (OSError, EOFError):
-                pass
-            conn.close()
-        if self._proc.poll() is None:
-            try:
-                self._proc.wait(1.0)
-            except subprocess.TimeoutExpired:
-                self._proc.kill()
-                self._proc.wait()
-        try:
-            self._listener.close()
-        except OSError:
-            pass
+        self.failed = self.failed or "closed"
+        self._worker.close()
 
 
 def serve(address: str, key: bytes) -> int:

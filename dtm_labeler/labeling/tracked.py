@@ -41,7 +41,7 @@ import numpy as np
 
 from ..model.dtm import TriangulatedModel
 from ..model.features import FULL, POSITION_ONLY
-from ..search import label_ops
+from ..search import frame_kernels, label_ops
 from ..search.dtm_dp import regions_of, relabel_regions
 from ..search.label_search import GASearch, LabelSearch, SearchOutcome, make_search, polish, targeted_moves
 from ..search.problem import FrameProblem
@@ -63,6 +63,8 @@ ACCEPT_SCATTERS, REFIT_SCATTERS = 5.0, 8.0
 POSITION_ONLY_WEIGHT = 0.5
 #: audits per audit period: region sweeps, the last of them a full search from scratch
 AUDITS_PER_PERIOD = 4
+#: frames in a row with a label far below its floors before a background audit is asked at once
+MISFIT_FRAMES = 3
 
 
 @dataclass(frozen=True)
@@ -87,6 +89,7 @@ class Engine:
         if any(m.labels != base[0].labels for m in base[1:]):
             raise ValueError("the models of one engine must share their labels, in order")
         models = tuple(m.with_noise(noise_mm * 1e-3).warm_up() for m in base)
+        frame_kernels.warm_up()
         return cls(names, base, models, float(noise_mm), tuple(term_floors(m) for m in models))
 
     def with_noise(self, noise_mm: float) -> "Engine":
@@ -110,6 +113,7 @@ class FrameInput:
     reason: str               # why the window was reset, if it was
     n_ignored: int            # finite points beyond max_points
     dt: float | None          # seconds since the previous frame
+    ids: np.ndarray           # (n,) the ids reported: the input's, else the tracker's
 
 
 @dataclass
@@ -268,6 +272,7 @@ class TrackedLabeler:
         self._epoch = getattr(self, "_epoch", 0) + 1   # results of searches asked before are dropped
         self._last_search_stamp = None
         self._audits = 0
+        self._misfit_run = 0                       # frames in a row with a label below its floors
         self._reset_levels()
 
     def _reset_levels(self) -> None:
@@ -360,7 +365,7 @@ class TrackedLabeler:
         keep, n_in = inp.keep, inp.n_in
         return self.result_type(
             labels=scatter(pub, keep, n_in, -1), confidence=scatter(conf, keep, n_in, 0.0),
-            track_ids=scatter(inp.upd.track_ids, keep, n_in, -1),
+            track_ids=scatter(inp.ids, keep, n_in, -1),
             search_labels=scatter(search_labels, keep, n_in, -1), assignment=_input_index(assign, keep),
             log_likelihood=float(best.fitness), latency_ms=(time.perf_counter() - t0) * 1e3,
             full_search=found.full, generations=found.generations, evaluations=found.evaluations,
@@ -422,33 +427,26 @@ class TrackedLabeler:
         return fast
 
     def _maybe_audit(self, problems, inp, searched, fast: FrameSearch) -> FrameSearch:
-        """Audits of a labeling the fast path accepted, every ``audit_period_s`` / 4 of stream
-        time: an exact region sweep from it (every label's region relabelled given the rest),
-        and every fourth time a full search from scratch. The running level adapts to a wrong
-        labeling that tracking carries on -- a limb's labels shifted one marker, a ghost holding
-        a hidden marker's label; an independent search does not. Inline the audit runs in this
-        frame and its result is taken when it fits better; in the background it joins a later
-        frame the same way (:meth:`_join`)."""
+        """Background recovery: audits of a labeling the fast path accepted, every
+        ``audit_period_s`` / 4 of stream time while the worker is idle -- an exact region sweep
+        from it (every label's region relabelled given the rest), and every fourth time a full
+        search from scratch; the result joins a later frame when it fits better (:meth:`_join`).
+        The running level adapts to a wrong labeling that tracking carries on -- a limb's labels
+        shifted one marker, a ghost holding a hidden marker's label; an independent search does
+        not. The worker's core would be idle otherwise. Inline (offline) there are none: every
+        frame's labeling is already the search's."""
         period = self.settings.audit_period_s / AUDITS_PER_PERIOD
-        if period <= 0 or self.recovery.busy or self._provisional or self.settings.method != "cbga":
+        if period <= 0 or self.recovery.inline or self.recovery.busy or self._provisional or \
+                self.settings.method != "cbga" or not self.recovery.background_ready:
             return fast
         now = self.last_stamp
-        if self._last_search_stamp is not None and now - self._last_search_stamp < period:
+        due = self._last_search_stamp is None or now - self._last_search_stamp >= period
+        if not due and self._misfit_run < MISFIT_FRAMES:
             return fast
         self._audits += 1
         kind = "audit" if self._audits % AUDITS_PER_PERIOD == 0 else "sweep"
         best = fast.best.assignment
-        request = self._request(problems, inp, searched, best[None], kind)
-        if not self.recovery.inline:
-            self.recovery.submit(request)
-            return fast
-        res = self.recover(request, problems=problems)
-        found = FrameSearch({m: Candidate(a, f) for m, (a, f) in res.candidates.items()}, res.full,
-                            res.generations, res.evaluations + fast.evaluations)
-        if found.best.fitness > fast.best.fitness + 1e-9:
-            self._since_search = 0
-            return found
-        fast.evaluations = found.evaluations
+        self.recovery.submit(self._request(problems, inp, searched, best[None], kind))
         return fast
 
     def _request(self, problems, inp, searched, seeds, kind: str) -> RecoveryRequest:
@@ -687,7 +685,8 @@ class TrackedLabeler:
         # points whose velocity is first known this frame (their track began last frame)
         self._event_points = np.flatnonzero(np.isin(upd.track_ids, self._new_tracks))
         self._new_tracks = upd.track_ids[upd.new]
-        return FrameInput(xyz.shape[0], finite, keep, pts, upd, reason, n_ignored, dt)
+        out_ids = upd.track_ids if ids is None else np.asarray(ids, dtype=np.int64)[keep]
+        return FrameInput(xyz.shape[0], finite, keep, pts, upd, reason, n_ignored, dt, out_ids)
 
     def _seeds(self, track_ids: np.ndarray, n: int) -> np.ndarray | None:
         """Warm start: the labels the tracks carried last frame (vectorised lookup); None when
@@ -744,7 +743,7 @@ class TrackedLabeler:
         moves = self._moves(problem, seed)
         ind, f, evals = polish(problem, seed, None, self.settings.fast_rounds, neighbours=moves, last=last)
         if self.settings.region_checks > 0 and problem.M > 3:
-            centres = self._event_centres(problem, ind)
+            centres = self._event_centres(problem, ind) + self._misfit_centres(problem, ind)
             if self._region_checks_due(problem.M):
                 self._region_cursor = (self._region_cursor + 1) % problem.M
                 centres = [self._region_cursor] + [c for c in centres if c != self._region_cursor]
@@ -761,6 +760,20 @@ class TrackedLabeler:
         if not self.settings.release_moves:
             return np.zeros(0, dtype=np.int64)
         return np.flatnonzero(ind < problem.n)
+
+    def _misfit_centres(self, problem: FrameProblem, ind: np.ndarray) -> list[int]:
+        """The label that fits worst against what the model expects of a right labeling
+        (:func:`~.fit_check.label_misfit`), when it falls more than ``misfit_nats`` below its
+        triangles' floors: per label, not the frame's total against a running level that adapts
+        to a wrong labeling. Its region is checked exactly this frame; a misfit that stays for
+        ``MISFIT_FRAMES`` frames asks for a background audit at once."""
+        thr = self.settings.misfit_nats
+        if thr <= 0:
+            return []
+        mis = label_misfit(problem, ind, self.engine.floors[self.models.index(problem.model)])
+        worst = int(np.argmax(mis))
+        self._misfit_run = self._misfit_run + 1 if mis[worst] > thr else 0
+        return [worst] if mis[worst] > thr else []
 
     def _event_centres(self, problem: FrameProblem, ind: np.ndarray) -> list[int]:
         """Labels where this frame's labeling is least settled: for each point whose track

@@ -3,6 +3,11 @@ before) a velocity for the eq. 12 features.
 
 Constant-velocity prediction, a gate that widens with the track's speed and with the time
 since it was last seen, and optimal assignment (``scipy.optimize.linear_sum_assignment``).
+When the input carries ids (a mocap system's unlabelled trajectories), a point keeps the
+track of its id; a point with an id never seen before may still continue a track that lost
+its point (the systems start a new id when a marker comes back from an occlusion -- with
+flickering markers, every few frames): it is associated with the tracks left over by the same
+gated assignment, and its id becomes an alias of that track.
 The gate of a track seen ``dt`` ago is ``gate_m + gate_speed_factor |v| dt`` at the stream's
 own frame interval. When the update comes ``x`` later than that interval after the previous
 one (frames were skipped by a slow consumer, or lost) every gate grows by ``accel_mps2 x^2 / 2`` -- how far an acceleration can
@@ -17,7 +22,42 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.optimize import linear_sum_assignment
+
+
+#: the longest skip the gates are widened for (a longer pause is a gap: the stream is reset)
+MAX_SKIP_S = 0.25
+
+
+_OUTSIDE = 1e6               # cost of a pair outside the gate (never chosen unless forced)
+
+
+@njit(cache=True, nogil=True)
+def gated_cost(pos, vel, last_t, gate, t, xyz, match):  # pragma: no cover - compiled
+    """(K, n) distance of every point from every track's constant-velocity prediction at ``t``;
+    ``_OUTSIDE`` beyond the track's gate, for points already matched (``match >= 0``) and for
+    tracks they hold."""
+    K, n = pos.shape[0], xyz.shape[0]
+    cost = np.full((K, n), _OUTSIDE)
+    held = np.zeros(K, dtype=np.bool_)
+    for c in range(n):
+        if match[c] >= 0:
+            held[match[c]] = True
+    for r in range(K):
+        if held[r]:
+            continue
+        dt = t - last_t[r]
+        px = pos[r, 0] + vel[r, 0] * dt
+        py = pos[r, 1] + vel[r, 1] * dt
+        pz = pos[r, 2] + vel[r, 2] * dt
+        for c in range(n):
+            if match[c] >= 0:
+                continue
+            d = np.sqrt((px - xyz[c, 0]) ** 2 + (py - xyz[c, 1]) ** 2 + (pz - xyz[c, 2]) ** 2)
+            if d <= gate[r]:
+                cost[r, c] = d
+    return cost
 
 
 @dataclass
@@ -49,6 +89,8 @@ class Tracker:
         self.reset()
 
     def reset(self) -> None:
+        self.alias_in = np.zeros(0, dtype=np.int64)     # input ids (sorted) that continue a track ...
+        self.alias_to = np.zeros(0, dtype=np.int64)     # ... and the track ids they continue
         self.ids = np.zeros(0, dtype=np.int64)
         self.pos = np.zeros((0, 3))
         self.vel = np.zeros((0, 3))
@@ -69,7 +111,7 @@ class Tracker:
         dt = t - self.last_t
         # skipped time: how much longer than usual since the tracker's last update (not since each
         # track was last seen: an occluded marker's coasting track keeps its ordinary gate)
-        extra = max(t - self.t - self.frame_dt, 0.0) if self.frame_dt and self.t is not None else 0.0
+        extra = min(max(t - self.t - self.frame_dt, 0.0), MAX_SKIP_S) if self.frame_dt and self.t is not None else 0.0
         speed = s.gate_speed_factor * np.linalg.norm(self.vel, axis=1)
         return (s.gate_m + speed * dt + 0.5 * s.accel_mps2 * extra * extra
                 + np.where(self.known, 0.0, s.new_track_speed_mps * extra))
@@ -80,51 +122,63 @@ class Tracker:
         match = np.full(n, -1, dtype=np.int64)        # index into current tracks
         if ids is not None:
             ids = np.asarray(ids, dtype=np.int64).reshape(-1)
-            where = {int(k): i for i, k in enumerate(self.ids)}
-            match = np.array([where.get(int(k), -1) for k in ids], dtype=np.int64)
-        elif self.ids.size and n:
-            pred = self.predicted(t)
-            cost = np.linalg.norm(pred[:, None, :] - xyz[None, :, :], axis=-1)          # (K, n)
-            gate = self.gate(t)
-            big = 1e6
-            r, c = linear_sum_assignment(np.where(cost <= gate[:, None], cost, big))
-            ok = cost[r, c] <= gate[r]
+            if self.alias_in.size:
+                pos = np.minimum(np.searchsorted(self.alias_in, ids), self.alias_in.size - 1)
+                ids = np.where(self.alias_in[pos] == ids, self.alias_to[pos], ids)
+            if self.ids.size and n:
+                order = np.argsort(self.ids)
+                pos = np.minimum(np.searchsorted(self.ids[order], ids), self.ids.size - 1)
+                hit = self.ids[order][pos] == ids
+                match[hit] = order[pos[hit]]
+        if self.ids.size and n and (ids is None or (match < 0).any()):
+            cost = gated_cost(self.pos, self.vel, self.last_t, self.gate(t), t, xyz, match)
+            r, c = linear_sum_assignment(cost)
+            ok = cost[r, c] < _OUTSIDE
+            if ids is not None and ok.any():           # new ids that continue a track
+                self._add_alias(ids[c[ok]], self.ids[r[ok]])
             match[c[ok]] = r[ok]
+        m = match >= 0
         states = np.full((n, 6), np.nan)
         states[:, :3] = xyz
-        m = match >= 0
-        dt = t - self.last_t[match[m]]
+        mm = match[m]
+        dt = t - self.last_t[mm]
         with np.errstate(invalid="ignore", divide="ignore"):
-            v = (xyz[m] - self.pos[match[m]]) / np.where(dt > 0, dt, np.nan)[:, None]
+            v = (xyz[m] - self.pos[mm]) / np.where(dt > 0, dt, np.nan)[:, None]
         states[m, 3:] = v
         track_ids = np.empty(n, dtype=np.int64)
-        track_ids[m] = self.ids[match[m]]
+        track_ids[m] = self.ids[mm]
         new = ~m
+        n_new = int(new.sum())
         if ids is not None:
             track_ids[new] = ids[new]
-            self._next_id = max(self._next_id, int(ids.max()) + 1 if n else self._next_id)
+            if n:
+                self._next_id = max(self._next_id, int(ids.max()) + 1)
         else:
-            track_ids[new] = np.arange(self._next_id, self._next_id + new.sum())
-            self._next_id += int(new.sum())
-        # update the track table
-        seen = np.zeros(self.ids.size, dtype=bool)
-        seen[match[m]] = True
-        self.pos[match[m]] = xyz[m]
-        self.vel[match[m]] = np.where(np.isfinite(v), v, 0.0)
-        self.known[match[m]] = np.isfinite(v).all(1)
-        self.last_t[match[m]] = t
-        self.misses[match[m]] = 0
-        self.misses[~seen] += 1
+            track_ids[new] = np.arange(self._next_id, self._next_id + n_new)
+            self._next_id += n_new
+        # the track table: matched tracks move on, the others coast, old ones go, new ones come
+        self.pos[mm] = xyz[m]
+        finite = np.isfinite(v).all(1)
+        self.vel[mm] = np.where(finite[:, None], v, 0.0)
+        self.known[mm] = finite
+        self.last_t[mm] = t
+        self.misses += 1
+        self.misses[mm] = 0
         keep = self.misses <= self.settings.max_misses
         lost = self.ids[~keep]
-        self.ids, self.pos, self.vel, self.known = self.ids[keep], self.pos[keep], self.vel[keep], self.known[keep]
-        self.last_t, self.misses = self.last_t[keep], self.misses[keep]
-        self.ids = np.concatenate([self.ids, track_ids[new]])
-        self.pos = np.vstack([self.pos, xyz[new]])
-        self.vel = np.vstack([self.vel, np.zeros((int(new.sum()), 3))])
-        self.known = np.concatenate([self.known, np.zeros(int(new.sum()), dtype=bool)])
-        self.last_t = np.concatenate([self.last_t, np.full(int(new.sum()), t)])
-        self.misses = np.concatenate([self.misses, np.zeros(int(new.sum()), dtype=np.int64)])
+        if lost.size:
+            if self.alias_in.size:
+                live = ~np.isin(self.alias_to, lost)
+                self.alias_in, self.alias_to = self.alias_in[live], self.alias_to[live]
+            self.ids, self.pos, self.vel, self.known = self.ids[keep], self.pos[keep], self.vel[keep], self.known[keep]
+            self.last_t, self.misses = self.last_t[keep], self.misses[keep]
+        if n_new:
+            self.ids = np.concatenate([self.ids, track_ids[new]])
+            self.pos = np.concatenate([self.pos, xyz[new]])
+            self.vel = np.concatenate([self.vel, np.zeros((n_new, 3))])
+            self.known = np.concatenate([self.known, np.zeros(n_new, dtype=bool)])
+            self.last_t = np.concatenate([self.last_t, np.full(n_new, t)])
+            self.misses = np.concatenate([self.misses, np.zeros(n_new, dtype=np.int64)])
         if self.t is not None and t > self.t:                 # the typical interval: a slow running median
             step = t - self.t
             self.frame_dt = step if self.frame_dt is None else self.frame_dt + 0.05 * float(np.clip(
@@ -132,8 +186,18 @@ class Tracker:
         self.t = t
         return TrackUpdate(track_ids, states, new, lost)
 
+    def _add_alias(self, new_ids: np.ndarray, track_ids: np.ndarray) -> None:
+        keys = np.concatenate([self.alias_in, new_ids])
+        vals = np.concatenate([self.alias_to, track_ids])
+        order = np.argsort(keys, kind="stable")
+        self.alias_in, self.alias_to = keys[order], vals[order]
+
     def position_of(self, track_id: int, t: float) -> np.ndarray:
-        """Predicted position of a (possibly coasting) track, NaN if unknown."""
+        """Predicted position of a (possibly coasting) track (or of an input id that continues
+        one), NaN if unknown."""
+        a = np.flatnonzero(self.alias_in == track_id)
+        if a.size:
+            track_id = int(self.alias_to[a[0]])
         i = np.flatnonzero(self.ids == track_id)
         if i.size == 0:
             return np.full(3, np.nan)

@@ -29,6 +29,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.parameter import Parameter
 
 from ..labeling.bank_labeler import bank_settings_from_params
+from ..labeling.recovery import keep_spare_worker
 from . import params as P
 from .diagnostics import DiagnosticsBuilder, NodeState, NodeStats
 from .engine import NodeSettings, Source
@@ -103,6 +104,8 @@ class LabelerCore:
         self.stats = NodeStats()
         self.values = declare_parameters(node)
         self.settings = node_settings(self.values)
+        # a recovery worker process started now is up (imports done) when the first model arrives
+        keep_spare_worker(self.values["recovery"] in ("auto", "background"))
         self.guard = StampGuard(self.values["max_gap_s"], self.values["stamp_source"])
         self.sources = SourceLock()
         self.model: Dict[str, Any] = dict(status="no model", path="", error="", labels=(), actions=(), active="")
@@ -289,7 +292,7 @@ class LabelerCore:
         if old["latency_window"] != values["latency_window"]:
             self.handler.resize(values["latency_window"])
         if (old["max_gap_s"], old["stamp_source"]) != (values["max_gap_s"], values["stamp_source"]):
-            self.guard = StampGuard(values["max_gap_s"], values["stamp_source"])
+            self.guard.configure(values["max_gap_s"], values["stamp_source"])
         if changed:
             self.log.info("parameters set: " + ", ".join(f"{n}={P.format_value(values[n])}" for n in changed))
 
@@ -470,6 +473,7 @@ class LabelerCore:
             model_path=m["path"], model_error=m["error"], labels=tuple(m["labels"]),
             active_model=(engine.active_model if engine else "") or v["model_name"],
             actions=engine.actions if engine else (), active=self.active, input_error=self.input_error,
+            recovery_error=engine.recovery_failed if engine else "",
             time_base=self.guard.time_base, publishers=self._publishers(),
             since_input_s=now - self._t_input if self._t_input is not None else float("inf"),
             failing_s=now - h.t_failing if h.t_failing is not None else 0.0,

@@ -64,6 +64,8 @@ class NodeStats:
     frames_duplicates: int = 0
     frames_millimetres: int = 0
     full_searches: int = 0
+    frames_doubtful: int = 0          # published before a (background) search vouched for them
+    recoveries_joined: int = 0        # background searches whose labeling joined a frame
     frames_overrun: int = 0
     reloads_ok: int = 0
     reloads_failed: int = 0
@@ -92,6 +94,7 @@ class NodeState:
     actions: Tuple[str, ...] = ()
     active: bool = True               # lifecycle: labelling only while active
     input_error: str = ""             # why there is no input subscription (a missing message package)
+    recovery_error: str = ""          # why the background recovery worker is not used (searches run inline)
     time_base: str = "header"         # header stamps, or receive time after stamp faults
     publishers: int = 0               # publishers matched on the input topic
     since_input_s: float = float("inf")
@@ -141,6 +144,11 @@ def assess(cur: NodeStats, prev: NodeStats, dt: float, st: NodeState) -> Tuple[i
     full, lab = _delta(cur, prev, "full_searches"), _delta(cur, prev, "labelled")
     if lab >= 5 and full > 0.2 * lab:
         warn.append(f"full searches on {full} of {lab} frames")
+    doubt = _delta(cur, prev, "frames_doubtful")
+    if lab >= 5 and doubt > 0.2 * lab:
+        warn.append(f"{doubt} of {lab} frames published unconfirmed (searches running in the background)")
+    if st.recovery_error:
+        warn.append(st.recovery_error + " (searches run in the labelling thread)")
     if st.publishers > 0 and st.since_input_s > _SILENT_S:
         warn.append(f"no input for {st.since_input_s:.1f} s from {st.publishers} matched publisher(s)")
     bad, err = (cur.skipped[k] - prev.skipped[k] for k in ("bad_cloud", "error"))
@@ -184,6 +192,7 @@ def _labeling_values(cur: NodeStats, in_rate: float, out_rate: float, st: NodeSt
            ("stall_p99_ms", _pct(st.stall_ms, 99)),
            ("stall_max_ms", f"{st.stall_ms.max():.3f}" if st.stall_ms.size else "nan"),
            ("latency_window_frames", lat.size), ("full_searches", cur.full_searches),
+           ("frames_doubtful", cur.frames_doubtful), ("recoveries_joined", cur.recoveries_joined),
            ("settings_applied", cur.settings_applied),
            ("last_log_likelihood", f"{cur.last_log_likelihood:.3f}"), ("publishers_matched", st.publishers),
            ("active", st.active)]

@@ -100,8 +100,11 @@ def prepare(source: Source, base: Any, noise_mm: float, bank_settings: BankSetti
 
 def _labeler_settings(settings: LabelerSettings, prepared: Prepared) -> LabelerSettings:
     """What the labeler gets: the noise its prepared models are widened for (a new noise comes
-    as new prepared models, never as a rebuild on the worker), gaps judged by the node."""
-    return replace(settings, max_gap_s=NO_GAP, noise_mm=prepared.noise_mm)
+    as new prepared models, never as a rebuild on the worker), gaps judged by the node, and
+    recovery searches in the background unless the parameter asks for inline (``auto``: a live
+    stream must not wait for a search)."""
+    recovery = "background" if settings.recovery == "auto" else settings.recovery
+    return replace(settings, max_gap_s=NO_GAP, noise_mm=prepared.noise_mm, recovery=recovery)
 
 
 class NodeLabeler:
@@ -135,6 +138,16 @@ class NodeLabeler:
     def process(self, xyz: np.ndarray, stamp: float, ids: Optional[np.ndarray] = None):
         """Label one frame: the labeler's FrameResult (labels, confidence, track_ids, ...)."""
         return self._lab.process(xyz, stamp, ids)
+
+    def observe(self, xyz: np.ndarray, stamp: float, ids: Optional[np.ndarray] = None) -> None:
+        """A frame the worker skips: the tracks follow it (they survive the skip)."""
+        self._lab.observe(xyz, stamp, ids)
+
+    @property
+    def recovery_failed(self) -> str:
+        """Why the background recovery worker failed ('' when it runs or is not used)."""
+        f = self._lab.recovery.failed
+        return "" if f == "closed" else f
 
     def predicted_position(self, track_id: int, stamp: float) -> np.ndarray:
         return self._lab.predicted_position(track_id, stamp)

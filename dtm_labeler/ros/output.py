@@ -180,6 +180,8 @@ class FrameHandler:
                 s.frames_over_max_points += bool(res.n_ignored)
                 s.points_ignored += res.n_ignored
                 s.full_searches += bool(res.full_search)
+                s.frames_doubtful += bool(res.doubtful)
+                s.recoveries_joined += bool(res.recovered)
                 s.last_log_likelihood = float(res.log_likelihood)
             self.latency.append((t_end - f.t_recv) * 1e3)
             self.labeling.append((t1 - t0) * 1e3)

@@ -77,6 +77,20 @@ class StampGuard:
         self._period: Optional[float] = None
         self._period_age = 0                       # samples since the period was computed
 
+    def configure(self, max_gap_s: float, source: str) -> None:
+        """New parameters for the running stream: the labeler's time goes on without a step
+        (a new guard would restart it at the next header stamp: a jump the labeler is not told of)."""
+        if source not in STAMP_SOURCES:
+            raise ValueError(f"stamp source must be one of {', '.join(STAMP_SOURCES)}, got {source!r}")
+        self.max_gap_s = float(max_gap_s)
+        if source != self.source:
+            self.source = source
+            self.time_base = "receive" if source == "receive" else "header"
+            if self.time_base == "header" and self._lab is not None and self._good is not None:
+                self._offset = self._lab - self._good
+            self._faults.clear()
+            self._clean = 0
+
     @property
     def period(self) -> Optional[float]:
         """The frame period (s): median good stamp interval, else median receive interval

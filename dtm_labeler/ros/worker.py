@@ -4,7 +4,10 @@
   waiting there is replaced by the newer one and counted ``stale`` -- there is no other queue in
   the node (DDS history is keep-last), so latency cannot build up: when labeling is slower than
   the input, the node labels the newest frame and drops the ones in between. A reset a dropped
-  frame asked for (a gap, a loop) is carried over to the frame that replaces it.
+  frame asked for (a gap, a loop) is carried over to the frame that replaces it. The dropped
+  frames are not lost to the tracker: the newest ``OBSERVED_SKIPS`` of them are observed
+  (:meth:`NodeLabeler.observe`, a tracker update) before the next labelled frame, so the
+  tracks -- and the labels they carry -- survive the skip and the next frame needs no new search.
 * Between two frames the worker swaps in what the loader prepared (:meth:`install`), applies the
   newest settings (:meth:`settings`; older ones waiting are dropped) and runs a requested reset
   (:meth:`request_reset`) -- all fast: the slow part (reading files, widening the model) was done
@@ -25,7 +28,10 @@ from typing import Any, Callable, List, Optional
 from .engine import NodeLabeler
 from .loader import LoadResult
 
-__all__ = ["Frame", "LabelWorker"]
+__all__ = ["Frame", "LabelWorker", "OBSERVED_SKIPS"]
+
+#: skipped frames the tracker still follows before the next labelled frame
+OBSERVED_SKIPS = 16
 
 
 @dataclass
@@ -51,6 +57,7 @@ class LabelWorker:
         self._on_event = on_event
         self._cond = threading.Condition()
         self._slot: Optional[Frame] = None
+        self._skipped: List[Frame] = []       # frames replaced in the slot, for the tracker
         self._result: Optional[LoadResult] = None
         self._settings: Any = None
         self._reset: List[str] = []
@@ -83,6 +90,7 @@ class LabelWorker:
             old, self._slot = self._slot, frame
             if old is not None:
                 frame.resets = old.resets + frame.resets
+                self._skipped = (self._skipped + [old])[-OBSERVED_SKIPS:]
             self._cond.notify()
             return old
 
@@ -104,7 +112,7 @@ class LabelWorker:
     def discard(self) -> Optional[Frame]:
         """Drop the waiting frame, if any (input closed); returns it."""
         with self._cond:
-            old, self._slot = self._slot, None
+            old, self._slot, self._skipped = self._slot, None, []
             return old
 
     def drop_engine(self) -> None:
@@ -124,12 +132,23 @@ class LabelWorker:
                 if self._stop:
                     return
                 frame, self._slot = self._slot, None
+                skipped, self._skipped = self._skipped, []
                 result, self._result = self._result, None
                 settings, self._settings = self._settings, None
                 resets, self._reset = self._reset, []
             self._between_frames(result, settings, resets)
             if frame is not None and not self._stop:
+                self._observe(skipped if not (resets or frame.resets) else [])
                 self._label(frame, self.engine)
+
+    def _observe(self, skipped: List[Frame]) -> None:
+        if self.engine is None:
+            return
+        try:
+            for f in skipped:
+                self.engine.observe(f.xyz, f.stamp, f.ids)
+        except Exception as e:   # never let the worker die
+            self._on_event("error", f"{type(e).__name__}: {e}")
 
     def _between_frames(self, result: Optional[LoadResult], settings: Any, resets: List[str]) -> None:
         try:

@@ -34,7 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..model.dtm import TriangulatedModel
-from ..model.features import STATE_DIM, observation_state, pattern_id, rotation_z
+from ..model.features import STATE_DIM, observation_state, pattern_id
+from .frame_kernels import TermTable, facing, table_fill, table_lookup, table_lookup_keys, triple_states
 
 
 @dataclass(frozen=True)
@@ -60,31 +61,6 @@ class Background:
         return -float(np.log((2.0 * self.max_speed_mps) ** 3))
 
 
-class TermCache:
-    """Sorted int64 keys -> float values; vectorised lookups and inserts."""
-
-    def __init__(self) -> None:
-        self.keys = np.zeros(0, dtype=np.int64)
-        self.vals = np.zeros(0)
-
-    def lookup(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        idx = np.searchsorted(self.keys, q)
-        idx_c = np.minimum(idx, max(self.keys.size - 1, 0))
-        found = (idx < self.keys.size) & (self.keys[idx_c] == q) if self.keys.size else np.zeros(q.shape, bool)
-        return np.where(found, self.vals[idx_c] if self.keys.size else 0.0, np.nan), found
-
-    def insert(self, k: np.ndarray, v: np.ndarray) -> None:
-        """Merge new (absent) keys: sort the small batch, one searchsorted, one copy."""
-        order = np.argsort(k, kind="stable")
-        k, v = k[order], v[order]
-        pos = np.searchsorted(self.keys, k)
-        self.keys = np.insert(self.keys, pos, k)
-        self.vals = np.insert(self.vals, pos, v)
-
-    def __len__(self) -> int:
-        return self.keys.size
-
-
 class FrameProblem:
     """Fitness of assignments for one frame; caches triangle terms across the whole search."""
 
@@ -100,16 +76,16 @@ class FrameProblem:
         self.anchor: float | None = None           # yaw that candidates within ``snap`` of it are scored at
         self.states = np.vstack([states, np.full((1, STATE_DIM), np.nan)])       # row n = missing
         self.codes = observation_state(self.states)
-        self._clean = np.nan_to_num(self.states, nan=0.0)
         xyz = self.states[:, :3]
         d = np.linalg.norm(xyz[:, None] - xyz[None], axis=-1)
         d[-1, :] = d[:, -1] = 0.0                              # "missing" is never too far
         self.dist = np.nan_to_num(d, nan=0.0)
         self.bounds = model.distance_bounds
-        self._rotated: dict[int, np.ndarray] = {}
+        self._xy = np.ascontiguousarray(self.states[:, :2])
         self.bins = model.heading_bins
         self.T = model.structure.n_triangles
-        self.tri = model.triangles
+        self.tri = np.ascontiguousarray(model.triangles, dtype=np.int64)
+        self._all_triangles = np.arange(self.T, dtype=np.int64)
         self.pairs = model.heading_pairs          # for the yaw of a candidate
         self.mirror_pairs = model.mirror_pairs    # every left/right pair (mirror moves, yaw fallback)
         b = background
@@ -117,27 +93,19 @@ class FrameProblem:
         # gain of labelling point p (relative to it being clutter), before model terms
         self.label_gain = np.append(np.log(b.detection_probability) - (b.log_position + has_v * b.log_velocity),
                                     np.log1p(-b.detection_probability))
-        self.cache = TermCache()
+        self.cache = TermTable()
         self.evaluations = 0
 
     # -- heading -------------------------------------------------------------------------
     def yaw(self, pop: np.ndarray) -> np.ndarray:
         """Facing yaw of each candidate from its labelled left/right pairs: the stable
         (heading) pairs where any is complete, else any left/right pair, else the hint."""
-        yaw = np.full(pop.shape[0], self.heading_hint)
-        todo = np.ones(pop.shape[0], dtype=bool)
-        P = self.states[:, :2]
-        for pairs in (self.pairs, self.mirror_pairs):
-            if pairs.size == 0 or not todo.any():
-                continue
-            d = P[pop[todo][:, pairs[:, 0]]] - P[pop[todo][:, pairs[:, 1]]]      # (k, Q, 2)
-            ok = np.isfinite(d).all(-1)
-            d = np.where(ok[..., None], d, 0.0).sum(1)
-            have = ok.any(1)
-            idx = np.flatnonzero(todo)[have]
-            yaw[idx] = np.arctan2(-d[have, 0], d[have, 1])
-            todo[idx] = False
-        return yaw
+        return self._facing(pop, snap=False)[1]
+
+    def _facing(self, pop: np.ndarray, snap: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        anchor = self.anchor if snap and self.anchor is not None else np.nan
+        return facing(np.ascontiguousarray(pop, dtype=np.int64), self._xy, self.pairs, self.mirror_pairs,
+                      self.heading_hint, anchor, self.snap, self.bins)
 
     def heading_bin(self, yaw: np.ndarray) -> np.ndarray:
         step = 2.0 * np.pi / self.bins
@@ -150,23 +118,25 @@ class FrameProblem:
         if self.snap <= 0:
             return
         self.anchor = float(self.yaw(np.asarray(ind, dtype=np.int64).reshape(1, -1))[0])
-        self.cache = TermCache()
+        self.cache = TermTable()
 
     def candidate_bins(self, pop: np.ndarray) -> np.ndarray:
         """Heading bin each (P, M) candidate is scored at: its own yaw, or the anchor's
         where they are within the snap radius."""
-        yaw = self.yaw(pop)
-        if self.anchor is not None:
-            off = np.abs(np.angle(np.exp(1j * (yaw - self.anchor))))
-            yaw = np.where(off <= self.snap, self.anchor, yaw)
-        return self.heading_bin(yaw)
+        return self._facing(pop)[0]
 
     # -- fitness -------------------------------------------------------------------------
     def triangle_table(self, pop: np.ndarray, bins: np.ndarray, triangles=None) -> np.ndarray:
         """(P, len(triangles)) terms (roots included) for assignments ``pop`` at heading ``bins``."""
-        ts = np.arange(self.T) if triangles is None else np.atleast_1d(np.asarray(triangles, dtype=np.int64))
-        idx = pop[:, self.tri[ts]]                                              # (P, t, 3)
-        return self.triple_terms(bins[:, None], ts[None, :], idx[..., 0], idx[..., 1], idx[..., 2])
+        ts = self._all_triangles if triangles is None else np.atleast_1d(np.asarray(triangles, dtype=np.int64))
+        pop = np.ascontiguousarray(pop, dtype=np.int64)
+        bins = np.ascontiguousarray(bins, dtype=np.int64)
+        c = self.cache
+        out, miss = table_lookup(c.keys, c.vals, pop, bins, self.tri, ts, self.n + 1, self.T)
+        if miss.size:
+            c.insert(miss, self._compute(miss))
+            table_fill(c.keys, c.vals, pop, bins, self.tri, ts, self.n + 1, self.T, out)
+        return out
 
     def triple_terms(self, bins, ts, i, j, k) -> np.ndarray:
         """Terms of triangles ``ts`` with points ``(i, j, k)`` (``n`` = missing) at heading
@@ -174,13 +144,13 @@ class FrameProblem:
         max-product DP (:mod:`dtm_labeler.search.dtm_dp`) evaluate."""
         n1 = self.n + 1
         keys = (((np.asarray(bins) * self.T + ts) * n1 + i) * n1 + j) * n1 + k
-        vals, found = self.cache.lookup(keys)
-        if not found.all():
-            new_keys = np.unique(keys[~found])
-            new_vals = self._compute(new_keys)
-            self.cache.insert(new_keys, new_vals)
-            vals[~found] = new_vals[np.searchsorted(new_keys, keys[~found])]
-        return vals
+        shape = keys.shape
+        keys = np.ascontiguousarray(keys, dtype=np.int64).reshape(-1)
+        vals, miss = table_lookup_keys(self.cache.keys, self.cache.vals, keys)
+        if miss.size:
+            self.cache.insert(miss, self._compute(miss))
+            vals, _ = table_lookup_keys(self.cache.keys, self.cache.vals, keys)
+        return vals.reshape(shape)
 
     def grid_terms(self, heading_bin: int, grids: list[tuple]) -> list[np.ndarray]:
         """Terms over candidate grids at one heading bin: for each ``(t, ca, cb, cc, mask)``
@@ -202,35 +172,14 @@ class FrameProblem:
                 g[mask] = v
         return out
 
-    def canonical_states(self, bins: np.ndarray) -> np.ndarray:
-        """(B, n+1, 6) frame states rotated by ``-bin * step`` about z, one copy per bin
-        (unobserved entries zero; the observation codes say what is missing)."""
-        bins = np.asarray(bins)
-        new = [int(b) for b in bins if int(b) not in self._rotated]
-        if new:
-            R = rotation_z(-np.asarray(new) * (2.0 * np.pi / self.bins))             # (B, 3, 3)
-            rot = np.empty((len(new),) + self.states.shape)
-            rot[..., :3] = np.einsum("bij,nj->bni", R, self._clean[:, :3])
-            rot[..., 3:] = np.einsum("bij,nj->bni", R, self._clean[:, 3:])
-            self._rotated.update(zip(new, rot))
-        return np.stack([self._rotated[int(b)] for b in bins])
-
     def _compute(self, keys: np.ndarray) -> np.ndarray:
-        n1 = self.n + 1
-        k = keys % n1
-        j = (keys // n1) % n1
-        i = (keys // n1 ** 2) % n1
-        t = (keys // n1 ** 3) % self.T
-        b = keys // (n1 ** 3 * self.T)
-        ub, binv = np.unique(b, return_inverse=True)
-        rot = self.canonical_states(ub)                                          # (B, n+1, 6)
-        trip = np.stack([i, j, k], axis=1)
-        s = rot[binv[:, None], trip].reshape(-1, 3 * STATE_DIM)                  # (m, 18)
+        """Terms of new keys: the triples' canonical states (:func:`triple_states`), one
+        compiled kernel call per observation pattern (mostly just the fully observed one)."""
+        t, trip, s = triple_states(keys, self.states, self.n + 1, self.T, self.bins)
         pids = pattern_id(self.codes[trip])
         out = np.empty(keys.size)
-        # one batched call per observation pattern (mostly just the fully observed one)
         for pid in np.unique(pids):
-            sel = np.flatnonzero(pids == pid) if pids.size and pids.min() != pids.max() else slice(None)
+            sel = np.flatnonzero(pids == pid) if pids.min() != pids.max() else slice(None)
             terms = self.model.batched(int(pid))
             out[sel] = terms(s[sel], t[sel]) + terms.root[t[sel]] * self.background.log_position
         self.evaluations += keys.size
