@@ -50,8 +50,9 @@ output (--json): method, mode, frames, labels, accuracy, ghosts, ghost_rejection
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="dtm-label", formatter_class=HelpFormatter, epilog=EPILOG,
-                                description="Label recordings (labels stripped, points shuffled per frame) "
-                                            "with a trained triangulated model; score against their own labels.")
+                                description="Label recordings (labels stripped, points shuffled per frame, their unlabelled "
+                                            "points fed as ghosts) with a trained triangulated model; score against "
+                                            "their own labels when they have names; write them labelled (--out).")
     p.add_argument("model", metavar="MODEL", nargs="?", default=None,
                    help="model file from dtm-train (.npz); omitted with --bank")
     p.add_argument("inputs", nargs="+", metavar="INPUT",
