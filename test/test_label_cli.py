@@ -99,7 +99,7 @@ def test_single_mode_greedy(walk_model, walk_path):
 
 def test_csv_rows(walk_model, walk_path, tmp_path):
     out = tmp_path / "labels.csv"
-    p = run_label(walk_model, walk_path, "--frames", "300:306", "--occlude", 2, "--clutter", 1, "--out", out)
+    p = run_label(walk_model, walk_path, "--frames", "300:306", "--occlude", 2, "--clutter", 1, "--out-points", out)
     assert "accuracy" in p.stdout and "latency" in p.stdout          # human summary
     with open(out, newline="") as fh:
         rows = list(csv.DictReader(fh))

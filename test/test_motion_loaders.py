@@ -219,8 +219,10 @@ def test_c3d_gaps_units_and_up_axis(tmp_path):
     fcm = tmp_path / "cm.c3d"
     _write_c3d(fcm, ["A"], pts[:, :1], units="cm")
     np.testing.assert_allclose(load_c3d(fcm).positions[0, 0], pts[0, 0] / 100)
+    x = load_c3d(f, up_axis="X")           # X up: (x, y, z) -> (y, z, x)
+    np.testing.assert_allclose(x.positions[0, 0], [pts[0, 0, 1] / 1000, pts[0, 0, 2] / 1000, pts[0, 0, 0] / 1000])
     with pytest.raises(ValueError, match="up_axis"):
-        load_c3d(f, up_axis="X")
+        load_c3d(f, up_axis="W")
 
 
 def test_markers_csv_gaps(tmp_path):

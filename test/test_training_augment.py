@@ -185,7 +185,7 @@ def test_config_rejects_bad_jitter(field, value):
 
 def test_dtm_train_flags_reach_the_model(tmp_path, walker, monkeypatch):
     import dtm_labeler.cli.train as cli
-    monkeypatch.setattr(cli, "load_inputs", lambda inputs, points, frames=None: [walker])
+    monkeypatch.setattr(cli, "load_inputs", lambda inputs, points, frames=None, load=None: [walker])
     out = tmp_path / "m.npz"
     rc = train_main(["x.bvh", "--out", str(out), "--structure", "given", "--mixture", "single", "--quiet",
                      "--scale-jitter", "0.05", "--proportion-jitter", "0.07", "--tempo-jitter", "0.1",

@@ -21,7 +21,8 @@ import threading
 from tqdm import tqdm
 
 from ..labeling import config
-from .common import CliError, HelpFormatter, amount_arg, add_corruption_arguments, load_inputs, point_spec, run_main
+from .common import (CliError, HelpFormatter, add_capture_options, add_corruption_arguments, amount_arg,
+                     capture_kwargs, expand_inputs, parse_frames, point_spec, run_main)
 
 EPILOG = """examples:
   dtm-bag make walk.bvh --out walk_bag --frames 90%: --occlude 1 --clutter 2 --noise-mm 1
@@ -68,6 +69,10 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--start-time", type=amount_arg, default=1.0, metavar="S",
                    help="stamp of the first frame, seconds since the epoch")
     m.add_argument("--no-ground-truth", action="store_true", help="write only /markers/unlabeled")
+    m.add_argument("--drop-unlabelled", action="store_true",
+                   help="leave out the recording's unlabelled points (C3D * channels, unnamed CSV columns, markers "
+                        "not in --points); by default they are in the cloud as ghosts")
+    add_capture_options(m)
     m.add_argument("--force", action="store_true", help="replace BAG if it exists")
     m.add_argument("--json", action="store_true", help="print the summary as JSON")
 
@@ -102,7 +107,10 @@ def build_parser() -> argparse.ArgumentParser:
                                     "/markers/labeled_cloud; score against /markers/ground_truth when present.")
     la.add_argument("model", metavar="MODEL", help="model file from dtm-train (.npz)")
     la.add_argument("bag", metavar="BAG")
-    la.add_argument("--out", default=None, metavar="OUT_BAG", help="bag to write (default: only score)")
+    la.add_argument("--out", default=None, metavar="OUT_BAG|FILE",
+                    help="bag to write (input topics + labels), or a labelled capture FILE.c3d / FILE.csv (one "
+                         "channel per model label, unlabelled points as *N, mm, rate from the stamps); "
+                         "default: only score")
     la.add_argument("--storage", choices=STORAGES, default=None, help="storage of OUT_BAG (default: as BAG)")
     la.add_argument("--topic", default="markers/unlabeled", help="cloud topic to label")
     config.add_arguments(la)
@@ -120,16 +128,30 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _make(args) -> int:
     from ..evaluation.corruption import corrupt_clip
+    from ..motion.load import load_clip
+    from ..motion.pointsets import BODY14
+    from ..motion.unlabelled import model_input
     from ..ros.bag import BagError, write_bag
 
     if args.gap_frames < 1:
         raise CliError("--gap-frames must be >= 1")
-    clips = load_inputs([args.input], point_spec(args.points), args.frames)
-    if len(clips) != 1:
-        raise CliError(f"{args.input}: give one recording, not a folder of {len(clips)}")
-    clip = clips[0]
+    paths = expand_inputs([args.input])
+    if len(paths) != 1:
+        raise CliError(f"{args.input}: give one recording, not a folder of {len(paths)}")
+    points = point_spec(args.points)
+    try:
+        full = load_clip(paths[0], **capture_kwargs(args))
+        labels = full.names if points == "all" else BODY14 if points == "body14" else points
+        a, b = parse_frames(args.frames, full.n_frames)
+        mi = model_input(full.slice(a, b), labels, keep_unlabelled=not args.drop_unlabelled)
+    except (ValueError, KeyError, OSError) as e:
+        raise CliError(f"{paths[0]}: {e}") from None
+    if not mi.named:
+        raise CliError(f"{paths[0]}: names none of the points {', '.join(list(labels)[:6])}...; "
+                       "a bag needs the true labels (give --points the take's names)")
+    clip = mi.clip
     stream = corrupt_clip(clip, occlude=args.occlude, clutter=args.clutter, noise_mm=args.noise_mm, seed=args.seed,
-                          gap_frames=args.gap_frames)
+                          gap_frames=args.gap_frames, extra=mi.extra)
     try:
         s = write_bag(stream, args.out, storage=args.storage, frame_id=args.frame_id, ids=args.ids,
                       start_time=args.start_time, rate_hz=args.rate_hz, ground_truth=not args.no_ground_truth,
@@ -146,6 +168,9 @@ def _make(args) -> int:
     print(f"labels    {len(s['labels'])}: {' '.join(s['labels'])}")
     print(f"points    {s['points_per_frame']:.1f} per frame ({s['occluded_per_frame']:.1f} hidden, "
           f"{s['ghosts_per_frame']:.1f} ghosts, noise {args.noise_mm:g} mm), ids {'yes' if s['ids'] else 'no'}")
+    if mi.n_extra:
+        print(f"unlabelled {mi.n_extra} point{'s' if mi.n_extra > 1 else ''} of the recording in the cloud as ghosts "
+              f"({', '.join(mi.extra_names[:6])}{' ...' if mi.n_extra > 6 else ''})")
     print(f"topics    {', '.join(s['topics'])}")
     return 0
 
@@ -192,6 +217,11 @@ def _play(args) -> int:
 # ------------------------------------------------------------------------------------ label
 
 def _label(args) -> int:
+    from pathlib import Path
+
+    import numpy as np
+
+    from ..evaluation.labelled_capture import OUTPUT_SUFFIXES, from_stamped
     from ..model.io import load_model
     from ..ros.bag import BagError, label_bag
 
@@ -210,10 +240,21 @@ def _label(args) -> int:
         bar.total = n
         bar.update(i - bar.n)
 
+    capture = args.out is not None and Path(args.out).suffix.lower() in OUTPUT_SUFFIXES
+    if capture and Path(args.out).exists() and not args.force:
+        raise CliError(f"{args.out} exists (use --force to replace it)")
+    clouds: list = []
+
+    def keep(xyz, res, stamp_ns: int) -> None:
+        clouds.append((stamp_ns, np.asarray(xyz, dtype=np.float64), np.asarray(res.labels), np.asarray(res.track_ids)))
+
     try:
-        s = label_bag(model, args.bag, args.out, settings, storage=args.storage, topic=args.topic, force=args.force,
-                      progress=progress)
-    except BagError as e:
+        s = label_bag(model, args.bag, None if capture else args.out, settings, storage=args.storage, topic=args.topic,
+                      force=args.force, progress=progress, on_frame=keep if capture else None)
+        if capture:
+            written = from_stamped(clouds, model.labels).write(args.out)
+            s["out"] = str(written)
+    except (BagError, ValueError) as e:
         raise CliError(str(e)) from None
     finally:
         bar.close()

@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from ..motion.clip import MotionClip
+from ..motion.clip import MotionClip, frame_range
 from ..motion.load import load_clip
 from ..motion.pointsets import to_point_set
 
@@ -19,29 +19,10 @@ class CliError(Exception):
 
 def parse_frames(spec: str | None, n_frames: int) -> tuple[int, int]:
     """``A:B`` with integers or percentages (``0:90%``, ``90%:``); Python slice semantics."""
-    if not spec:
-        return 0, n_frames
-    if ":" not in spec:
-        raise CliError(f"--frames {spec!r}: expected A:B (integers or percentages, e.g. 0:90%)")
-    parts = spec.split(":", 1)
-
-    def one(text: str, default: int) -> int:
-        text = text.strip()
-        if not text:
-            return default
-        try:
-            if text.endswith("%"):
-                return int(round(float(text[:-1]) / 100.0 * n_frames))
-            v = int(text)
-        except ValueError:
-            raise CliError(f"--frames {spec!r}: {text!r} is not an integer or percentage") from None
-        return v if v >= 0 else n_frames + v
-
-    a, b = one(parts[0], 0), one(parts[1], n_frames)
-    a, b = max(0, min(a, n_frames)), max(0, min(b, n_frames))
-    if b <= a:
-        raise CliError(f"--frames {spec!r} selects no frames of {n_frames}")
-    return a, b
+    try:
+        return frame_range(spec, n_frames)
+    except ValueError as e:
+        raise CliError(str(e)) from None
 
 
 def expand_inputs(inputs: Sequence[str]) -> list[Path]:
@@ -63,6 +44,43 @@ def expand_inputs(inputs: Sequence[str]) -> list[Path]:
     return out
 
 
+def expand_inputs_rel(inputs: Sequence[str]) -> list[tuple[Path, Path]]:
+    """:func:`expand_inputs` with each file's path relative to the folder it was found in
+    (a file given directly: its name), for mirroring an archive's layout in an output folder."""
+    out = []
+    for item in inputs:
+        p = Path(item)
+        for f in expand_inputs([item]):
+            out.append((f, f.relative_to(p) if p.is_dir() else Path(f.name)))
+    return out
+
+
+def add_capture_options(p: argparse.ArgumentParser) -> None:
+    """``--up-axis``, ``--units``, ``--asf``: how to read captures whose files do not say."""
+    g = p.add_argument_group("reading captures")
+    g.add_argument("--up-axis", default="auto", type=str.upper, choices=("AUTO", "X", "Y", "Z"), metavar="AXIS",
+                   help="vertical axis of the marker files: auto (C3D POINT:Y_SCREEN or the CSV comments, checked "
+                        "against the body; else the body's long axis), or X, Y, Z to force it")
+    g.add_argument("--units", default=None, choices=("mm", "cm", "m", "inch"),
+                   help="length unit of the files' numbers when their own statement is wrong or missing "
+                        "(default: C3D POINT:UNITS, CSV comments, else mm)")
+    g.add_argument("--asf", default=None, metavar="PATH",
+                   help="skeleton for .amc takes (default: same name, the CMU subject's NN.asf for NN_MM.amc, "
+                        "or the only .asf in the folder)")
+
+
+def capture_kwargs(args) -> dict:
+    """``load_clip`` keywords from :func:`add_capture_options` arguments."""
+    kw = {"up_axis": args.up_axis}
+    if args.units:
+        kw["units"] = args.units
+    if args.asf:
+        if not Path(args.asf).is_file():
+            raise CliError(f"--asf {args.asf}: no such file")
+        kw["asf_path"] = args.asf
+    return kw
+
+
 def point_spec(spec: str) -> str | list[str]:
     if spec in ("body14", "all"):
         return spec
@@ -72,11 +90,12 @@ def point_spec(spec: str) -> str | list[str]:
     return names
 
 
-def load_inputs(inputs: Sequence[str], points: str | list[str], frames: str | None = None) -> list[MotionClip]:
+def load_inputs(inputs: Sequence[str], points: str | list[str], frames: str | None = None,
+                load: dict | None = None) -> list[MotionClip]:
     clips = []
     for path in expand_inputs(inputs):
         try:
-            clip = load_clip(path)
+            clip = load_clip(path, **(load or {}))
             clip = to_point_set(clip, points)
         except (ValueError, KeyError, OSError) as e:
             raise CliError(f"{path}: {e}") from None

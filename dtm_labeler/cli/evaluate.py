@@ -21,13 +21,13 @@ import os
 import platform
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
+from ..evaluation.archive import JobRunner, call_task
 from .common import CliError, HelpFormatter, run_main
 
 SECTIONS = ("tables12", "structure", "table3", "occlusion", "noise", "voting", "generations", "cross", "markers")
@@ -106,41 +106,37 @@ def make_plan(args) -> Plan:
 
 # -- the pool ------------------------------------------------------------------------------------
 class Runner:
-    """Runs (function, kwargs) tasks in worker processes with one progress bar."""
+    """Runs (function, kwargs) tasks in worker processes or on dask with one progress bar."""
 
-    def __init__(self, jobs: int, quiet: bool):
+    def __init__(self, jobs: int, quiet: bool, dask: str | None = None):
         self.jobs = max(1, jobs)
         self.quiet = quiet
-        self.pool = ProcessPoolExecutor(max_workers=self.jobs) if self.jobs > 1 else None
+        self.where = f"dask {dask}" if dask else f"{self.jobs} worker(s)"
+        self.runner = JobRunner(self.jobs, dask)
 
     def map(self, tasks: list[tuple], desc: str) -> list:
         """``tasks`` = [(label, fn, kwargs)]; results in order."""
         if not self.quiet and not sys.stderr.isatty():      # no live bar in logs: one line per stage
-            print(f"dtm-eval: {desc}: {len(tasks)} tasks on {self.jobs} worker(s)", file=sys.stderr, flush=True)
+            print(f"dtm-eval: {desc}: {len(tasks)} tasks on {self.where}", file=sys.stderr, flush=True)
         bar = tqdm(total=len(tasks), desc=desc, unit="task", file=sys.stderr, disable=True if self.quiet else None,
                    dynamic_ncols=True)
-        out = [None] * len(tasks)
+        labels = [label for label, _, _ in tasks]
+        serial = not self.runner.parallel
+
+        def progress(done: int, total: int, _result) -> None:
+            bar.update(done - bar.n)
+            if serial and done < total:                    # serial: name the task that runs next
+                bar.set_postfix_str(labels[done][:40])
+
+        if serial and labels:
+            bar.set_postfix_str(labels[0][:40])
         try:
-            if self.pool is None:
-                for i, (label, fn, kw) in enumerate(tasks):
-                    bar.set_postfix_str(label[:40])
-                    out[i] = fn(**kw)
-                    bar.update(1)
-            else:
-                futs = {self.pool.submit(fn, **kw): (i, label) for i, (label, fn, kw) in enumerate(tasks)}
-                from concurrent.futures import as_completed
-                for f in as_completed(futs):
-                    i, label = futs[f]
-                    out[i] = f.result()
-                    bar.set_postfix_str(label[:40])
-                    bar.update(1)
+            return self.runner.map(call_task, [(fn, kw) for _, fn, kw in tasks], None, progress)
         finally:
             bar.close()
-        return out
 
     def close(self) -> None:
-        if self.pool is not None:
-            self.pool.shutdown(cancel_futures=True)
+        self.runner.close()
 
 
 # -- task functions (module level: picklable) -----------------------------------------------------
@@ -209,7 +205,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="test frames per single-mode cell (default 12, quick 3); stream cells use 8N frames "
                         "(greedy stream cells N)")
     p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), metavar="J",
-                   help="worker processes")
+                   help="worker processes (with --dask local: the LocalCluster's workers)")
+    p.add_argument("--dask", default=None, metavar="ADDRESS",
+                   help="run the training and labeling tasks on a dask.distributed cluster: a scheduler address "
+                        "(tcp://host:8786) or 'local' (a LocalCluster started for the run)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--bank", action="store_true",
                    help="also run the action-model bank comparison (Ukita 4.1-4.4: pooled model, hard switching, "
@@ -261,7 +260,7 @@ def _main(argv=None) -> int:
             return 0
     plan = make_plan(args)
     t_start = time.perf_counter()
-    runner = Runner(args.jobs, args.quiet)
+    runner = Runner(args.jobs, args.quiet, args.dask)
     try:
         results = run_sections(sections, plan, data_dir, runner, args.quiet)
     finally:
@@ -269,7 +268,7 @@ def _main(argv=None) -> int:
     wall = time.perf_counter() - t_start
     argv_txt = " ".join(["dtm-eval"] + (list(argv) if argv is not None else sys.argv[1:]))
     meta = {"command": argv_txt, "sections": sections, "data_dir": str(data_dir), "wall_s": wall,
-            "plan": {k: v for k, v in vars(plan).items()}, "jobs": args.jobs,
+            "plan": {k: v for k, v in vars(plan).items()}, "jobs": args.jobs, "dask": args.dask,
             "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},
             "date": time.strftime("%Y-%m-%d %H:%M:%S")}
     from ..evaluation.report import write_report

@@ -1,9 +1,13 @@
-"""``dtm-label``: label recordings as unlabeled streams with a trained model and score the result.
+"""``dtm-label``: label captures as unlabeled streams with a trained model; score them, write them labelled.
 
-The input's own labels are stripped (only the model's points are kept, derived to the 14 body
-points when the model uses them), each frame is optionally corrupted (hidden points, ghost
-points, noise) and shuffled, labelled frame by frame by the same engine the ROS node runs, and
-the published labels are compared with the input's labels.
+Each take's own labels are stripped (the model's points are kept, derived to the 14 body
+points when the model uses them); its unlabelled points (C3D ``*`` channels, unnamed CSV
+columns, markers the model does not know) join the stream as points that must stay
+unlabelled; each frame is optionally corrupted (hidden points, ghost points, noise) and
+shuffled, labelled frame by frame by the same engine the ROS node runs, and the published
+labels are compared with the take's labels (when it has names). ``--out`` writes the labelled
+capture (C3D or CSV, the input's rate, units and axes). Folders and many takes run as one job
+per take: here, in ``--jobs N`` local processes, or on a dask cluster (``--dask``).
 """
 from __future__ import annotations
 
@@ -15,7 +19,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ..evaluation.pipeline import ClipRun, label_clip_run, model_clip
+from ..evaluation.archive import LabelJob, TakeResult, default_workers, label_take, run_jobs
+from ..evaluation.labelled_capture import OUTPUT_SUFFIXES
+from ..evaluation.pipeline import ClipRun, model_clip
 from ..evaluation.switching import label_clip_bank
 from ..evaluation.metrics import Metrics, MetricsAccumulator
 from ..labeling import config
@@ -24,23 +30,29 @@ from ..labeling.config import LabelerSettings
 from ..model.bank import BankFileError, load_bank
 from ..model.io import load_model
 from ..motion.load import load_clip
-from .common import CliError, HelpFormatter, add_corruption_arguments, expand_inputs, parse_frames, run_main
+from .common import (CliError, HelpFormatter, add_capture_options, add_corruption_arguments, capture_kwargs,
+                     expand_inputs, expand_inputs_rel, parse_frames, run_main)
 
 EPILOG = """examples:
   dtm-train walk.bvh --frames 0:90% --out walk.npz
   dtm-label walk.npz walk.bvh --frames 90%: --json
-  dtm-label walk.npz walk.bvh --frames 90%: --occlude 3 --clutter 2 --noise-mm 2 --out labels.csv
+  dtm-label walk.npz walk.bvh --frames 90%: --occlude 3 --clutter 2 --noise-mm 2 --out-points labels.csv
   dtm-label walk.npz walk.bvh run.bvh --frames 0:50 --mode single --method greedy
   dtm-train capture.c3d --points all --frames 0:90% --out m41.npz && dtm-label m41.npz capture.c3d --frames 90%:
-output (--json): method, mode, frames, labels, accuracy, ghost_rejection, swaps_per_min, search_errors,
-  search_error_rate, latency_ms {p50, p99, max, mean}, fps, per_label, inputs (one entry per input).
+  dtm-label m41.npz unlabelled.c3d --out labelled.c3d            # '*' channels in, named channels out
+  dtm-label m41.npz archive/ --out labelled/ --jobs 2 --json     # one labelled file per take
+  dtm-label m41.npz archive/ --out labelled/ --dask tcp://scheduler:8786
+output (--json): method, mode, frames, labels, accuracy, ghosts, ghost_rejection, swaps_per_min, search_errors,
+  search_error_rate, latency_ms {p50, p99, max, mean}, fps, per_label, inputs (one entry per input: source,
+  frame_range, named, unlabelled_points, worker, out, error, and its own figures).
 """
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="dtm-label", formatter_class=HelpFormatter, epilog=EPILOG,
-                                description="Label recordings (labels stripped, points shuffled per frame) "
-                                            "with a trained triangulated model; score against their own labels.")
+                                description="Label recordings (labels stripped, points shuffled per frame, their unlabelled "
+                                            "points fed as ghosts) with a trained triangulated model; score against "
+                                            "their own labels when they have names; write them labelled (--out).")
     p.add_argument("model", metavar="MODEL", nargs="?", default=None,
                    help="model file from dtm-train (.npz); omitted with --bank")
     p.add_argument("inputs", nargs="+", metavar="INPUT",
@@ -54,7 +66,27 @@ def build_parser() -> argparse.ArgumentParser:
                         "--bank DIR): one model per action used at once; JSON adds active_action_accuracy "
                         "when the inputs' classes are bank actions")
     config.add_arguments(p, layers=("labeler", "bank"))
-    p.add_argument("--out", default=None, metavar="FILE.csv", help="write per-frame, per-point labels as CSV")
+    p.add_argument("--out", default=None, metavar="FILE|DIR",
+                   help="write the labelled capture: FILE.c3d or FILE.csv (one input), or a folder for many "
+                        "(one file per take, the archive's layout kept); channels named by the model's labels, "
+                        "unlabelled points as *N, the input's rate, units and axes")
+    p.add_argument("--out-format", choices=("c3d", "csv"), default=None,
+                   help="file type in an --out folder (default: as the input; c3d for BVH/AMC)")
+    p.add_argument("--out-points", default=None, metavar="FILE.csv",
+                   help="write per-frame, per-point labels as CSV (true label, label, confidence, track id)")
+    p.add_argument("--drop-unlabelled", action="store_true",
+                   help="feed only the model's points (ignore * channels, unnamed columns and markers the model "
+                        "does not know)")
+    p.add_argument("--ignore-names", action="store_true",
+                   help="label every point of the takes as an unnamed one (takes named in another convention); "
+                        "nothing is scored")
+    add_capture_options(p)
+    a = p.add_argument_group("archives")
+    a.add_argument("--jobs", type=int, default=1, metavar="N",
+                   help="label N takes at once in local processes (0: one per CPU)")
+    a.add_argument("--dask", default=None, metavar="ADDRESS",
+                   help="run the takes on a dask.distributed cluster: a scheduler address (tcp://host:8786) or "
+                        "'local' (a LocalCluster of --jobs workers started for this run)")
     p.add_argument("--json", action="store_true", help="print one JSON object with the scores")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -75,7 +107,7 @@ def _load(args, labels):
     clips = []
     for path in expand_inputs(args.inputs):
         try:
-            clip = load_clip(path)
+            clip = load_clip(path, **capture_kwargs(args))
         except (ValueError, KeyError, OSError) as e:
             raise CliError(f"{path}: {e}") from None
         try:
@@ -103,12 +135,12 @@ def _metrics_json(m: Metrics) -> dict:
     return d
 
 
-def _write_csv(path: str, runs: list[ClipRun], names: tuple[str, ...], multi: bool) -> None:
+def _write_csv(path: str, runs: list, names: tuple[str, ...], multi: bool) -> None:
     name = lambda i: names[i] if i >= 0 else ""  # noqa: E731
     try:
         fh = open(path, "w", newline="", encoding="utf-8")
     except OSError as e:
-        raise CliError(f"--out {path}: {e}") from None
+        raise CliError(f"--out-points {path}: {e}") from None
     with fh:
         w = csv.writer(fh)
         w.writerow((["input"] if multi else []) + ["frame", "time", "x", "y", "z", "true_label", "label",
@@ -140,12 +172,88 @@ def _main(argv=None) -> int:
     except (OSError, ValueError, KeyError) as e:
         msg = str(e).strip("'\"")
         raise CliError(msg if str(args.model) in msg else f"{args.model}: cannot read model: {msg}") from None
-    runs, pooled = _label_all(args, settings, model.labels,
-                              lambda clip, **kw: label_clip_run(model, clip, settings, **kw))
+    jobs = _jobs(args, settings, _out_paths(args))
+    results = _run_takes(args, jobs, Path(args.model).read_bytes())
+    failed = [r for r in results if r.error]
+    runs = [r for r in results if not r.error]
+    for r in failed:
+        print(f"error: {r.error if r.source in r.error else r.source + ': ' + r.error}", file=sys.stderr)
+    if not runs:
+        raise CliError(failed[0].error if len(failed) == 1 else f"all {len(failed)} takes failed")
+    for r in runs:
+        if r.note and not args.json:
+            print(f"note: {r.note}", file=sys.stderr)
+    pooled = MetricsAccumulator.merge(r.accumulator for r in runs).metrics()
+    if args.out_points:
+        _write_csv(args.out_points, runs, model.labels, multi=len(runs) > 1)
     out = {"method": settings.method, "mode": settings.mode, "model": str(args.model)} | _metrics_json(pooled)
-    if _report(args, settings, out, runs, []):
+    out |= {"drop_unlabelled": args.drop_unlabelled, "jobs": args.jobs, "dask": args.dask}
+    if failed:
+        out["errors"] = len(failed)
+    if _report(args, settings, out, results, []):
         _print_summary(args, settings, model, pooled, runs)
-    return 0
+    return 1 if failed else 0
+
+
+def _out_paths(args) -> list[tuple[Path, str | None]]:
+    """(take, labelled file to write or None) for every input."""
+    takes = expand_inputs_rel(args.inputs)
+    if not args.out:
+        return [(f, None) for f, _ in takes]
+    out = Path(args.out)
+    if out.suffix.lower() in OUTPUT_SUFFIXES and not out.is_dir():
+        if len(takes) != 1:
+            raise CliError(f"--out {out}: {len(takes)} takes need a folder (--out DIR)")
+        return [(takes[0][0], str(out))]
+    if out.suffix and not out.is_dir():
+        raise CliError(f"--out {out}: write a .c3d or .csv file, or give a folder")
+    paths = []
+    for f, rel in takes:
+        kind = args.out_format or (f.suffix.lower().lstrip(".") if f.suffix.lower() in OUTPUT_SUFFIXES else "c3d")
+        paths.append((f, str(out / rel.with_suffix("." + kind))))
+    dup = {p for _, p in paths if [q for _, q in paths].count(p) > 1}
+    if dup:
+        raise CliError(f"--out {out}: several takes would write {sorted(dup)[0]}")
+    return paths
+
+
+def _jobs(args, settings, takes) -> list[LabelJob]:
+    """One job per take: take ``i`` corrupted with ``seed + i`` (as a serial run)."""
+    load = capture_kwargs(args)
+    return [LabelJob(index=i, source=str(f), settings=settings, frames=args.frames, occlude=args.occlude,
+                     clutter=args.clutter, noise_mm=args.noise_mm, gap_frames=args.gap_frames, seed=settings.seed + i,
+                     use_ids=args.track_ids, keep_unlabelled=not args.drop_unlabelled,
+                     ignore_names=args.ignore_names, out=out, keep_records=args.out_points is not None, load=load)
+            for i, (f, out) in enumerate(takes)]
+
+
+def _run_takes(args, jobs: list[LabelJob], model_bytes: bytes) -> list[TakeResult]:
+    """All takes, one progress bar (frames for one take here, takes otherwise)."""
+    if args.jobs < 0:
+        raise CliError("--jobs must be >= 0 (0: one per CPU)")
+    workers = default_workers() if args.jobs == 0 else args.jobs
+    quiet = True if args.quiet else None
+    if len(jobs) == 1 and workers <= 1 and not args.dask:
+        bar = tqdm(desc="labeling", unit="frame", file=sys.stderr, disable=quiet, leave=False)
+
+        def frames(done: int, total: int) -> None:
+            bar.total = total
+            bar.update(done - bar.n)
+        try:
+            return [label_take(jobs[0], model_bytes, frames)]
+        finally:
+            bar.close()
+    bar = tqdm(total=len(jobs), desc="labeling", unit="take", file=sys.stderr, disable=quiet, leave=False)
+
+    def takes(done: int, total: int, r: TakeResult) -> None:
+        bar.set_postfix_str(Path(r.source).name[:30])
+        bar.update(done - bar.n)
+    try:
+        return run_jobs(label_take, jobs, model_bytes, workers=workers, dask=args.dask, progress=takes)
+    except (OSError, RuntimeError, TimeoutError) as e:
+        raise CliError(f"{'--dask ' + args.dask if args.dask else '--jobs'}: {e}") from None
+    finally:
+        bar.close()
 
 
 def _label_all(args, settings, labels, label_one):
@@ -163,7 +271,7 @@ def _label_all(args, settings, labels, label_one):
             run = label_one(clip, occlude=args.occlude, clutter=args.clutter, noise_mm=args.noise_mm,
                             seed=settings.seed + i, progress=lambda d, _t: bar.update(d - bar.n),
                             use_ids=args.track_ids, gap_frames=args.gap_frames,
-                            keep_records=args.out is not None, done=done, total=total)
+                            keep_records=args.out_points is not None, done=done, total=total)
             run.settings.update(frame_offset=clip.meta["frame_range"][0], rate=clip.rate,
                                 frame_range=clip.meta["frame_range"])
             runs.append(run)
@@ -172,24 +280,29 @@ def _label_all(args, settings, labels, label_one):
         raise CliError(str(e)) from None
     finally:
         bar.close()
-    if args.out:
-        _write_csv(args.out, runs, tuple(labels), multi=len(runs) > 1)
+    if args.out_points:
+        _write_csv(args.out_points, runs, tuple(labels), multi=len(runs) > 1)
     return runs, MetricsAccumulator.merge(r.accumulator for r in runs).metrics()
 
 
-def _report(args, settings, out: dict, runs: list[ClipRun], input_keys: list[str]) -> bool:
+def _report(args, settings, out: dict, runs: list, input_keys: list[str]) -> bool:
     """Complete the JSON object (corruption, settings, one entry per input with ``input_keys``
-    of its run settings) and print it with ``--json``; True when a text summary is due."""
+    of its run settings, or a take's own summary) and print it with ``--json``; True when a
+    text summary is due."""
     out |= {"occlude": args.occlude, "clutter": args.clutter, "noise_mm": args.noise_mm,
             "gap_frames": args.gap_frames, "window": settings.window, "seed": settings.seed,
             "track_ids": args.track_ids,
-            "inputs": [{"source": r.source, "frame_range": r.settings["frame_range"]}
-                       | {k: r.settings[k] for k in input_keys} | _metrics_json(r.metrics) for r in runs]}
+            "inputs": [(r.summary() if isinstance(r, TakeResult) else
+                        {"source": r.source, "frame_range": r.settings["frame_range"]}
+                        | {k: r.settings[k] for k in input_keys})
+                       | (_metrics_json(r.metrics) if getattr(r, "accumulator", None) is not None else {})
+                       for r in runs]}
     for item in out["inputs"]:
         for k in ("per_label", "label_names", "labels"):
             item.pop(k, None)
-    if args.out:
-        out["out"] = str(args.out)
+    for key in ("out", "out_points"):
+        if getattr(args, key, None):
+            out[key] = str(getattr(args, key))
     if args.json:
         print(json.dumps(out, indent=1))
         return False
@@ -197,6 +310,9 @@ def _report(args, settings, out: dict, runs: list[ClipRun], input_keys: list[str
 
 
 def _bank_main(args, settings, bank_settings) -> int:
+    if args.out or args.jobs != 1 or args.dask:
+        raise CliError("--bank labels takes one after the other and writes no labelled capture "
+                       "(--out, --jobs, --dask are for a single model)")
     try:
         bank = load_bank(args.bank)
     except (BankFileError, OSError) as e:
@@ -221,7 +337,7 @@ def _bank_main(args, settings, bank_settings) -> int:
     return 0
 
 
-def _print_summary(args, settings, model, m: Metrics, runs: list[ClipRun]) -> None:
+def _print_summary(args, settings, model, m: Metrics, runs: list) -> None:
     lat = m.latency_ms
     print(f"model          {args.model} ({len(model.labels)} labels)")
     print(f"method         {settings.method}, {settings.mode} mode" + (f", window {settings.window}" if settings.mode == "stream"
@@ -238,6 +354,13 @@ def _print_summary(args, settings, model, m: Metrics, runs: list[ClipRun]) -> No
         r0, (a, b) = runs[0], runs[0].settings["frame_range"]
         print(f"input          {Path(r0.source).name} frames {a}:{b}")
     print(f"frames         {m.frames} ({m.duration_s:.1f} s of recording)")
+    unl = sum(getattr(r, "unlabelled_points", 0) for r in runs)
+    if unl:
+        print(f"unlabelled     {unl} point{'s' if unl > 1 else ''} of the take{'s' if len(runs) > 1 else ''} "
+              "(* channels, unnamed columns, markers not in the model) fed as ghosts")
+    unnamed = [r for r in runs if not getattr(r, "named", True)]
+    if unnamed:
+        print(f"not scored     {len(unnamed)} take{'s' if len(unnamed) > 1 else ''} without names")
     print(f"accuracy       {_pct(m.accuracy)} of {m.points} visible markers; all right in "
           f"{_pct(m.frame_accuracy)} of frames; search alone {_pct(m.search_accuracy)}")
     print("ghosts         " + (f"{_pct(m.ghost_rejection)} of {m.ghosts} left unlabelled" if m.ghosts else "none"))
@@ -251,8 +374,11 @@ def _print_summary(args, settings, model, m: Metrics, runs: list[ClipRun]) -> No
         pairs = m.confused_pairs(4)
         if pairs:
             print("confusions     " + ", ".join(f"{t}->{p} {c}" for t, p, c in pairs))
-    if args.out:
-        print(f"wrote          {args.out}")
+    for r in runs:
+        if getattr(r, "out", None):
+            print(f"wrote          {r.out}")
+    if getattr(args, "out_points", None):
+        print(f"wrote          {args.out_points}")
 
 
 def main(argv=None) -> int:

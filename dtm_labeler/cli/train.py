@@ -5,11 +5,14 @@ import argparse
 import json
 import sys
 
+import numpy as np
+
 from tqdm import tqdm
 
 from ..model.io import save_model
 from ..training.train import BODY_AUGMENTATION, MIXTURE_KINDS, STRUCTURE_METHODS, TrainConfig, train_model
-from .common import CliError, HelpFormatter, load_inputs, point_spec, run_main
+from .common import (CliError, HelpFormatter, add_capture_options, capture_kwargs, load_inputs, point_spec,
+                     run_main)
 
 _DEFAULTS = TrainConfig()
 
@@ -90,6 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--transition-distance", type=float, default=0.10, metavar="M",
                    help="end points of transition paths: RMS pose distance per body point below M (or below "
                         "1.25 x the pair's closest distance when larger)")
+    add_capture_options(p)
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -112,7 +116,10 @@ def _main(argv=None) -> int:
         raise CliError(str(e)) from None
     if args.bank is not None:
         return _bank_main(args, config)
-    clips = load_inputs(args.inputs, point_spec(args.points), args.frames)
+    clips = load_inputs(args.inputs, point_spec(args.points), args.frames, capture_kwargs(args))
+    for c in clips:
+        if c.meta.get("up_axis_note") and not args.json:
+            print(f"note: {c.meta['up_axis_note']}", file=sys.stderr)
     bar = None if args.quiet or args.json else tqdm(total=1, desc="training", unit="step", file=sys.stderr)
 
     def progress(stage: str, i: int, k: int) -> None:
@@ -134,10 +141,17 @@ def _main(argv=None) -> int:
     if args.json:
         print(json.dumps(s, indent=1))
         return 0
+    for note in s.get("notes", []):
+        print(f"note: {note}", file=sys.stderr)
     print(f"model     {args.out}")
     print(f"clips     {len(clips)}: " + ", ".join(c.source.split('/')[-1] for c in clips))
     print(f"frames    {s['frames_total']} ({s['frames_complete']} with every point seen)")
     print(f"labels    {len(s['labels'])}: {' '.join(s['labels'])}")
+    cov = sorted(s["coverage"].items(), key=lambda kv: kv[1])
+    if cov and cov[0][1] < 0.999:
+        print(f"coverage  seen in {100 * float(np.median([v for _, v in cov])):.0f} % of frames (median); least: "
+              + ", ".join(f"{k} {100 * v:.0f} %" for k, v in cov[:5])
+              + f"; structure scored on {s['structure_scored_on']}")
     print(f"structure {s['structure_method']}: " + "  ".join("(" + ",".join(t) + ")" for t in s["structure"]))
     print(f"K         {s['components']}  (mixture: {args.mixture})")
     print(f"loglik    {s['loglik_per_frame']:.2f} per frame (model); structure score "

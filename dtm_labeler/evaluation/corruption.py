@@ -17,6 +17,10 @@ Per frame, in this order:
   (uniform range, random direction), it moves with that point (plus a few mm of jitter)
   for ``ghost_life_s`` (uniform range) and is then replaced by a new ghost with a new id.
   Ghosts never carry a true label (truth ``-1``).
+* **unlabelled points** -- ``extra`` (F, K, 3) real points of the take that are not the
+  model's (a C3D's ``*`` channels, markers the model does not know; see
+  :mod:`dtm_labeler.motion.unlabelled`) are delivered where finite, never hidden, truth ``-1``
+  like ghosts; each keeps its id while it stays visible.
 * **noise** -- i.i.d. Gaussian noise of ``noise_mm`` (std per coordinate, mm) on every point.
 * **shuffle** -- the points are permuted randomly, so their order carries no label; the
   truth moves with them.
@@ -119,6 +123,43 @@ def occlusion_mask(available: np.ndarray, k: int, rng: np.random.Generator, gap_
     return hidden
 
 
+def realistic_gaps(n_frames: int, n_points: int, rate: float, missing: float = 0.5, mean_gap_s: float = 0.25,
+                   spread: float = 8.0, seed: int = 0) -> np.ndarray:
+    """(F, M) bool: True where a marker is occluded, the way a capture's gaps look.
+
+    Each marker gets its own missing share (Beta distributed around ``missing``, concentration
+    ``spread``: some markers are hidden most of the time, others rarely), and alternates
+    seen and hidden runs whose lengths are log-normal (sigma 1: many flickers of a few frames
+    and a tail of occlusions of a second or more); hidden runs have the mean ``mean_gap_s``,
+    seen runs the mean that gives the marker its share. Markers start in a random phase."""
+    if not 0.0 <= missing < 1.0:
+        raise ValueError("missing must be in [0, 1)")
+    rng = np.random.default_rng(seed)
+    hidden = np.zeros((n_frames, n_points), dtype=bool)
+    if missing == 0.0 or n_frames == 0:
+        return hidden
+    share = np.clip(rng.beta(missing * spread, (1.0 - missing) * spread, size=n_points), 0.02, 0.95)
+    gap = max(1.0, mean_gap_s * rate)
+    sigma = 1.0
+    for p in range(n_points):
+        means = (gap, gap * (1.0 - share[p]) / share[p])          # hidden, seen
+        state = rng.random() < share[p]
+        t = 0
+        first = True
+        while t < n_frames:
+            mean = means[0] if state else means[1]
+            length = rng.lognormal(np.log(mean) - sigma ** 2 / 2, sigma)
+            if first:                                             # a random phase into the first run
+                length *= rng.random()
+                first = False
+            n = max(1, int(round(length)))
+            if state:
+                hidden[t:t + n, p] = True
+            t += n
+            state = not state
+    return hidden
+
+
 def _ghost_tracks(positions: np.ndarray, visible: np.ndarray, k: int, rate: float, rng: np.random.Generator,
                   offset_m: tuple[float, float], life_s: tuple[float, float], jitter_mm: float):
     """(F, k, 3) ghost positions and (F, k) generation number per slot (a new generation =
@@ -165,10 +206,12 @@ def _ghost_tracks(positions: np.ndarray, visible: np.ndarray, k: int, rate: floa
 
 def corrupt_clip(clip: MotionClip, occlude: int = 0, clutter: int = 0, noise_mm: float = 0.0, seed: int = 0,
                  shuffle: bool = True, gap_frames: float = 1.0, ghost_offset_m: tuple[float, float] = (0.05, 0.25),
-                 ghost_life_s: tuple[float, float] = (0.1, 0.6), ghost_jitter_mm: float = 2.0) -> CorruptedStream:
+                 ghost_life_s: tuple[float, float] = (0.1, 0.6), ghost_jitter_mm: float = 2.0,
+                 extra: np.ndarray | None = None) -> CorruptedStream:
     """The clip as an unlabeled, shuffled stream with ``occlude`` hidden true points and
-    ``clutter`` ghost points per frame and ``noise_mm`` Gaussian noise (see the module doc).
-    Label index ``m`` is the clip's column ``m`` (select the model's labels first)."""
+    ``clutter`` ghost points per frame, the take's own unlabelled points ``extra`` (F, K, 3)
+    and ``noise_mm`` Gaussian noise (see the module doc). Label index ``m`` is the clip's
+    column ``m`` (select the model's labels first)."""
     if occlude < 0 or clutter < 0 or noise_mm < 0:
         raise ValueError("occlude, clutter and noise_mm must be >= 0")
     if ghost_offset_m[0] < 0 or ghost_offset_m[1] < ghost_offset_m[0]:
@@ -185,16 +228,30 @@ def corrupt_clip(clip: MotionClip, occlude: int = 0, clutter: int = 0, noise_mm:
     visible = available & ~hidden
     ghosts, gen = _ghost_tracks(P, visible, int(clutter), clip.rate, r_ghost, ghost_offset_m, ghost_life_s,
                                 ghost_jitter_mm)
+    if extra is None:
+        extra = np.zeros((F, 0, 3))
+    extra = np.asarray(extra, dtype=np.float64)
+    if extra.ndim != 3 or extra.shape[0] != F or extra.shape[2] != 3:
+        raise ValueError(f"extra points must be (frames={F}, K, 3), got {extra.shape}")
+    K = extra.shape[1]
+    extra_seen = np.isfinite(extra).all(axis=2)
+    # an extra point's track: a new generation whenever it reappears
+    extra_gen = np.cumsum(extra_seen & ~np.vstack([np.zeros((1, K), bool), extra_seen[:-1]]), axis=0)
+    gen = np.concatenate([gen, extra_gen], axis=1)
+    n_fake = int(clutter) + K
 
     next_id = int(r_id.integers(1, 1000))
     true_id = np.full(M, -1, dtype=np.int64)
-    ghost_id = np.full(int(clutter), -1, dtype=np.int64)
-    ghost_gen = np.full(int(clutter), -1, dtype=np.int64)
+    ghost_id = np.full(n_fake, -1, dtype=np.int64)
+    ghost_gen = np.full(n_fake, -1, dtype=np.int64)
+    slots = np.arange(n_fake)
     frames: list[CorruptedFrame] = []
     for t in range(F):
         lab = np.flatnonzero(visible[t])
-        xyz = np.concatenate([P[t, lab], ghosts[t]], axis=0) if clutter else P[t, lab].copy()
-        truth = np.concatenate([lab, np.full(int(clutter), -1)]).astype(np.int64)
+        fake = np.concatenate([ghosts[t], extra[t]], axis=0)          # (clutter + K, 3)
+        on = slots[np.concatenate([np.ones(int(clutter), bool), extra_seen[t]])]
+        xyz = np.concatenate([P[t, lab], fake[on]], axis=0) if n_fake else P[t, lab].copy()
+        truth = np.concatenate([lab, np.full(on.size, -1)]).astype(np.int64)
         if noise_mm > 0:
             xyz = xyz + r_noise.normal(scale=noise_mm * 1e-3, size=xyz.shape)
         order = r_perm.permutation(xyz.shape[0]) if shuffle else np.arange(xyz.shape[0])
@@ -209,7 +266,7 @@ def corrupt_clip(clip: MotionClip, occlude: int = 0, clutter: int = 0, noise_mm:
                     next_id += 1
                 ids[i] = true_id[m]
             else:
-                s = src - lab.size
+                s = on[src - lab.size]
                 if ghost_gen[s] != gen[t, s]:
                     ghost_gen[s] = gen[t, s]
                     ghost_id[s] = next_id
@@ -222,7 +279,8 @@ def corrupt_clip(clip: MotionClip, occlude: int = 0, clutter: int = 0, noise_mm:
                                      label_to_index=l2i))
     settings = dict(occlude=int(occlude), clutter=int(clutter), noise_mm=float(noise_mm), seed=int(seed),
                     shuffle=bool(shuffle), gap_frames=float(gap_frames), ghost_offset_m=list(ghost_offset_m),
-                    ghost_life_s=list(ghost_life_s), ghost_jitter_mm=float(ghost_jitter_mm))
+                    ghost_life_s=list(ghost_life_s), ghost_jitter_mm=float(ghost_jitter_mm),
+                    unlabelled_points=int(K), unlabelled_samples=int(extra_seen.sum()))
     return CorruptedStream(frames=frames, names=clip.names, rate=clip.rate, source=clip.source, visible=visible,
                            occluded=hidden, settings=settings)
 

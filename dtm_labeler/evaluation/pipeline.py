@@ -12,6 +12,10 @@
 
 By default the labeler gets no track ids (its own tracker associates points); with
 ``use_ids=True`` it gets the simulated mocap-system ids of the corrupted stream.
+
+A take's own unlabelled points (``extra``, from :func:`~dtm_labeler.motion.unlabelled.model_input`)
+go into the stream as points that must stay unlabelled (counted as ghosts). A take without
+names (``named=False``) is labelled but not scored: accuracy and ghost figures stay empty.
 """
 from __future__ import annotations
 
@@ -76,26 +80,29 @@ def model_clip(model: TriangulatedModel | Sequence[str], clip: MotionClip) -> Mo
 
 def run_stream(model: TriangulatedModel, stream: CorruptedStream, settings: LabelerSettings | None = None,
                use_ids: bool = False, keep_records: bool = True, progress: Progress | None = None,
-               done: int = 0, total: int | None = None) -> ClipRun:
+               done: int = 0, total: int | None = None, scored: bool = True) -> ClipRun:
     """Feed a corrupted stream (label index = model label index) to a fresh labeler."""
     if tuple(stream.names) != tuple(model.labels):
         raise ValueError("stream label names differ from the model's labels")
     return run_labeler(StreamLabeler(model, settings or LabelerSettings()), model.labels, stream, use_ids,
-                       keep_records, progress, done, total)
+                       keep_records, progress, done, total, scored=scored)
 
 
 def run_labeler(labeler, labels: Sequence[str], stream: CorruptedStream, use_ids: bool = False,
                 keep_records: bool = True, progress: Progress | None = None, done: int = 0,
-                total: int | None = None, on_frame=None) -> ClipRun:
+                total: int | None = None, on_frame=None, scored: bool = True) -> ClipRun:
     """Run any labeler with the ``process`` interface (StreamLabeler, BankLabeler) over a
-    corrupted stream and score it; ``on_frame(result)`` sees every frame's result."""
+    corrupted stream and score it (``scored=False``: a take without names, nothing to score
+    against; frames and latencies are still counted); ``on_frame(result)`` sees every frame's
+    result."""
     acc = MetricsAccumulator(labels, stream.rate)
     records: list[FrameRecord] = []
     total = len(stream) if total is None else total
     t_wall = time.perf_counter()
     for i, f in enumerate(stream):
-        res = labeler.process(f.xyz, f.stamp, ids=f.ids if use_ids else None, truth=f.label_to_index)
-        acc.add_result(f.truth, res, valid=np.isfinite(f.xyz).all(1))
+        res = labeler.process(f.xyz, f.stamp, ids=f.ids if use_ids else None,
+                              truth=f.label_to_index if scored else None)
+        acc.add_result(f.truth, res, valid=np.isfinite(f.xyz).all(1) & scored)
         if on_frame is not None:
             on_frame(res)
         if keep_records:
@@ -109,7 +116,7 @@ def run_labeler(labeler, labels: Sequence[str], stream: CorruptedStream, use_ids
             progress(done + i + 1, total)
     wall = time.perf_counter() - t_wall
     return ClipRun(source=stream.source, metrics=acc.metrics(), accumulator=acc, records=records,
-                   settings=dict(stream.settings, use_ids=use_ids, wall_s=wall))
+                   settings=dict(stream.settings, use_ids=use_ids, wall_s=wall, scored=scored))
 
 
 def label_clip(model: TriangulatedModel, clip: MotionClip, settings: LabelerSettings | None = None,
@@ -126,13 +133,15 @@ def label_clip(model: TriangulatedModel, clip: MotionClip, settings: LabelerSett
 def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: LabelerSettings | None = None,
                    occlude: int = 0, clutter: int = 0, noise_mm: float = 0.0, seed: int = 0,
                    progress: Progress | None = None, use_ids: bool = False, gap_frames: float = 1.0,
-                   keep_records: bool = True, done: int = 0, total: int | None = None) -> ClipRun:
-    """:func:`label_clip` returning the full :class:`ClipRun`."""
-    mc = model_clip(model, clip)
+                   keep_records: bool = True, done: int = 0, total: int | None = None,
+                   extra: np.ndarray | None = None, named: bool = True) -> ClipRun:
+    """:func:`label_clip` returning the full :class:`ClipRun`; ``extra`` (F, K, 3): the take's
+    unlabelled points; ``named=False``: ``clip`` holds no truth (labelled, not scored)."""
+    mc = clip if not named else model_clip(model, clip)
     stream = corrupt_clip(mc, occlude=occlude, clutter=clutter, noise_mm=noise_mm, seed=seed,
-                          gap_frames=gap_frames)
+                          gap_frames=gap_frames, extra=extra)
     return run_stream(model, stream, settings, use_ids=use_ids, keep_records=keep_records, progress=progress,
-                      done=done, total=total)
+                      done=done, total=total, scored=named)
 
 
 def label_clips(model: TriangulatedModel, clips: Sequence[MotionClip], settings: LabelerSettings | None = None,

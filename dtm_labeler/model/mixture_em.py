@@ -206,7 +206,7 @@ class MixtureEstimator:
         state.weights = nk / nk.sum()
         for m in range(state.k):
             self._update_gaussian(X, rw[m], state, m, recompute=False)
-        state.log_dens = np.ascontiguousarray(log_gaussian_all(X, state.means, state.prec).T)
+        state.log_dens = self._log_densities(X, state.means, state.covs, state.prec)
 
     def _objective(self, ll: float, state: _State, n_eff: float, dim: int) -> float:
         """Quantity minimised by the loop: ``-log-likelihood`` (ML)."""
@@ -261,13 +261,22 @@ class MixtureEstimator:
         for m in range(k):
             covs[m], chol = stable_cholesky(covs[m], 0.0)
             prec[m] = inv_lower(chol)
-        return _State(np.asarray(weights, float).copy(), np.array(means, float), covs, prec,
-                      np.ascontiguousarray(log_gaussian_all(X, means, prec).T))
+        means = np.array(means, float)
+        return _State(np.asarray(weights, float).copy(), means, covs, prec,
+                      self._log_densities(X, means, covs, prec))
+
+    def _log_densities(self, X, means, covs, prec) -> np.ndarray:
+        """``(K, n)`` ``log N_k(x_i)`` of every component (eq. 7); a hook for partly seen samples."""
+        return np.ascontiguousarray(log_gaussian_all(X, means, prec).T)
+
+    def _log_likelihood(self, X, w, gm: GaussianMixture) -> float:
+        """Total sample-weighted log-likelihood of the data under ``gm`` (same hook)."""
+        return float(w @ gm.log_pdf(X))
 
     def _result(self, X, w, state: _State, n_iter, converged, history, trace) -> FitResult:
         gm = GaussianMixture(state.weights, state.means, state.covs)
         n_eff = float(w.sum())
-        ll = float(w @ gm.log_pdf(X))
+        ll = self._log_likelihood(X, w, gm)
         ml = message_length(ll, gm.weights, n_eff, gm.dim)
         if not history:
             history = [(gm.n_components, ml)]
@@ -428,6 +437,10 @@ class MDLMixture(MixtureEstimator):
         """Eq. 11 read as F&J's message length (see :func:`message_length`)."""
         return message_length(ll, state.weights, n_eff, dim)
 
+    def _single_gaussian(self) -> MixtureEstimator:
+        """The estimator of the one-component fallback (same data handling as this one)."""
+        return SingleGaussian(reg_covar=self.reg_covar, random_state=self.random_state)
+
     def _component_to_remove(self, state: _State, w, n_eff: float, dim: int) -> int:
         """Index of the component dropped between stages (see ``removal``)."""
         if self.removal == "least_probable":
@@ -480,8 +493,7 @@ class MDLMixture(MixtureEstimator):
         if n_eff <= 0.5 * npar:
             self._note(f"n={n_eff:g} samples cannot support one component with N={npar} parameters "
                        f"(needs > N/2); fell back to a single Gaussian")
-            single = SingleGaussian(reg_covar=self.reg_covar, random_state=self.random_state)
-            res = single._fit(X, w, rng)
+            res = self._single_gaussian()._fit(X, w, rng)
             res.notes = list(self._notes)
             return res
         k_cap = max(1, int(n_eff // npar))
@@ -514,28 +526,30 @@ class MDLMixture(MixtureEstimator):
         return self._result(X, w, best_state, total_iter, conv, history, trace)
 
 
-def make_estimator(kind: str, **kw) -> MixtureEstimator:
+def make_estimator(kind: str, classes: dict | None = None, **kw) -> MixtureEstimator:
     """Build an estimator by name: ``"single"``, ``"fixed"`` or ``"mdl"``.
 
     Keywords: ``k_fixed`` and ``n_init`` (fixed), ``k_min``/``k_max``/``removal`` (mdl), and
     ``reg_covar``/``max_iter``/``tol``/``random_state`` (all). Keys meant for another kind
     are ignored (so one config dict can drive all three); ``None`` means the default;
-    unknown keys raise ``TypeError``.
+    unknown keys raise ``TypeError``. ``classes`` maps the kinds to other implementations
+    with the same constructors (e.g. :mod:`.mixture_missing`'s).
     """
     known = {"k_fixed", "k_min", "k_max", "n_init", "removal", "reg_covar", "max_iter", "tol",
              "random_state"}
     unknown = set(kw) - known
     if unknown:
         raise TypeError(f"unknown estimator option(s): {sorted(unknown)}")
+    classes = {"single": SingleGaussian, "fixed": FixedKMixture, "mdl": MDLMixture} | (classes or {})
     kw = {k: v for k, v in kw.items() if v is not None}
     common = {k: kw[k] for k in ("reg_covar", "max_iter", "tol", "random_state") if k in kw}
     kind = str(kind).lower()
     if kind == "single":
-        return SingleGaussian(**common)
+        return classes["single"](**common)
     if kind == "fixed":
         extra = {"n_init": kw["n_init"]} if "n_init" in kw else {}
-        return FixedKMixture(kw.get("k_fixed", 3), **extra, **common)
+        return classes["fixed"](kw.get("k_fixed", 3), **extra, **common)
     if kind == "mdl":
         extra = {"removal": kw["removal"]} if "removal" in kw else {}
-        return MDLMixture(kw.get("k_min", 1), kw.get("k_max", 8), **extra, **common)
+        return classes["mdl"](kw.get("k_min", 1), kw.get("k_max", 8), **extra, **common)
     raise ValueError(f"unknown estimator kind {kind!r}; expected 'single', 'fixed' or 'mdl'")

@@ -24,6 +24,7 @@ import numpy as np
 
 from .bvh import axis_rotation, y_up_to_z_up
 from .clip import MotionClip
+from .naming import cmu_subject
 
 CMU_RATE_HZ = 120.0
 
@@ -240,16 +241,23 @@ def forward_kinematics(skel: AsfSkeleton, values: dict[str, np.ndarray]) -> tupl
 
 
 def find_asf_for(amc_path: str | Path) -> Path:
-    """The skeleton for an AMC: same stem ``.asf``, else the only ``.asf`` in the folder."""
+    """The skeleton for an AMC: same stem ``.asf``; else the subject's skeleton by CMU naming
+    (``93_04.amc`` -> ``93.asf``); else the only ``.asf`` in the folder; else ValueError
+    (pass the skeleton: ``asf_path=`` / ``--asf PATH``)."""
     amc_path = Path(amc_path)
     same = amc_path.with_suffix(".asf")
     if same.is_file():
         return same
-    cands = sorted(amc_path.parent.glob("*.asf")) + sorted(amc_path.parent.glob("*.ASF"))
-    cands = sorted(set(cands))
+    cands = sorted(set(amc_path.parent.glob("*.asf")) | set(amc_path.parent.glob("*.ASF")))
+    subject = cmu_subject(amc_path.stem)
+    if subject is not None:
+        by_subject = [c for c in cands if c.stem in (subject, subject.zfill(2), subject.lstrip("0") or "0")]
+        if len(by_subject) == 1:
+            return by_subject[0]
     if len(cands) == 1:
         return cands[0]
-    raise ValueError(f"{amc_path}: no {same.name} and {len(cands)} .asf files in the folder; pass asf_path")
+    raise ValueError(f"{amc_path}: no {same.name}" + (f" nor {subject}.asf" if subject is not None else "")
+                     + f" and {len(cands)} .asf files in the folder; pass the skeleton with --asf PATH")
 
 
 def load_asf_amc(asf_path: str | Path, amc_path: str | Path, unit_scale: float | None = None,

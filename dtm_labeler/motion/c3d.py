@@ -1,19 +1,21 @@
 """C3D marker files (via ezc3d) -> MotionClip (metres, Z up, NaN = missing).
 
-* Labels: ``POINT:LABELS`` (+ ``LABELS2``, ``LABELS3`` ... for > 255 points); the subject
-  prefix up to the last ``':'`` is stripped (``Male:LFHD -> LFHD``). If stripping makes two
-  labels equal, those keep their full label.
-* Labels starting with ``'*'`` (or empty) are unlabelled/auxiliary points (HDM05 ``*0``).
-  They are excluded from the clip by default but always kept in
+* Labels: ``POINT:LABELS`` (+ ``LABELS2``, ``LABELS3`` ... for > 255 points); names follow
+  :mod:`.naming` (subject prefix dropped, ``*``/empty/``Subject:*0`` = unlabelled point).
+  Unlabelled points are excluded from the clip by default but always kept in
   ``meta['unlabelled']`` (frames x K x 3, metres, Z up, NaN = missing) and
   ``meta['unlabelled_names']``; ``include_unlabelled=True`` appends them as points.
   ``meta['unlabelled_duplicates']`` maps unlabelled names that are exact copies of a
-  labelled point in every frame to that label (true for HDM05 ``*0 *1 *2`` =
-  ``LFWT CLAV LFHD``: they are not independent clutter).
+  labelled (or earlier unlabelled) point in every frame to that point (true for HDM05
+  ``*0 *1 *2`` = ``LFWT CLAV LFHD``: they are not independent clutter).
 * Missing samples: NaN from ezc3d, negative residual, and exact ``(0, 0, 0)``.
 * Units from ``POINT:UNITS`` ('mm', 'cm', 'm'); ``unit_scale`` overrides (metres per unit).
-* ``up_axis``: the file's vertical axis, 'Z' (default; all shared files) or 'Y'
-  (converted with ``(x, y, z) -> (x, -z, y)``).
+  The body is measured after reading (:func:`.sanity.check_body_units`): a take whose units
+  cannot be right for a person is refused with the unit its numbers look like.
+* ``up_axis``: ``'auto'`` (default) reads ``POINT:Y_SCREEN`` and checks it against the body,
+  or finds the vertical from the body (:mod:`.axes`); ``'X'``/``'Y'``/``'Z'`` force it.
+  ``meta['up_axis']``, ``meta['up_axis_source']`` record the decision.
+* ``POINT:RATE`` is checked against the header's frame rate.
 * Analog channels are ignored.
 """
 from __future__ import annotations
@@ -22,8 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .bvh import y_up_to_z_up
+from .axes import resolve_up_axis, to_z_up
 from .clip import MotionClip
+from .naming import split_channels, strip_prefix
+from .sanity import check_body_units, check_rate
+
+__all__ = ["load_c3d", "strip_prefix", "c3d_units"]
 
 _UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "dm": 0.1}
 
@@ -46,18 +52,19 @@ def _labels(params: dict, n: int) -> list[str]:
     return labels
 
 
-def strip_prefix(label: str) -> str:
-    """``'Male:LFHD' -> 'LFHD'`` (everything up to the last ':' removed)."""
-    return label.rsplit(":", 1)[-1].strip()
+def c3d_units(unit_scale: float) -> str:
+    """The POINT:UNITS text for ``unit_scale`` metres per unit ('mm' when none fits)."""
+    return next((u for u, v in _UNITS.items() if abs(v / unit_scale - 1.0) < 1e-9), "mm")
 
 
-def load_c3d(path: str | Path, up_axis: str = "Z", include_unlabelled: bool = False,
+def load_c3d(path: str | Path, up_axis: str = "auto", include_unlabelled: bool = False,
              unit_scale: float | None = None) -> MotionClip:
     """Read the 3-D points of a C3D file as a MotionClip (see module doc for rules).
 
-    ``meta``: ``format``, ``unit_scale``, ``raw_labels`` (labelled points, unstripped),
-    ``unlabelled``, ``unlabelled_names``, ``unlabelled_duplicates``, ``first_frame``
-    (C3D header frame number).
+    ``meta``: ``format``, ``unit_scale``, ``units`` (POINT:UNITS text of that scale),
+    ``raw_labels`` (labelled points, unstripped), ``unlabelled``, ``unlabelled_names``,
+    ``unlabelled_duplicates``, ``first_frame`` (C3D header frame number), ``up_axis``,
+    ``up_axis_source`` (+ ``up_axis_note``), ``screen`` (POINT:X_SCREEN, Y_SCREEN or None).
     """
     import ezc3d  # local import: only needed for C3D
 
@@ -78,42 +85,39 @@ def load_c3d(path: str | Path, up_axis: str = "Z", include_unlabelled: bool = Fa
     except (KeyError, IndexError, ValueError):
         pass
     xyz[np.all(xyz == 0.0, axis=2)] = np.nan
+    forced_units = unit_scale is not None
+    units = _param(params, "POINT", "UNITS")
+    u = (str(units[0]) if units else "mm").strip().lower()
     if unit_scale is None:
-        units = _param(params, "POINT", "UNITS")
-        u = (str(units[0]) if units else "mm").strip().lower()
         if u not in _UNITS:
             raise ValueError(f"{path}: POINT:UNITS {u!r} not understood; pass unit_scale (metres per unit)")
         unit_scale = _UNITS[u]
     xyz *= unit_scale
-    up = up_axis.upper()
-    if up == "Y":
-        xyz = y_up_to_z_up(xyz)
-    elif up != "Z":
-        raise ValueError(f"{path}: up_axis must be 'Z' or 'Y', got {up_axis!r}")
     rate = _param(params, "POINT", "RATE")
-    rate = float(rate[0]) if rate is not None and len(rate) else float(c["header"]["points"]["frame_rate"])
+    header_rate = float(c["header"]["points"]["frame_rate"])
+    rate = float(rate[0]) if rate is not None and len(rate) else header_rate
     if not rate > 0:
         raise ValueError(f"{path}: POINT:RATE is {rate}")
+    if header_rate > 0:
+        check_rate(rate, np.arange(3) / header_rate, path, "POINT:RATE")
 
-    raw = _labels(params, n)
-    unl = [i for i, s in enumerate(raw) if not s or s.startswith("*")]
-    lab = [i for i in range(n) if i not in set(unl)]
-    short = [strip_prefix(raw[i]) for i in lab]
-    names = [s if short.count(s) == 1 else raw[i] for s, i in zip(short, lab)]
-    if len(set(names)) != len(names):
-        raise ValueError(f"{path}: duplicate point labels {sorted({s for s in names if names.count(s) > 1})}")
-    unl_names = [raw[i] or f"*{i}" for i in unl]
-    dup = {}  # unlabelled points that are bit-identical copies of a labelled one (HDM05 *0-*2)
-    for k in unl:
-        for i, nm in zip(lab, names):
-            if np.array_equal(xyz[:, k], xyz[:, i], equal_nan=True):
-                dup[raw[k] or f"*{k}"] = nm
-                break
-    meta = dict(format="c3d", unit_scale=unit_scale, raw_labels=tuple(raw[i] for i in lab),
-                unlabelled=xyz[:, unl].copy(), unlabelled_names=tuple(unl_names), unlabelled_duplicates=dup,
-                first_frame=int(c["header"]["points"].get("first_frame", 0)))
+    split = split_channels(_labels(params, n), xyz, path)
+    lab, unl = split.named, split.unnamed
+    screen = [_param(params, "POINT", k) for k in ("X_SCREEN", "Y_SCREEN")]
+    screen = tuple(str(v[0]).strip() for v in screen) if all(v is not None and len(v) for v in screen) else None
+    up = resolve_up_axis(xyz[:, lab] if len(lab) >= 5 else xyz, up_axis,
+                         file_axis=screen[1] if screen else None, file_source="POINT:Y_SCREEN", where=path)
+    xyz = to_z_up(xyz, up.axis)
+    if not forced_units:
+        check_body_units(xyz[:, lab] if len(lab) >= 5 else xyz, unit_scale, u, path)
+    meta = dict(format="c3d", unit_scale=unit_scale, units=c3d_units(unit_scale), raw_labels=tuple(split.raw),
+                unlabelled=xyz[:, unl].copy(), unlabelled_names=tuple(split.unnamed_names),
+                unlabelled_duplicates=split.duplicates, first_frame=int(c["header"]["points"].get("first_frame", 0)),
+                up_axis=up.axis, up_axis_source=up.source, screen=screen)
+    if up.note:
+        meta["up_axis_note"] = up.note
     if include_unlabelled:
-        idx, all_names = lab + unl, names + unl_names
+        idx, all_names = lab + unl, split.names + split.unnamed_names
     else:
-        idx, all_names = lab, names
+        idx, all_names = lab, split.names
     return MotionClip(positions=xyz[:, idx], rate=rate, names=tuple(all_names), source=path, meta=meta)

@@ -7,6 +7,9 @@ from typing import Sequence
 import numpy as np
 
 
+PER_FRAME_META = ("unlabelled", "frame_numbers")   # meta entries with one row per frame
+
+
 @dataclass
 class MotionClip:
     """A labelled recording: ``positions[frame, point] = (x, y, z)``.
@@ -76,8 +79,14 @@ class MotionClip:
         return self._replace(positions=self.positions[:, idx], names=tuple(names))
 
     def slice(self, start: int | None = None, stop: int | None = None) -> "MotionClip":
-        """Frames ``start:stop`` (Python slice semantics)."""
-        return self._replace(positions=self.positions[start:stop])
+        """Frames ``start:stop`` (Python slice semantics); per-frame ``meta`` arrays
+        (:data:`PER_FRAME_META`) are sliced with them."""
+        meta = dict(self.meta)
+        for key in PER_FRAME_META:
+            v = meta.get(key)
+            if isinstance(v, np.ndarray) and v.ndim and v.shape[0] == self.n_frames:
+                meta[key] = v[start:stop]
+        return self._replace(positions=self.positions[start:stop], meta=meta)
 
     def velocities(self) -> np.ndarray:
         """Backward-difference velocities in m/s, shape like ``positions``.
@@ -94,3 +103,32 @@ class MotionClip:
                   motion_class=self.motion_class, meta=dict(self.meta))
         kw.update(changes)
         return MotionClip(**kw)
+
+
+def frame_range(spec: str | None, n_frames: int) -> tuple[int, int]:
+    """``A:B`` with integers or percentages (``0:90%``, ``90%:``) -> ``(a, b)``, Python slice
+    semantics clipped to ``n_frames``; ValueError for a malformed or empty range."""
+    if not spec:
+        return 0, n_frames
+    if ":" not in spec:
+        raise ValueError(f"--frames {spec!r}: expected A:B (integers or percentages, e.g. 0:90%)")
+    parts = spec.split(":", 1)
+
+    def one(text: str, default: int) -> int:
+        text = text.strip()
+        if not text:
+            return default
+        try:
+            if text.endswith("%"):
+                return int(round(float(text[:-1]) / 100.0 * n_frames))
+            v = int(text)
+        except ValueError:
+            raise ValueError(f"--frames {spec!r}: {text!r} is not an integer or percentage") from None
+        return v if v >= 0 else n_frames + v
+
+    a, b = one(parts[0], 0), one(parts[1], n_frames)
+    a, b = max(0, min(a, n_frames)), max(0, min(b, n_frames))
+    if b <= a:
+        raise ValueError(f"--frames {spec!r} selects no frames of {n_frames}")
+    return a, b
+

@@ -27,6 +27,9 @@ from .clip import MotionClip
 from .markers_csv import load_markers_csv, read_header
 from .pointsets import to_point_set
 from .positions_csv import POSITIONS16, load_positions_csv
+from .sanity import check_body_units
+
+UNITS_M = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "inch": 0.0254}
 
 # index.csv kinds that hold motion (FBX excluded: not readable here; derived positions CSVs
 # and .asf skeletons excluded: they duplicate the BVH / AMC recordings)
@@ -87,19 +90,50 @@ def motion_class_of(path: str | Path) -> tuple[str, str]:
     return class_from_name(path), ""
 
 
+def capture_options(kw: dict, ext: str) -> dict:
+    """The user-level options ``up_axis`` ('auto'/X/Y/Z) and ``units`` (mm/cm/m/inch, None =
+    the file's) turned into the keywords of the loader of ``ext``: marker files (C3D, CSV)
+    take both; BVH takes a forced Y/Z vertical and units; ASF/AMC take units (their
+    vertical is Y by convention); derived joint-position CSVs are metres, Y up."""
+    kw = dict(kw)
+    up = kw.pop("up_axis", None)
+    units = kw.pop("units", None)
+    if units is not None:
+        if units not in UNITS_M:
+            raise ValueError(f"units must be one of {', '.join(UNITS_M)}, got {units!r}")
+        kw.setdefault("unit_scale", UNITS_M[units])
+    forced = up is not None and str(up).lower() != "auto"
+    if ext in (".c3d",) or kw.get("csv_kind") == "markers":
+        if up is not None:
+            kw["up_axis"] = up
+    elif forced and ext == ".bvh":
+        kw["up_axis"] = up
+    elif forced and str(up).upper() != "Y":
+        raise ValueError(f"--up-axis {up}: {ext} files are Y up by convention")
+    return kw
+
+
 def load_clip(path: str | Path, points: str | Sequence[str] = "all", **kw) -> MotionClip:
     """Load any supported recording. ``points``: see :func:`pointsets.to_point_set`.
 
     Keywords go to the format loader (``unit_scale``, ``drop_tpose``, ``up_axis``,
     ``include_end_sites`` for BVH; ``unit_scale``, ``rate`` for ASF/AMC plus ``asf_path``;
-    ``up_axis``, ``include_unlabelled``, ``unit_scale`` for C3D; ``csv_kind`` =
-    'markers'/'positions' to skip CSV detection). ``marker_set`` goes to ``to_point_set``.
+    ``up_axis``, ``include_unlabelled``, ``unit_scale`` for C3D and marker CSV; ``csv_kind``
+    = 'markers'/'positions' to skip CSV detection); ``up_axis`` and ``units`` are read as
+    user options first (:func:`capture_options`). ``marker_set`` goes to ``to_point_set``.
+    Skeletal recordings are checked for human units like marker files
+    (:func:`.sanity.check_body_units`) unless ``unit_scale`` is given.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no such recording: {path}")
     marker_set = kw.pop("marker_set", None)
     ext = path.suffix.lower()
+    if ext == ".csv" and "csv_kind" not in kw:
+        kw["csv_kind"] = csv_kind(path)
+    if ext != ".amc":
+        kw.pop("asf_path", None)
+    kw = capture_options(kw, ext)
     if ext == ".bvh":
         clip = load_bvh(path, **kw)
     elif ext == ".asf":
@@ -115,7 +149,7 @@ def load_clip(path: str | Path, points: str | Sequence[str] = "all", **kw) -> Mo
     elif ext == ".csv":
         kind = kw.pop("csv_kind", None) or csv_kind(path)
         if kind == "positions":
-            clip = load_positions_csv(path, **kw)
+            clip = load_positions_csv(path, **{k: v for k, v in kw.items() if k == "up_axis"})
         elif kind == "markers":
             clip = load_markers_csv(path, **kw)
         else:
@@ -124,6 +158,8 @@ def load_clip(path: str | Path, points: str | Sequence[str] = "all", **kw) -> Mo
         raise ValueError(f"{path}: FBX is not supported; load the BVH conversion (bvh_from_fbx/) instead")
     else:
         raise ValueError(f"{path}: unsupported recording type {ext!r} (.bvh .asf .amc .c3d .csv)")
+    if ext in (".bvh", ".asf", ".amc") and "unit_scale" not in kw:
+        check_body_units(clip.positions, clip.meta.get("unit_scale", 1.0), "", str(path))
     cls, full = motion_class_of(path)
     clip.source = str(path)
     clip.motion_class = cls

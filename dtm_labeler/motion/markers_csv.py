@@ -1,8 +1,12 @@
-"""MoCap Toolbox marker CSV (``markers_csv/*.csv``) -> MotionClip (metres, Z up).
+"""Marker CSV (MoCap Toolbox layout, ``markers_csv/*.csv``) <-> MotionClip (metres, Z up).
 
-Layout: ``#`` comment lines, then the header ``frame,time_s,<M>_x,<M>_y,<M>_z,...``;
-values in **mm**, **Z up**; an empty cell is a missing sample. The rate is read from
-a ``<number> Hz`` phrase in the comments, else from the ``time_s`` column.
+Layout: ``#`` comment lines, then the header ``frame,time_s,<M>_x,<M>_y,<M>_z,...``; an
+empty cell is a missing sample. The comments may say the units, the vertical and the rate
+in the shared files' style (``# units mm, Z up, 60 Hz``); without them: mm, the vertical
+found from the body (:mod:`.axes`), the rate from the ``time_s`` column. A stated rate is
+checked against ``time_s``. Columns without a name (``_x,_y,_z``) or named ``*N`` are
+unlabelled points (``meta['unlabelled']``, as for C3D; see :mod:`.naming`).
+:func:`write_markers_csv` writes the same layout (``dtm-label --out labelled.csv``).
 
 :func:`read_xyz_csv` is the shared low-level parser (also used by
 :mod:`dtm_labeler.motion.positions_csv`).
@@ -16,7 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
+from .axes import from_z_up, resolve_up_axis, to_z_up
 from .clip import MotionClip
+from .naming import split_channels
+from .sanity import check_body_units, check_rate
+
+CSV_UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
 
 
 @dataclass
@@ -28,11 +37,22 @@ class XyzCsv:
     times: np.ndarray  # (F,) seconds
     xyz: np.ndarray  # (F, N, 3) file units/axes, NaN = empty cell
 
-    def rate(self) -> float:
+    def stated(self, pattern: str) -> str | None:
+        """The first group of ``pattern`` in the comments (case-insensitive), else None."""
         for c in self.comments:
-            m = re.search(r"(\d+(?:\.\d+)?)\s*Hz\b", c)
+            m = re.search(pattern, c, re.IGNORECASE)
             if m:
-                return float(m.group(1))
+                return m.group(1)
+        return None
+
+    def stated_rate(self) -> float | None:
+        hz = self.stated(r"(\d+(?:\.\d+)?)\s*Hz\b")
+        return None if hz is None else float(hz)
+
+    def rate(self) -> float:
+        hz = self.stated_rate()
+        if hz is not None:
+            return hz
         if len(self.times) < 2 or not self.times[-1] > self.times[0]:
             raise ValueError(f"{self.path}: cannot determine the frame rate (no 'Hz' comment, bad time_s)")
         return round((len(self.times) - 1) / (self.times[-1] - self.times[0]), 3)
@@ -87,10 +107,58 @@ def read_xyz_csv(path: str | Path) -> XyzCsv:
                   xyz=a[:, 2:].reshape(len(a), len(names), 3))
 
 
-def load_markers_csv(path: str | Path, unit_scale: float = 1e-3) -> MotionClip:
-    """MoCap Toolbox CSV (mm, Z up) -> MotionClip (metres, Z up).
-    ``meta``: ``format``, ``frame_numbers``, ``comments``, ``unit_scale``."""
+def load_markers_csv(path: str | Path, unit_scale: float | None = None, up_axis: str = "auto") -> MotionClip:
+    """Marker CSV -> MotionClip (metres, Z up); see the module doc for units, axes and rate.
+    ``meta``: ``format``, ``frame_numbers``, ``comments``, ``unit_scale``, ``units``, ``up_axis``,
+    ``up_axis_source``, ``unlabelled``, ``unlabelled_names``, ``unlabelled_duplicates``."""
     t = read_xyz_csv(path)
-    return MotionClip(positions=t.xyz * unit_scale, rate=t.rate(), names=t.names, source=str(path),
-                      meta=dict(format="markers_csv", frame_numbers=t.frames, comments=t.comments,
-                                unit_scale=unit_scale))
+    said = t.stated(r"\bunits?\s*:?\s*(mm|cm|m)\b")
+    units = (said or "mm").lower()
+    forced_units = unit_scale is not None
+    scale = float(unit_scale) if forced_units else CSV_UNITS[units]
+    rate = t.rate()
+    if t.stated_rate() is not None:
+        check_rate(rate, t.times, str(path), "the stated rate")
+    xyz = t.xyz * scale
+    split = split_channels(t.names, xyz, str(path))
+    said_up = t.stated(r"\b([XYZ])[\s-]*up\b") or t.stated(r"\bup[\s-]*axis\s*:?\s*([XYZ])\b")
+    lab = split.named
+    up = resolve_up_axis(xyz[:, lab] if len(lab) >= 5 else xyz, up_axis, file_axis=said_up,
+                         file_source="the CSV comments", where=str(path))
+    xyz = to_z_up(xyz, up.axis)
+    if not forced_units:
+        check_body_units(xyz[:, lab] if len(lab) >= 5 else xyz, scale, units, str(path))
+    meta = dict(format="markers_csv", frame_numbers=t.frames, comments=t.comments, unit_scale=scale,
+                units=next((u for u, v in CSV_UNITS.items() if abs(v / scale - 1) < 1e-9), "mm"),
+                up_axis=up.axis, up_axis_source=up.source, unlabelled=xyz[:, split.unnamed].copy(),
+                unlabelled_names=tuple(split.unnamed_names), unlabelled_duplicates=split.duplicates)
+    if up.note:
+        meta["up_axis_note"] = up.note
+    return MotionClip(positions=xyz[:, lab], rate=rate, names=tuple(split.names), source=str(path), meta=meta)
+
+
+def write_markers_csv(path: str | Path, positions: np.ndarray, names: tuple[str, ...] | list[str], rate: float,
+                      frame_numbers: np.ndarray | None = None, units: str = "mm", up_axis: str = "Z",
+                      comments: tuple[str, ...] = ()) -> Path:
+    """Write (F, N, 3) positions (metres, Z up, NaN = missing) in the marker CSV layout, in
+    ``units`` and with ``up_axis`` vertical; the comments state both and the rate, so
+    :func:`load_markers_csv` reads the file back exactly (to the 6 decimals written)."""
+    if units not in CSV_UNITS:
+        raise ValueError(f"units must be one of {', '.join(CSV_UNITS)}, got {units!r}")
+    P = from_z_up(np.asarray(positions, dtype=np.float64), up_axis) / CSV_UNITS[units]
+    F, N, _ = P.shape
+    frames = np.arange(F) if frame_numbers is None else np.asarray(frame_numbers)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    header = ["frame", "time_s"] + [f"{n}_{a}" for n in names for a in "xyz"]
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        for c in comments:
+            fh.write(f"# {c}\n")
+        fh.write(f"# units {units}, {up_axis.upper()} up, {rate:g} Hz, {F} frames, {N} points\n")
+        w = csv.writer(fh)
+        w.writerow(header)
+        flat = P.reshape(F, N * 3)
+        for i in range(F):
+            w.writerow([int(frames[i]), f"{i / rate:.6f}"] + ["" if not np.isfinite(v) else f"{v:.6f}"
+                                                                for v in flat[i]])
+    return path

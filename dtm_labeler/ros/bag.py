@@ -398,10 +398,12 @@ def _open_labeled_writer(out_path, force: bool, storage: str, conns, ts):
 
 def label_bag(model, in_path: str | Path, out_path: str | Path | None, settings=None, storage: str | None = None,
               topic: str = TOPIC_UNLABELED, force: bool = False,
-              progress: Callable[[int, int], None] | None = None) -> dict:
+              progress: Callable[[int, int], None] | None = None,
+              on_frame: Callable[[np.ndarray, Any, int], None] | None = None) -> dict:
     """Label every cloud of ``topic`` with a :class:`StreamLabeler` (header stamps as time),
     write the input topics plus ``/markers/labeled`` and ``/markers/labeled_cloud`` to
     ``out_path`` (None: write nothing) and score against ``/markers/ground_truth`` when present.
+    ``on_frame(xyz, result, stamp_ns)`` sees every labelled cloud (e.g. to write a labelled C3D).
     Returns a summary dict (accuracy, ghost_rejection, latency_ms {p50, p99, max, mean}, fps, ...)."""
     from ..labeling.stream import StreamLabeler
     from .pointcloud import complete_ids, read_points_xyz
@@ -431,6 +433,8 @@ def label_bag(model, in_path: str | Path, out_path: str | Path | None, settings=
             xyz, ids = read_points_xyz(msg)
             stamp = stamp_ns_of(msg)
             res = labeler.process(xyz, stamp * 1e-9, ids=complete_ids(ids))
+            if on_frame is not None:
+                on_frame(xyz, res, stamp)
             lat.append(res.latency_ms)
             resets += bool(res.reset)
             lab = np.asarray(res.labels)

@@ -25,6 +25,7 @@ from .evolve import Island, evolve
 from .ga import Termination
 
 LOG_2PI = float(np.log(2 * np.pi))
+UNUSABLE_PER_FRAME = -1e4     # nats per frame of a triple the training frames hardly show
 
 
 @dataclass
@@ -34,6 +35,7 @@ class TripleScores:
     triple: np.ndarray       # (n, n, n), symmetric
     pair: np.ndarray         # (n, n), symmetric
     n_frames: int
+    usable: np.ndarray | None = None   # (n, n, n) bool: triples a structure may use (None: all)
 
     @classmethod
     def from_states(cls, states: np.ndarray, reg_covar: float = 1e-6) -> "TripleScores":
@@ -42,7 +44,18 @@ class TripleScores:
         if F < 2:
             raise ValueError("structure search needs at least 2 complete frames")
         x = states.reshape(F, n * STATE_DIM)
-        S = np.cov(x, rowvar=False, bias=True)
+        return cls.from_covariance(np.cov(x, rowvar=False, bias=True), F, reg_covar)
+
+    @classmethod
+    def from_covariance(cls, S: np.ndarray, n_frames: int, reg_covar: float = 1e-6,
+                        usable: np.ndarray | None = None) -> "TripleScores":
+        """Scores of ``n_frames`` frames from the (n*6, n*6) covariance ``S`` of the stacked
+        point states; ``usable`` (n, n, n) bool: triples seen together often enough to be
+        used. The others score :data:`UNUSABLE_PER_FRAME` per frame: far below any real
+        triple, yet finite, so a GA population that starts with some of them climbs towards
+        structures with fewer (:meth:`unusable_in` counts them in a result)."""
+        n = S.shape[0] // STATE_DIM
+        F = n_frames
         triples = np.array(list(itertools.combinations(range(n), 3)), dtype=np.int64)
         pairs = np.array(list(itertools.combinations(range(n), 2)), dtype=np.int64)
         off = np.arange(STATE_DIM)
@@ -51,13 +64,16 @@ class TripleScores:
         G2 = observed_map((MISSING, FULL, FULL))[:, STATE_DIM:]                            # (9, 12)
         ll3 = _gaussian_ll(S[tri_idx[:, :, None], tri_idx[:, None, :]], FEATURE_MATRIX, F, reg_covar)
         ll2 = _gaussian_ll(S[pair_idx[:, :, None], pair_idx[:, None, :]], G2, F, reg_covar)
+        if usable is not None:
+            ok3 = usable[triples[:, 0], triples[:, 1], triples[:, 2]]
+            ll3 = np.where(ok3, ll3, UNUSABLE_PER_FRAME * F)
         triple = np.full((n, n, n), -np.inf)
         for perm in itertools.permutations(range(3)):
             triple[triples[:, perm[0]], triples[:, perm[1]], triples[:, perm[2]]] = ll3
         pair = np.full((n, n), -np.inf)
         pair[pairs[:, 0], pairs[:, 1]] = ll2
         pair[pairs[:, 1], pairs[:, 0]] = ll2
-        return cls(triple, pair, F)
+        return cls(triple, pair, F, usable)
 
     def score(self, population: np.ndarray) -> np.ndarray:
         """Fitness of (P, T, 3) strings (invalid strings are scored too; callers penalise)."""
@@ -66,7 +82,13 @@ class TripleScores:
         with np.errstate(invalid="ignore"):
             terms = self.triple[a, b, c]
             terms[:, 1:] -= self.pair[b[:, 1:], c[:, 1:]]
-        return terms.sum(-1)
+        return np.where(np.isnan(terms), -np.inf, terms).sum(-1)     # an unusable triple: -inf - -inf
+
+    def unusable_in(self, structure: Structure) -> list[tuple[int, int, int]]:
+        """The triangles of ``structure`` that are not usable."""
+        if self.usable is None:
+            return []
+        return [tuple(int(v) for v in t) for t in structure.array if not self.usable[t[0], t[1], t[2]]]
 
     def per_frame(self, structure: Structure) -> float:
         return float(self.score(structure.array[None])[0]) / self.n_frames
@@ -189,6 +211,9 @@ def greedy(scores: TripleScores, n_vertices: int, root_pairs: np.ndarray | None 
             i = int(np.argmax(g))
             if g[i] > best[0]:
                 best = (g[i], (int(unused[i]), p, q))
+        if best[1] is None:
+            raise ValueError(f"no usable triangle attaches points {sorted(unused.tolist())} to the structure "
+                             "(seen together with the others too rarely)")
         tris.append(best[1])
         a, p, q = best[1]
         used.add(a)

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import time
+from pathlib import Path
 from dataclasses import asdict, dataclass, field, replace
 from typing import Callable, Sequence
 
@@ -41,11 +42,12 @@ import numpy as np
 from .. import __version__
 from ..motion.clip import MotionClip
 from ..model.dtm import TriangulatedModel
-from ..model.features import (FULL, canonicalise, lateral_yaw, observation_state, point_states,
-                       triangle_features)
+from ..model.features import FULL, canonicalise, lateral_yaw, observation_state, point_states
+from ..motion.naming import common_names
 from ..motion.pointsets import BODY14, left_right_pairs
 from ..model.mixture import GaussianMixture
-from ..model.mixture_em import make_estimator
+from .gaps import (MIN_TRIPLE_FRAMES, coverage_report, fill_yaw, fit_triangle, loglik_per_label, structure_scores,
+                   unattachable, usable_structure)
 from ..model.structure import BODY14_GIVEN, Structure
 from ..search import structure_search as ss
 
@@ -133,6 +135,9 @@ class TrainSummary:
     message_length: list[float]
     seconds: float
     sources: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    coverage: dict[str, float] = field(default_factory=dict)     # per label: share of frames seen
+    structure_scored_on: str = ""
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -178,7 +183,7 @@ def canonical_states(clip: MotionClip, pairs: np.ndarray, jitter_deg: float = 0.
     without smearing it over all headings.
     """
     states = point_states(clip.positions, clip.rate)
-    yaw = lateral_yaw(clip.positions, pairs)
+    yaw = fill_yaw(lateral_yaw(clip.positions, pairs))          # frames without a left/right pair: interpolated
     if jitter_deg > 0:
         rng = rng or np.random.default_rng(0)
         yaw = yaw + np.radians(rng.uniform(-jitter_deg, jitter_deg, size=yaw.shape))
@@ -343,11 +348,9 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
     t0 = time.perf_counter()
     if not clips:
         raise ValueError("no training clips")
-    labels = list(clips[0].names)
-    for c in clips[1:]:
-        if list(c.names) != labels:
-            raise ValueError(f"{c.source}: point names differ from {clips[0].source}; "
-                             "select one point set for all clips")
+    labels, names_note = common_names([c.names for c in clips], [Path(c.source).name or f"clip {i + 1}"
+                                                                for i, c in enumerate(clips)])
+    clips = [c if list(c.names) == labels else c.select(labels) for c in clips]
     if len(labels) < 3:
         raise ValueError("a triangulated model needs at least 3 points")
     config = config.resolved(labels)
@@ -356,13 +359,19 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
     states, train_states, parents = training_states(clips, pairs, config)
     codes = observation_state(states)
     complete = (codes == FULL).all(axis=1)
-    train_codes = observation_state(train_states)
     n = len(labels)
     step = lambda msg, i, k: progress(msg, i, k) if progress else None  # noqa: E731
 
+    coverage = coverage_report(states, labels)
+    coverage.check()
+
     # -- structure --------------------------------------------------------------------
     step("structure", 0, 1)
-    scores = ss.TripleScores.from_states(states[complete], config.reg_covar) if complete.sum() >= 2 else None
+    scores, scored_on = structure_scores(states, config.reg_covar)
+    lost = unattachable(scores, labels) if scores is not None and config.structure != "given" else []
+    if lost:
+        raise ValueError(f"{', '.join(lost)}: never seen together with two other points in {MIN_TRIPLE_FRAMES} "
+                         "frames; the structure cannot hold them (leave them out with --points or add takes)")
     if config.structure == "given":
         given = config.given_structure or (BODY14_GIVEN if set(labels) == {x for t in BODY14_GIVEN for x in t}
                                            else None)
@@ -382,6 +391,7 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
             structure = ss.refine(scores, res, n, np.random.default_rng(config.seed), kw["root_pairs"]).structure
         else:
             structure = ss.simple_ga(scores, n, **kw).structure
+        structure = usable_structure(scores, structure, n, kw["root_pairs"], labels)
     struct_ll = scores.per_frame(structure) if scores is not None else float("nan")
     step("structure", 1, 1)
 
@@ -390,16 +400,7 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
     mixtures, lengths = [], []
     for t, tri in enumerate(structure.triangles):
         step("mixtures", t, structure.n_triangles)
-        ok = (train_codes[:, list(tri)] == FULL).all(axis=1)
-        X = triangle_features(train_states[ok], tri)
-        if X.shape[0] < 20:
-            raise ValueError(f"triangle {[labels[v] for v in tri]} has only {X.shape[0]} usable frames")
-        if X.shape[0] > config.max_frames_per_triangle:
-            X = X[np.sort(rng.choice(X.shape[0], config.max_frames_per_triangle, replace=False))]
-        est = make_estimator(config.mixture, k_fixed=config.k_fixed, k_min=config.k_min,
-                             k_max=config.k_max, reg_covar=config.reg_covar, removal=config.mdl_removal,
-                             random_state=config.seed + t)
-        fit = est.fit(X)
+        fit = fit_triangle(train_states, tri, config, rng, config.seed + t, labels)
         mixtures.append(floor_covariances(fit.mixture, config.position_floor_m, config.velocity_floor_mps))
         lengths.append(float(fit.message_length))
     step("mixtures", structure.n_triangles, structure.n_triangles)
@@ -417,13 +418,18 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
                     "body_tree": None if parents is None else
                     [[labels[p], labels[c]] for c, p in enumerate(parents) if p >= 0],
                     "rates_hz": sorted({float(c.rate) for c in clips})})
-    ll = model.frame_log_likelihood(states[complete]) if complete.any() else np.array([np.nan])
+    if scored_on == "complete frames" or not scored_on:
+        ll = model.frame_log_likelihood(states[complete]) if complete.any() else np.array([np.nan])
+    else:                                           # gappy takes: marginalised over what each frame misses
+        ll = model.frame_log_likelihood(states[np.isfinite(states).all(-1).sum(1) >= 3])
     # the typical model log-likelihood per labelled point: the stream labeler's starting level
-    model.settings["loglik_per_label"] = float(np.median(ll) / len(labels)) if complete.any() else 0.0
+    model.settings["loglik_per_label"] = float(np.median(ll) / len(labels)) if scored_on == "complete frames" \
+        else loglik_per_label(model, states)
     summary = TrainSummary(
         labels=labels, frames_total=int(states.shape[0]), frames_complete=int(complete.sum()),
         structure=structure.names(labels), structure_method=config.structure,
         structure_loglik_per_frame=struct_ll, components=model.components_per_triangle(),
         loglik_per_frame=float(np.mean(ll)), message_length=lengths,
-        seconds=time.perf_counter() - t0, sources=[c.source for c in clips])
+        seconds=time.perf_counter() - t0, sources=[c.source for c in clips], notes=[names_note] if names_note else [],
+        coverage=coverage.as_dict(), structure_scored_on=scored_on)
     return model, summary

@@ -1,0 +1,403 @@
+#!/usr/bin/env python
+"""Real captures in, labelled captures out (issue 14): gappy training, real ghosts, unnamed C3D ->
+labelled C3D, archives with --jobs / --dask.
+
+Sections (``--only``):
+
+* ``gaps``    -- gapped copies of the shared takes (:func:`realistic_gaps`: 50 % of the samples
+  hidden, each marker with its own share, log-normal gaps of mean 0.25 s), written as C3D.
+  A model is trained on the first half of the gapped take (at most the last
+  ``TRAIN_FRAMES`` frames of it) and labels its second half (the first ``LABEL_FRAMES``
+  frames): the gapped stream with the capture's trajectory continuity as track ids
+  (``--track-ids``: what the trajectories of a C3D carry), the gapped stream with the
+  labeler's own tracker, and the full (gap-free) second half; the same for a model trained
+  on the gap-free first half, to tell training from labeling.
+* ``ghosts``  -- real markers as ghosts: a take's markers are split into the model's and
+  "unknown" ones; the unknown ones are written as ``*`` channels of a C3D of the second
+  half (real trajectories next to the body), which ``dtm-label`` feeds to the labeler as
+  unlabelled points. Accuracy and ghost rejection.
+* ``unnamed`` -- the HDM05 take's second half with its names stripped (only ``*`` channels,
+  trajectories cut into pieces of ~1.5 s spread over channels, as an unlabelled export looks)
+  through ``dtm-label MODEL unnamed.c3d --out labelled.c3d`` (the console script, a
+  subprocess); the share of true samples that the labelled C3D holds in the channel of
+  their name; the file checked with ezc3d (POINT:LABELS / UNITS / RATE).
+* ``archive`` -- ``dtm-label`` over a folder of takes, serial vs ``--jobs 2`` vs ``--dask
+  local`` (subprocesses): wall time and identical figures.
+
+Writes results/captures.json and results/captures.md.
+
+    .venv/bin/python benchmarks/bench_captures.py [--quick] [--only gaps,ghosts,unnamed,archive]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get("DTM_DATA_DIR", REPO.parent / "shared" / "data"))
+RESULTS = REPO / "results"
+BIN = Path(sys.executable).parent
+
+from dtm_labeler.evaluation.archive import LabelJob, label_take  # noqa: E402
+from dtm_labeler.evaluation.corruption import realistic_gaps  # noqa: E402
+from dtm_labeler.labeling.stream import LabelerSettings  # noqa: E402
+from dtm_labeler.model.io import model_to_bytes, save_model  # noqa: E402
+from dtm_labeler.motion.c3d_write import write_c3d  # noqa: E402
+from dtm_labeler.motion.load import load_clip  # noqa: E402
+from dtm_labeler.training.train import TrainConfig, train_model  # noqa: E402
+
+TAKES = {
+    "hdm05": ("markers_c3d/hdm05_bd_05-01_01_120.c3d", "HDM05 bd 05-01 (41 markers, 120 Hz, 5920 frames)"),
+    "qualisys": ("markers_c3d/qualisys_walk_55markers.c3d", "Qualisys walk (55 markers, 200 Hz, 340 frames)"),
+    "cmu85_02": ("markers_c3d/cmu_85_02_jumptwist_s85_41markers.c3d", "CMU 85_02 jump-twist (41 markers, 120 Hz)"),
+}
+GAPS = dict(missing=0.5, mean_gap_s=0.25, spread=20.0, seed=1)
+GAP_S = {"qualisys": 0.1}     # its 170 training frames (0.85 s) hold few 0.25 s gaps: every marker would be
+                              # seen in under 20 frames of it
+TRAIN_FRAMES, LABEL_FRAMES = 1500, 600
+SWEEP = (0.1, 0.25, 0.5)
+CONFIG = dict(seed=0, k_max=3)
+# markers the model does not know, written as '*' channels (real trajectories next to the body)
+UNKNOWN = {"hdm05": ["LFIN", "RFIN", "LTOE", "RTOE", "RBAC", "T10"],
+           "qualisys": ["L_WAND1", "L_WAND2", "L_WAND3", "L_WAND4", "R_WAND1", "R_WAND2", "R_WAND3", "R_WAND4"]}
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def halves(n: int, train_cap: int, label_cap: int) -> tuple[slice, slice]:
+    half = n // 2
+    return slice(max(0, half - train_cap), half), slice(half, min(n, half + label_cap))
+
+
+def gapped(clip, **kw):
+    P = clip.positions.copy()
+    P[realistic_gaps(clip.n_frames, clip.n_points, clip.rate, **kw)] = np.nan
+    return clip._replace(positions=P)
+
+
+def write_take(path: Path, clip, names=None) -> Path:
+    return write_c3d(path, clip.positions, list(names or clip.names), clip.rate)
+
+
+def train(clip, **over):
+    t0 = time.perf_counter()
+    model, summary = train_model([clip], TrainConfig(**(CONFIG | over)))
+    return model, summary, time.perf_counter() - t0
+
+
+def label(model, path: Path, **kw):
+    job = LabelJob(index=0, source=str(path), settings=LabelerSettings(), **kw)
+    r = label_take(job, model_to_bytes(model))
+    if r.error:
+        raise RuntimeError(r.error)
+    m = r.metrics
+    return {"frames": m.frames, "accuracy": m.accuracy, "ghosts": m.ghosts, "ghost_rejection": m.ghost_rejection,
+            "search_errors": m.search_errors, "full_search_rate": m.full_search_rate,
+            "p50_ms": m.latency_ms["p50"], "p99_ms": m.latency_ms["p99"], "wall_s": r.wall_s,
+            "unlabelled_points": r.unlabelled_points}
+
+
+# -- sections ---------------------------------------------------------------------------------------
+def run_gaps(tmp: Path, keys, quick: bool) -> dict:
+    out = {}
+    for key in keys:
+        rel, title = TAKES[key]
+        clip = load_clip(DATA / rel)
+        tr, la = halves(clip.n_frames, 600 if quick else TRAIN_FRAMES, 120 if quick else LABEL_FRAMES)
+        gaps = GAPS | {"mean_gap_s": GAP_S.get(key, GAPS["mean_gap_s"])}
+        gap = gapped(clip, **gaps)
+        test_gappy = write_take(tmp / f"{key}_gappy_test.c3d", gap.slice(la.start, la.stop))
+        test_clean = write_take(tmp / f"{key}_clean_test.c3d", clip.slice(la.start, la.stop))
+        res = {"title": title, "mean_gap_s": gaps["mean_gap_s"],
+               "train_frames": [tr.start, tr.stop], "label_frames": [la.start, la.stop],
+               "missing_train": float(np.isnan(gap.slice(tr.start, tr.stop).positions[..., 0]).mean()),
+               "missing_test": float(np.isnan(gap.slice(la.start, la.stop).positions[..., 0]).mean()),
+               "complete_train_frames": int((~np.isnan(gap.slice(tr.start, tr.stop).positions[..., 0])).all(1).sum())}
+        for mkind, src in (("gappy", gap), ("clean", clip)):
+            model, summary, secs = train(src.slice(tr.start, tr.stop))
+            save_model(model, tmp / f"{key}_{mkind}.npz")
+            cov = np.array(list(summary.coverage.values()))
+            res[f"model_{mkind}"] = {"train_s": secs, "scored_on": summary.structure_scored_on,
+                                     "coverage_min": float(cov.min()), "coverage_median": float(np.median(cov)),
+                                     "components": summary.components}
+            log(f"gaps {key}: trained on {mkind} in {secs:.0f} s ({summary.structure_scored_on})")
+            for tag, path, kw in (("gappy, capture ids", test_gappy, dict(use_ids=True)),
+                                  ("gappy, own tracker", test_gappy, {}),
+                                  ("gap-free", test_clean, {})):
+                r = label(model, path, **kw)
+                res[f"model_{mkind}"][tag] = r
+                log(f"gaps {key}: {mkind} model, {tag}: {100 * r['accuracy']:.2f} % "
+                    f"({r['search_errors']} search errors / {r['frames']})")
+        if key == keys[0]:          # where labeling gapped streams breaks: the gap-free model, fewer gaps
+            res["sweep"] = {}
+            for miss in SWEEP:
+                test = write_take(tmp / f"{key}_sweep.c3d", gapped(clip, **(gaps | {"missing": miss})).slice(
+                    la.start, la.stop))
+                res["sweep"][miss] = {t: label(model, test, **kw) for t, kw in
+                                      (("capture ids", dict(use_ids=True)), ("own tracker", {}))}
+                log(f"gaps {key} sweep {miss}: " + ", ".join(f"{t} {100 * r['accuracy']:.2f} %"
+                                                             for t, r in res["sweep"][miss].items()))
+        out[key] = res
+    return out
+
+
+def run_ghosts(tmp: Path, keys, quick: bool) -> dict:
+    out = {}
+    for key in keys:
+        rel, title = TAKES[key]
+        clip = load_clip(DATA / rel)
+        known = [n for n in clip.names if n not in UNKNOWN[key]]
+        tr, la = halves(clip.n_frames, 600 if quick else TRAIN_FRAMES, 120 if quick else LABEL_FRAMES)
+        model, _, secs = train(clip.select(known).slice(tr.start, tr.stop))
+        test = clip.select(known + UNKNOWN[key]).slice(la.start, la.stop)
+        path = write_take(tmp / f"{key}_ghosts.c3d", test, known + [f"*{i}" for i in range(len(UNKNOWN[key]))])
+        r = label(model, path) | {"title": title, "model_labels": len(known), "ghost_markers": UNKNOWN[key],
+                                  "train_s": secs}
+        r["without_ghosts"] = label(model, path, keep_unlabelled=False)
+        log(f"ghosts {key}: accuracy {100 * r['accuracy']:.2f} %, ghosts rejected {100 * r['ghost_rejection']:.2f} % "
+            f"of {r['ghosts']} (without them: {100 * r['without_ghosts']['accuracy']:.2f} %)")
+        out[key] = r
+    return out
+
+
+def strip_names(clip, rng, mean_segment_s: float = 1.5):
+    """The clip as an unlabelled export: every trajectory cut into pieces (~mean_segment_s),
+    each piece in a random free '*' channel. Returns (positions (F, C, 3), C)."""
+    F, N, _ = clip.positions.shape
+    C = 2 * N
+    out = np.full((F, C, 3), np.nan)
+    busy = np.zeros((F, C), bool)
+    seg = max(1, int(mean_segment_s * clip.rate))
+    for p in rng.permutation(N):
+        t = 0
+        while t < F:
+            n = int(rng.integers(seg // 2, 2 * seg))
+            free = np.flatnonzero(~busy[t:t + n].any(0))
+            c = int(rng.choice(free))
+            out[t:t + n, c] = clip.positions[t:t + n, p]
+            busy[t:t + n, c] = True
+            t += n
+    used = busy.any(0)
+    return out[:, used], int(used.sum())
+
+
+def run_unnamed(tmp: Path, quick: bool) -> dict:
+    import ezc3d
+    rel, title = TAKES["hdm05"]
+    clip = load_clip(DATA / rel)
+    tr, la = halves(clip.n_frames, 600 if quick else TRAIN_FRAMES, 120 if quick else LABEL_FRAMES)
+    model, _, secs = train(clip.slice(tr.start, tr.stop))
+    model_path = save_model(model, tmp / "hdm05_named.npz")
+    test = clip.slice(la.start, la.stop)
+    pts, C = strip_names(test, np.random.default_rng(3))
+    unnamed = write_c3d(tmp / "hdm05_unnamed.c3d", pts, [f"*{i}" for i in range(C)], test.rate)
+    labelled = tmp / "hdm05_labelled.c3d"
+    t0 = time.perf_counter()
+    p = subprocess.run([str(BIN / "dtm-label"), str(model_path), str(unnamed), "--out", str(labelled), "--json",
+                        "--quiet"], capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if p.returncode:
+        raise RuntimeError(p.stderr)
+    d = json.loads(p.stdout)
+    c = ezc3d.c3d(str(labelled))
+    pt = c["parameters"]["POINT"]
+    back = load_clip(labelled)
+    right = total = 0
+    per = {}
+    for name in test.names:
+        want = test.positions[:, test.index(name)]
+        got = back.positions[:, back.index(name)]
+        seen = np.isfinite(want).all(1)
+        ok = seen & np.isfinite(got).all(1) & (np.abs(got - want).max(1) < 1e-4)
+        right += int(ok.sum())
+        total += int(seen.sum())
+        per[name] = float(ok.sum() / max(seen.sum(), 1))
+    return {"title": title, "train_frames": [tr.start, tr.stop], "label_frames": [la.start, la.stop],
+            "input_channels": C, "train_s": secs, "wall_s": wall, "samples": total, "named_right": right / total,
+            "weakest": dict(sorted(per.items(), key=lambda kv: kv[1])[:5]),
+            "labels": list(pt["LABELS"]["value"][:3]) + ["..."], "n_labels": len(pt["LABELS"]["value"]),
+            "units": pt["UNITS"]["value"][0], "rate": float(pt["RATE"]["value"][0]),
+            "first_frame": int(c["header"]["points"]["first_frame"]), "json_accuracy": d["accuracy"],
+            "unlabelled_points": d["inputs"][0]["unlabelled_points"]}
+
+
+def run_archive(tmp: Path, quick: bool, repeats: int) -> dict:
+    rel, _ = TAKES["hdm05"]
+    clip = load_clip(DATA / rel)
+    tr, _ = halves(clip.n_frames, 600 if quick else TRAIN_FRAMES, 0)
+    model, _, _ = train(clip.slice(tr.start, tr.stop))
+    model_path = save_model(model, tmp / "archive_model.npz")
+    folder = tmp / "archive"
+    n_takes, frames = (4, 60) if quick else (6, 240)
+    starts = np.linspace(clip.n_frames // 2, clip.n_frames - frames, n_takes).astype(int)
+    for i, a in enumerate(starts):
+        write_take(folder / f"take{i}.c3d", clip.slice(a, a + frames))
+    runs: dict = {}
+    for name, extra in (("serial", []), ("--jobs 2", ["--jobs", "2"]), ("--dask local --jobs 2",
+                                                                       ["--dask", "local", "--jobs", "2"])):
+        walls, cpus, d = [], [], None
+        for _ in range(repeats):
+            r0, t0 = resource.getrusage(resource.RUSAGE_CHILDREN), time.perf_counter()
+            p = subprocess.run([str(BIN / "dtm-label"), str(model_path), str(folder), "--json", "--quiet"] + extra,
+                               capture_output=True, text=True)
+            walls.append(time.perf_counter() - t0)
+            r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpus.append(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime)
+            if p.returncode:
+                raise RuntimeError(p.stderr)
+            d = json.loads(p.stdout)
+        runs[name] = {"wall_s": walls, "best_s": min(walls), "cpu_s": cpus, "load": os.getloadavg()[0],
+                      "figures": {k: d[k] for k in ("frames", "points", "correct", "accuracy", "ghosts", "swaps",
+                                                    "search_errors")},
+                      "per_take": [x["accuracy"] for x in d["inputs"]],
+                      "workers": sorted({x["worker"] for x in d["inputs"]})}
+        log(f"archive {name}: best of {repeats} {min(walls):.1f} s")
+    base = runs["serial"]["best_s"]
+    for name, r in runs.items():
+        r["speedup"] = base / r["best_s"]
+        r["same_figures"] = r["figures"] == runs["serial"]["figures"] and r["per_take"] == runs["serial"]["per_take"]
+    return {"takes": n_takes, "frames_per_take": frames, "runs": runs}
+
+
+# -- report -----------------------------------------------------------------------------------------
+def pct(x) -> str:
+    return "–" if x is None else f"{100 * x:.2f}"
+
+
+def write_md(res: dict, meta: dict) -> str:
+    L = ["# Captures: gappy training, real ghosts, unnamed C3D -> labelled C3D, archives", "",
+         f"{meta['machine']}; other jobs share the machine. Sections run: "
+         + "; ".join(f"{name} {r['date']} (commit {r['commit']}, load average {r['load_start']:.1f} -> "
+                     f"{r['load_end']:.1f})" for name, r in meta.get("runs", {}).items()) + ".", ""]
+    if "gaps" in res:
+        g = GAPS
+        L += ["## Training on gappy captures", "",
+              f"Gapped copies: {100 * g['missing']:.0f} % of the samples hidden (each marker its own share, Beta "
+              f"spread {g['spread']:g}), log-normal gaps of mean {g['mean_gap_s']} s (the 1.7 s Qualisys take: "
+              f"{GAP_S['qualisys']} s; sigma 1: flickers and occlusions of a second or more), seed 1. Train on the first half (at most its last "
+              f"{TRAIN_FRAMES} frames), label the second half (its first {LABEL_FRAMES} frames), stream mode, "
+              "default settings. *capture ids*: the trajectories' continuity as track ids (what a C3D's "
+              "trajectories carry; `--track-ids`); *own tracker*: no ids.", "",
+              "| take | hidden (train / test) | complete train frames | model | train s | structure on | "
+              "coverage min / median | gappy, capture ids % | gappy, own tracker % | gap-free % |",
+              "|---|---|---:|---|---:|---|---|---:|---:|---:|"]
+        for key, r in res["gaps"].items():
+            for mk in ("gappy", "clean"):
+                m = r[f"model_{mk}"]
+                L.append(f"| {key} | {100 * r['missing_train']:.0f} / {100 * r['missing_test']:.0f} % | "
+                         f"{r['complete_train_frames']} of {r['train_frames'][1] - r['train_frames'][0]} | "
+                         f"{'gapped' if mk == 'gappy' else 'gap-free'} first half | {m['train_s']:.0f} | "
+                         f"{m['scored_on']} | {100 * m['coverage_min']:.0f} / {100 * m['coverage_median']:.0f} % | "
+                         + " | ".join(f"{pct(m[t]['accuracy'])} ({m[t]['search_errors']} err)"
+                                      for t in ("gappy, capture ids", "gappy, own tracker", "gap-free")) + " |")
+        L += ["", "err = frames where the model scores the true labeling above the published one (search errors).", ""]
+        for key, r in res["gaps"].items():
+            if "sweep" not in r:
+                continue
+            L += [f"Labeling gapped streams of {key} with the gap-free model (same gap lengths, fewer gaps):", "",
+                  "| hidden | capture ids % | own tracker % | search errors (ids) |", "|---:|---:|---:|---:|"]
+            for miss, v in r["sweep"].items():
+                L.append(f"| {100 * float(miss):.0f} % | {pct(v['capture ids']['accuracy'])} | "
+                         f"{pct(v['own tracker']['accuracy'])} | {v['capture ids']['search_errors']} of "
+                         f"{v['capture ids']['frames']} |")
+            L.append("")
+    if "ghosts" in res:
+        L += ["## Real ghosts from `*` channels", "",
+              "Markers the model does not know, written as `*` channels of the second half's C3D (real "
+              "trajectories next to the body); model on the other markers of the first half.", "",
+              "| take | model labels | `*` channels (real markers) | frames | accuracy % | ghosts | rejected % | "
+              "accuracy without them % |", "|---|---:|---|---:|---:|---:|---:|---:|"]
+        for key, r in res["ghosts"].items():
+            L.append(f"| {key} | {r['model_labels']} | {', '.join(r['ghost_markers'])} | {r['frames']} | "
+                     f"{pct(r['accuracy'])} | {r['ghosts']} | {pct(r['ghost_rejection'])} | "
+                     f"{pct(r['without_ghosts']['accuracy'])} |")
+        L.append("")
+    if "unnamed" in res:
+        u = res["unnamed"]
+        L += ["## Unnamed C3D -> labelled C3D", "",
+              f"{u['title']}: model on frames {u['train_frames'][0]}:{u['train_frames'][1]} (named); frames "
+              f"{u['label_frames'][0]}:{u['label_frames'][1]} written with only `*` channels "
+              f"({u['input_channels']} channels: trajectories cut into ~1.5 s pieces spread over channels), then "
+              "`dtm-label MODEL unnamed.c3d --out labelled.c3d` (console script).", "",
+              f"- true samples in the channel of their name: **{pct(u['named_right'])} %** of {u['samples']}",
+              f"- weakest: " + ", ".join(f"{k} {100 * v:.1f} %" for k, v in u["weakest"].items()),
+              f"- labelled C3D (ezc3d): {u['n_labels']} POINT:LABELS ({', '.join(u['labels'])}), UNITS "
+              f"{u['units']}, RATE {u['rate']:g}, first frame {u['first_frame']}; JSON accuracy "
+              f"{u['json_accuracy']} (no names in the input: not scored), {u['unlabelled_points']} unnamed "
+              f"input channels; {u['wall_s']:.1f} s", ""]
+    if "archive" in res:
+        a = res["archive"]
+        L += ["## Archives: `--jobs`, `--dask local`", "",
+              f"`dtm-label MODEL folder/ --json` over {a['takes']} HDM05 takes of {a['frames_per_take']} frames "
+              "(subprocesses; best wall time of the repeats). CPU s = user + system time of the run and its "
+              "workers: CPU / wall is the number of cores the run got.", "",
+              "| run | wall s (each) | CPU s (each) | best s | speed-up | same figures as serial | workers | "
+              "load after |", "|---|---|---|---:|---:|---|---:|---:|"]
+        for name, r in a["runs"].items():
+            L.append(f"| {name} | {', '.join(f'{w:.1f}' for w in r['wall_s'])} | "
+                     f"{', '.join(f'{c:.1f}' for c in r.get('cpu_s', [])) or '–'} | {r['best_s']:.1f} | "
+                     f"{r['speedup']:.2f}x | {'yes' if r['same_figures'] else 'NO'} | {len(r['workers'])} | "
+                     f"{r['load']:.1f} |")
+        L.append("")
+    return "\n".join(L)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="small budgets (smoke test)")
+    ap.add_argument("--only", default="gaps,ghosts,unnamed,archive")
+    ap.add_argument("--gap-takes", default="hdm05,qualisys")
+    ap.add_argument("--ghost-takes", default="hdm05,qualisys")
+    ap.add_argument("--repeats", type=int, default=2, help="archive runs per variant")
+    ap.add_argument("--out", default=str(RESULTS / "captures"), help="output stem (.json, .md)")
+    ap.add_argument("--update", action="store_true",
+                    help="keep the other sections of an existing OUT.json (rerun some sections only)")
+    args = ap.parse_args(argv)
+    only = set(args.only.split(","))
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
+                            text=True).stdout.strip()
+    meta = {"date": time.strftime("%Y-%m-%d %H:%M"), "commit": commit, "load_start": os.getloadavg()[0],
+            "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+            "command": "benchmarks/bench_captures.py " + " ".join(argv if argv is not None else sys.argv[1:])}
+    res: dict = {}
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        if "gaps" in only:
+            res["gaps"] = run_gaps(tmp, args.gap_takes.split(","), args.quick)
+        if "ghosts" in only:
+            res["ghosts"] = run_ghosts(tmp, args.ghost_takes.split(","), args.quick)
+        if "unnamed" in only:
+            res["unnamed"] = run_unnamed(tmp, args.quick)
+            log(f"unnamed: {100 * res['unnamed']['named_right']:.2f} % of true samples named right")
+        if "archive" in only:
+            res["archive"] = run_archive(tmp, args.quick, args.repeats)
+    meta["load_end"] = os.getloadavg()[0]
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    runs = {name: {k: meta[k] for k in ("date", "commit", "load_start", "load_end")} for name in res}
+    if args.update and out.with_suffix(".json").is_file():
+        old = json.loads(out.with_suffix(".json").read_text())
+        runs = old["meta"].get("runs", {}) | runs
+        res = old["results"] | res
+    meta["runs"] = runs
+    out.with_suffix(".json").write_text(json.dumps({"meta": meta, "results": res}, indent=1, default=float))
+    md = write_md(res, meta)
+    out.with_suffix(".md").write_text(md + "\n")
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,249 @@
+"""Archives: many takes, one job per take, run here, in local processes or on a dask cluster.
+
+A job (:class:`LabelJob`) is everything one take needs: the take's path, the model (as the
+bytes of its file, so cluster workers need no copy of it), the labeler settings and the
+corruption seed of that take. :func:`label_take` loads the take, splits it for the model
+(:func:`~dtm_labeler.motion.unlabelled.model_input`), labels it, writes the labelled capture
+if asked and returns a :class:`TakeResult` whose metrics accumulator the caller merges in
+input order -- so every figure except the timings is the same whichever way the jobs run.
+
+:class:`JobRunner` (:func:`run_jobs` for one batch) runs any such function over jobs:
+
+* ``workers=1`` and no ``dask``: in this process, one after the other;
+* ``workers=N``: a ``concurrent.futures`` process pool of N local processes;
+* ``dask="local"``: a ``dask.distributed.LocalCluster`` of ``workers`` single-threaded
+  worker processes started for the run and closed after it; ``dask="tcp://host:8786"``: a
+  running scheduler (its workers need this package installed and must see the takes' and
+  the outputs' paths, e.g. a shared file system).
+
+Results come back in job order; ``progress(done, total, result)`` is called as each job
+finishes (one progress bar for the whole archive). A take that fails (unreadable file,
+wrong names ...) gives a result with ``error`` set; the others go on.
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+import socket
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from ..labeling.stream import LabelerSettings
+from ..model.io import model_from_arrays
+from ..motion.clip import frame_range
+from ..motion.load import load_clip
+from ..motion.unlabelled import model_input
+from .labelled_capture import CaptureFormat, from_records
+from .metrics import MetricsAccumulator
+from .pipeline import label_clip_run
+
+Progress = Callable[[int, int, Any], None]
+
+
+@dataclass(frozen=True)
+class LabelJob:
+    """One take to label (see the module doc)."""
+
+    index: int
+    source: str
+    settings: LabelerSettings
+    frames: str | None = None
+    occlude: int = 0
+    clutter: int = 0
+    noise_mm: float = 0.0
+    gap_frames: float = 1.0
+    seed: int = 0                      # corruption seed of this take
+    use_ids: bool = False
+    keep_unlabelled: bool = True
+    ignore_names: bool = False         # label every point as unnamed (no score)
+    out: str | None = None             # labelled capture to write (.c3d / .csv)
+    keep_records: bool = False         # return every frame (per-point CSV)
+    load: dict = field(default_factory=dict)   # load_clip keywords: up_axis, unit_scale, asf_path
+
+
+@dataclass
+class TakeResult:
+    index: int
+    source: str
+    error: str = ""
+    frame_range: tuple[int, int] = (0, 0)
+    named: bool = True
+    unlabelled_points: int = 0         # unlabelled channels / unknown markers fed as ghosts
+    unlabelled_samples: int = 0
+    copies_left_out: int = 0           # unlabelled channels that copy another channel
+    up_axis: str = ""
+    note: str = ""
+    out: str | None = None
+    accumulator: MetricsAccumulator | None = None
+    records: list = field(default_factory=list)
+    wall_s: float = 0.0
+    rate: float = 0.0
+    worker: str = ""                   # host:pid of the process that labelled the take
+
+    @property
+    def metrics(self):
+        return self.accumulator.metrics()
+
+    @property
+    def settings(self) -> dict:
+        """Where the labelled frames sit in the take (as :class:`~.pipeline.ClipRun` settings)."""
+        return {"frame_range": list(self.frame_range), "frame_offset": self.frame_range[0], "rate": self.rate}
+
+    def summary(self) -> dict:
+        """JSON-ready description of the take (metrics are added by the caller)."""
+        d = {"source": self.source, "frame_range": list(self.frame_range), "named": self.named,
+             "unlabelled_points": self.unlabelled_points, "unlabelled_samples": self.unlabelled_samples,
+             "copies_left_out": self.copies_left_out, "up_axis": self.up_axis, "wall_s": self.wall_s,
+             "worker": self.worker}
+        if self.out:
+            d["out"] = self.out
+        if self.note:
+            d["note"] = self.note
+        if self.error:
+            d["error"] = self.error
+        return d
+
+
+_MODELS: dict[str, Any] = {}
+
+
+def model_from_bytes(data: bytes):
+    """A model from the bytes of its file, parsed once per process."""
+    key = hashlib.sha1(data).hexdigest()
+    if key not in _MODELS:
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            _MODELS[key] = model_from_arrays({k: z[k] for k in z.files}, "model")
+    return _MODELS[key]
+
+
+def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int], None] | None = None
+               ) -> TakeResult:
+    """Load, split, label (and write) one take; errors in the take are returned, not raised."""
+    t0 = time.perf_counter()
+    res = TakeResult(job.index, job.source, worker=f"{socket.gethostname()}:{os.getpid()}")
+    try:
+        model = model_from_bytes(model_bytes)
+        clip = load_clip(job.source, **job.load)
+        a, b = frame_range(job.frames, clip.n_frames)
+        clip = clip.slice(a, b)
+        mi = model_input(clip, model.labels, job.keep_unlabelled, job.ignore_names)
+        run = label_clip_run(model, mi.clip, job.settings, occlude=job.occlude, clutter=job.clutter,
+                             noise_mm=job.noise_mm, seed=job.seed, progress=progress, use_ids=job.use_ids,
+                             gap_frames=job.gap_frames, keep_records=job.keep_records or job.out is not None,
+                             extra=mi.extra, named=mi.named)
+        if job.out:
+            cap = from_records(run.records, model.labels, clip.n_frames, CaptureFormat.of(clip, a))
+            res.out = str(cap.write(job.out))
+        dup = clip.meta.get("unlabelled_duplicates") or {}
+        notes = [n for n in (mi.note, clip.meta.get("up_axis_note", "")) if n]
+        res.frame_range, res.named, res.note = (a, b), mi.named, "; ".join(notes)
+        res.unlabelled_points, res.copies_left_out = mi.n_extra, (len(dup) if job.keep_unlabelled else 0)
+        res.unlabelled_samples = int(run.settings.get("unlabelled_samples", 0))
+        res.up_axis = f"{clip.meta.get('up_axis', 'Z')} ({clip.meta.get('up_axis_source', 'format')})"
+        res.accumulator, res.rate = run.accumulator, clip.rate
+        res.records = run.records if job.keep_records else []
+    except (ValueError, KeyError, OSError) as e:
+        res.error = str(e).strip("'\"")
+    res.wall_s = time.perf_counter() - t0
+    return res
+
+
+class JobRunner:
+    """Runs ``fn(job, shared)`` over jobs here, in local processes or on dask (module doc);
+    a context manager, so the pool or cluster serves every :meth:`map` until it closes."""
+
+    def __init__(self, workers: int = 1, dask: str | None = None):
+        self.workers, self.dask = max(1, int(workers)), dask
+        self._pool = self._client = self._cluster = None
+
+    def __enter__(self) -> "JobRunner":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(cancel_futures=True)
+        if self._client is not None:
+            self._client.close()
+        if self._cluster is not None:
+            self._cluster.close()
+        self._pool = self._client = self._cluster = None
+
+    @property
+    def parallel(self) -> bool:
+        return bool(self.dask) or self.workers > 1
+
+    def _dask_client(self):
+        if self._client is None:
+            try:
+                from distributed import Client, LocalCluster
+            except ImportError as e:                         # pragma: no cover - pinned in requirements
+                raise RuntimeError(f"--dask needs dask.distributed ({e})") from None
+            if self.dask == "local":
+                self._cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
+                                             dashboard_address=None, silence_logs=40)
+                self._client = Client(self._cluster)
+            else:
+                self._client = Client(self.dask, timeout="30s")
+        return self._client
+
+    def map(self, fn: Callable, jobs: Sequence, shared: Any = None, progress: Progress | None = None) -> list:
+        """``[fn(job, shared) for job in jobs]``, in job order; ``progress(done, total, result)``
+        after each job."""
+        jobs = list(jobs)
+        out: list = [None] * len(jobs)
+        done = 0
+
+        def finished(i: int, r) -> None:
+            nonlocal done
+            out[i] = r
+            done += 1
+            if progress is not None:
+                progress(done, len(jobs), r)
+
+        if self.dask:
+            from distributed import as_completed as dask_completed
+            client = self._dask_client()
+            ref = client.scatter(shared, broadcast=True) if shared is not None else None
+            futs = client.map(fn, jobs, [ref] * len(jobs), pure=False)
+            index = {f.key: i for i, f in enumerate(futs)}
+            for f in dask_completed(futs):
+                finished(index[f.key], f.result())
+        elif self.workers <= 1 or len(jobs) <= 1:
+            for i, job in enumerate(jobs):
+                finished(i, fn(job, shared))
+        else:
+            if self._pool is None:
+                self._pool = ProcessPoolExecutor(max_workers=self.workers)
+            futs = {self._pool.submit(fn, job, shared): i for i, job in enumerate(jobs)}
+            for f in as_completed(futs):
+                finished(futs[f], f.result())
+        return out
+
+
+def run_jobs(fn: Callable, jobs: Sequence, shared: Any = None, workers: int = 1, dask: str | None = None,
+             progress: Progress | None = None) -> list:
+    """One :meth:`JobRunner.map` with a runner opened and closed for it."""
+    with JobRunner(workers, dask) as runner:
+        return runner.map(fn, jobs, shared, progress)
+
+
+def call_task(task: tuple, shared: Any = None):
+    """``fn(**kwargs)`` for a ``(fn, kwargs)`` task (a job function for :class:`JobRunner`)."""
+    fn, kwargs = task
+    return fn(**kwargs)
+
+
+def default_workers() -> int:
+    """Local processes for ``--jobs 0`` (auto): the CPUs this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:                                   # pragma: no cover - non-Linux
+        return max(1, os.cpu_count() or 1)

@@ -1,0 +1,109 @@
+"""Point names across files: prefixes, unnamed channels, copies, and the names several takes share.
+
+Rules (the same for every loader and every tool):
+
+* **Subject prefixes** are dropped: everything up to the last ``':'`` (``Male:LFHD -> LFHD``),
+  unless two channels would then share a name (those keep their full label).
+* **Unnamed channels** are points without a name: an empty label, or one starting with ``'*'``
+  after the prefix (``*0``, ``Bastian:*12``; Vicon/Nexus and QTM write unlabelled
+  trajectories this way, and so does ``dtm-label --out``). They are kept apart as
+  *unlabelled points* (``meta['unlabelled']``), never as model points.
+* **Copies**: an unnamed channel that is bit-identical in every frame to a named one (the
+  HDM05 takes' ``*0 *1 *2`` = ``LFWT CLAV LFHD``) or to an earlier unnamed one is the same
+  physical point twice; it is recorded in ``meta['unlabelled_duplicates']`` and never fed to
+  a labeler as a second point.
+* **Several takes** (:func:`common_names`): the same names in another channel order are the
+  same point set (every take is put in the first one's order); different sets keep the
+  names all takes share, in the first take's order, with a one-line note; no name in common
+  is an error that names the differences.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+
+def strip_prefix(label: str) -> str:
+    """``'Male:LFHD' -> 'LFHD'`` (everything up to the last ':' removed)."""
+    return label.rsplit(":", 1)[-1].strip()
+
+
+def is_unnamed(label: str) -> bool:
+    """True for an unlabelled channel: ``''``, ``'*3'``, ``'Subject:*0'``."""
+    short = strip_prefix(str(label))
+    return not short or short.startswith("*")
+
+
+@dataclass
+class ChannelSplit:
+    """How a file's channels divide into named points and unlabelled points."""
+
+    named: list[int]                       # channel indices of named points
+    names: list[str]                       # their names (prefix stripped where unique)
+    raw: list[str]                         # their labels as written
+    unnamed: list[int]                     # channel indices of unlabelled points
+    unnamed_names: list[str]               # their labels ('*<channel>' when empty)
+    duplicates: dict[str, str] = field(default_factory=dict)   # unlabelled copy -> the channel it copies
+
+    @property
+    def independent(self) -> list[int]:
+        """Indices into ``unnamed`` of the unlabelled points that copy nothing."""
+        return [k for k, nm in enumerate(self.unnamed_names) if nm not in self.duplicates]
+
+
+def split_channels(labels: Sequence[str], xyz: np.ndarray, where: str = "") -> ChannelSplit:
+    """Divide channels (``labels``, ``xyz`` (F, N, 3) with NaN = missing) by the module rules."""
+    raw = [str(s).strip() for s in labels]
+    unnamed = [i for i, s in enumerate(raw) if is_unnamed(s)]
+    skip = set(unnamed)
+    named = [i for i in range(len(raw)) if i not in skip]
+    short = [strip_prefix(raw[i]) for i in named]
+    names = [s if short.count(s) == 1 else raw[i] for s, i in zip(short, named)]
+    if len(set(names)) != len(names):
+        raise ValueError(f"{where + ': ' if where else ''}duplicate point labels "
+                         f"{sorted({s for s in names if names.count(s) > 1})}")
+    unnamed_names = [raw[i] or f"*{i}" for i in unnamed]
+    dup: dict[str, str] = {}
+    for k, u in enumerate(unnamed):
+        earlier = list(zip(named, names)) + [(unnamed[j], unnamed_names[j]) for j in range(k)
+                                             if unnamed_names[j] not in dup]
+        for i, nm in earlier:
+            if np.array_equal(xyz[:, u], xyz[:, i], equal_nan=True):
+                dup[unnamed_names[k]] = nm
+                break
+    return ChannelSplit(named, names, [raw[i] for i in named], unnamed, unnamed_names, dup)
+
+
+def common_names(name_lists: Sequence[Sequence[str]], sources: Sequence[str] | None = None
+                 ) -> tuple[list[str], str]:
+    """``(names, note)``: the point names every list shares, in the first list's order, and a
+    one-line note when some were left out ('' when all lists hold the same names). ValueError
+    naming the differences when nothing is shared."""
+    if not name_lists:
+        raise ValueError("no point names")
+    sources = list(sources) if sources is not None else [f"take {i + 1}" for i in range(len(name_lists))]
+    first = list(name_lists[0])
+    shared = set(first)
+    for names in name_lists[1:]:
+        shared &= set(names)
+    keep = [n for n in first if n in shared]
+    if not keep:
+        diff = [f"{s}: {', '.join(list(n)[:6])}{' ...' if len(n) > 6 else ''}" for s, n in zip(sources, name_lists)]
+        raise ValueError("the takes share no point name (" + "; ".join(diff) + "); give takes of one marker set "
+                         "or name the points with --points")
+    dropped = sorted(set().union(*map(set, name_lists)) - shared)
+    if not dropped:
+        return keep, ""
+    lacking = [s for s, n in zip(sources, name_lists) if set(dropped) - set(n)]
+    note = (f"the takes share {len(keep)} point names; training on those, leaving out {len(dropped)} "
+            f"({', '.join(dropped[:8])}{' ...' if len(dropped) > 8 else ''}) that "
+            f"{', '.join(lacking[:3])}{' ...' if len(lacking) > 3 else ''} lack{'s' if len(lacking) == 1 else ''}")
+    return keep, note
+
+
+def cmu_subject(stem: str) -> str | None:
+    """CMU take naming: ``'93_04' -> '93'`` (subject number before the underscore), else None."""
+    head, sep, tail = stem.partition("_")
+    return head if sep and head.isdigit() and tail[:1].isdigit() else None
