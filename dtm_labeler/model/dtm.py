@@ -14,6 +14,11 @@ seen for the first time keeps its position and loses its velocity. As in the pap
 exact when the missing vertex is a leaf (eq. 30) and the paper's approximation otherwise
 (eq. 31: ``P(E|C)`` from the triangle marginalised over ``D``).
 
+Body terms (:mod:`.body`, issue 13). A model may carry a :class:`~.body.BodyModel`: a factor
+on the edges each triangle introduces (bone lengths, marker clusters on one segment, reach
+limits), added to the triangle's term by :meth:`TriangulatedModel.edge_terms`. Models
+without one (format version 1 files) score exactly as before.
+
 Dimensions. A conditional term covers the 6 (or 3) dimensions of ``A_t``; a vertex whose
 parents are all unobserved (and the first triangle) additionally has an absolute position
 that no triangle models. :class:`TriangleTerms` reports such *roots* so the labeler can
@@ -25,6 +30,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import numpy as np
 
+from .body import BodyModel, EdgeTerms, slot_distances
 from .features import (MISSING, N_PATTERNS, STATE_DIM, feature_map_for, observation_state,
                        observed_map, pattern_codes, pattern_id)
 from .mixture import GaussianMixture
@@ -234,6 +240,7 @@ class TriangulatedModel:
     mirror_pairs: np.ndarray | None = None      # all left/right pairs (default: heading_pairs)
     settings: dict = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
+    body: BodyModel | None = None               # motion-independent edge terms (None: none)
 
     def __post_init__(self) -> None:
         self.labels = tuple(self.labels)
@@ -253,6 +260,26 @@ class TriangulatedModel:
                 raise ValueError(f"{name} pair index out of range")
         self.terms = [TriangleTerms(m, first=(t == 0)) for t, m in enumerate(self.mixtures)]
         self.triangles = self.structure.array
+        if self.body is not None and self.body.n_labels != len(self.labels):
+            raise ValueError(f"body terms for {self.body.n_labels} labels, model has {len(self.labels)}")
+        edges = EdgeTerms(self.body, self.triangles) if self.body is not None else None
+        self.body_edges = edges if edges is not None and edges.active else None
+
+    def edge_terms(self, tri: np.ndarray, d: np.ndarray, observed: np.ndarray) -> np.ndarray:
+        """Body factor (:mod:`.body`) of triangles ``tri`` (n,) given the distances ``d`` (n, 3)
+        of their edge slots (A,B), (A,C), (B,C) and whether both ends are seen (n, 3); zeros
+        for a model without body terms."""
+        if self.body_edges is None:
+            return np.zeros(np.shape(tri))
+        return self.body_edges(tri, d, observed)
+
+    def replace(self, **changes) -> "TriangulatedModel":
+        """A copy with some fields replaced (mixtures, body, settings, provenance ...)."""
+        kw = dict(labels=self.labels, structure=self.structure, mixtures=self.mixtures,
+                  heading_pairs=self.heading_pairs, mirror_pairs=self.mirror_pairs, settings=dict(self.settings),
+                  provenance=dict(self.provenance), body=self.body)
+        kw.update(changes)
+        return TriangulatedModel(**kw)
 
     @property
     def n_labels(self) -> int:
@@ -274,8 +301,8 @@ class TriangulatedModel:
         floor = np.r_[np.full(9, vel ** 2), np.full(6, pos ** 2)]
         mixtures = [GaussianMixture(np.asarray(m.weights), np.asarray(m.means),
                                     np.asarray(m.covariances) + np.diag(floor)) for m in self.mixtures]
-        return TriangulatedModel(self.labels, self.structure, mixtures, self.heading_pairs, self.mirror_pairs,
-                                 dict(self.settings), dict(self.provenance, measurement_noise_m=position_sd_m))
+        return self.replace(mixtures=mixtures, provenance=dict(self.provenance, measurement_noise_m=position_sd_m),
+                            body=None if self.body is None else self.body.with_noise(position_sd_m))
 
     def warm_up(self) -> "TriangulatedModel":
         """Build every observation pattern's densities, the batched terms and the distance
@@ -291,8 +318,10 @@ class TriangulatedModel:
     def distance_bounds(self) -> np.ndarray:
         """(M, M) largest plausible distance (m) between labels that share a triangle, inf
         otherwise: per component, |mean| + 5 sd (largest eigenvalue) of their relative
-        position under the triangle's mixture; the max over components and triangles.
-        A search constraint: candidates farther apart are never evaluated."""
+        position under the triangle's mixture; the max over components and triangles --
+        and, for an edge with a body term, at most its allowed range plus 6 sd (the broad
+        motion component alone would allow far more). A search constraint: candidates
+        farther apart are never evaluated."""
         if getattr(self, "_bounds", None) is None:
             M = self.n_labels
             D = np.full((M, M), np.inf)
@@ -317,6 +346,8 @@ class TriangulatedModel:
                     best[u, v] = best[v, u] = max(best[u, v], b)
                     seen[u, v] = seen[v, u] = True
             D[seen] = best[seen]
+            if self.body_edges is not None:
+                D = np.minimum(D, self.body_edges.bounds(self.triangles, M))
             self._bounds = D
         return self._bounds
 
@@ -346,6 +377,7 @@ class TriangulatedModel:
 
         Missing points (NaN) are marginalised; every root adds ``background_position``
         (the log density of an unmodelled absolute position; 0 gives the pure model term).
+        Body terms (if any) included.
         """
         states = np.asarray(states, dtype=np.float64)
         codes = observation_state(states)
@@ -354,6 +386,10 @@ class TriangulatedModel:
             s = states[:, tri, :].reshape(states.shape[0], 3 * STATE_DIM)
             val, roots = self.triangle_terms(t, s, codes[:, tri])
             total += val + roots * background_position
+        if self.body_edges is not None:
+            d, ok = slot_distances(states[..., :3], self.triangles)
+            F, T = d.shape[:2]
+            total += self.body_edges(np.tile(np.arange(T), F), d.reshape(F * T, 3), ok.reshape(F * T, 3)).reshape(F, T).sum(1)
         return total
 
     def components_per_triangle(self) -> list[int]:

@@ -48,6 +48,7 @@ from ..model.mixture import GaussianMixture
 from ..model.mixture_em import make_estimator
 from ..model.structure import BODY14_GIVEN, Structure
 from ..search import structure_search as ss
+from .body_fit import BodySettings, add_broad_components, fit_body, validation_rows
 
 STRUCTURE_METHODS = ("cbga", "greedy", "given", "sga")
 MIXTURE_KINDS = ("mdl", "fixed", "single")
@@ -80,6 +81,11 @@ class TrainConfig:
     proportion_jitter: float | None = None  # relative sd of each segment's length factor
     tempo_jitter: float | None = None       # relative sd of the velocity factor (same poses, faster / slower)
     given_structure: Sequence[Sequence[str]] | None = None
+    # issue 13 (model/body.py, training/body_fit.py): motion-independent edge terms and one broad
+    # component per mixture fitted on held-out frames; False reproduces the format-1 models
+    body_terms: bool = True
+    broad_component: bool = True
+    body: BodySettings = field(default_factory=BodySettings)
 
     def check(self) -> None:
         if self.mixture not in MIXTURE_KINDS:
@@ -98,6 +104,7 @@ class TrainConfig:
             value = getattr(self, name)
             if value is not None and not 0.0 <= value <= 0.5:
                 raise ValueError(f"{name.replace('_', '-')} must be in [0, 0.5] (a relative standard deviation)")
+        self.body.check()
 
     def resolved(self, labels: Sequence[str]) -> "TrainConfig":
         """This config with every unset (None) body jitter filled in for a model over ``labels``:
@@ -387,6 +394,16 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
 
     # -- mixtures per triangle ------------------------------------------------------------
     rng = np.random.default_rng(config.seed)
+
+    def fit_triangle(X: np.ndarray, t: int):
+        if X.shape[0] > config.max_frames_per_triangle:
+            X = X[np.sort(rng.choice(X.shape[0], config.max_frames_per_triangle, replace=False))]
+        est = make_estimator(config.mixture, k_fixed=config.k_fixed, k_min=config.k_min,
+                             k_max=config.k_max, reg_covar=config.reg_covar, removal=config.mdl_removal,
+                             random_state=config.seed + t)
+        fit = est.fit(X)
+        return floor_covariances(fit.mixture, config.position_floor_m, config.velocity_floor_mps), fit
+
     mixtures, lengths = [], []
     for t, tri in enumerate(structure.triangles):
         step("mixtures", t, structure.n_triangles)
@@ -394,22 +411,29 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         X = triangle_features(train_states[ok], tri)
         if X.shape[0] < 20:
             raise ValueError(f"triangle {[labels[v] for v in tri]} has only {X.shape[0]} usable frames")
-        if X.shape[0] > config.max_frames_per_triangle:
-            X = X[np.sort(rng.choice(X.shape[0], config.max_frames_per_triangle, replace=False))]
-        est = make_estimator(config.mixture, k_fixed=config.k_fixed, k_min=config.k_min,
-                             k_max=config.k_max, reg_covar=config.reg_covar, removal=config.mdl_removal,
-                             random_state=config.seed + t)
-        fit = est.fit(X)
-        mixtures.append(floor_covariances(fit.mixture, config.position_floor_m, config.velocity_floor_mps))
+        mix, fit = fit_triangle(X, t)
+        mixtures.append(mix)
         lengths.append(float(fit.message_length))
     step("mixtures", structure.n_triangles, structure.n_triangles)
+    body, broad = None, None
+    if config.broad_component:
+        held, held_rows = validation_rows([c.n_frames for c in clips], train_states.shape[0] // states.shape[0] - 1,
+                                          config.body.validation_fraction)
+        recorded = np.arange(train_states.shape[0]) < states.shape[0]
+        floor = np.r_[np.full(9, config.velocity_floor_mps ** 2), np.full(6, config.position_floor_m ** 2)]
+        mixtures, broad = add_broad_components(mixtures, structure, train_states, train_codes, held_rows, recorded,
+                                               lambda X, t: fit_triangle(X, t)[0], floor, config.body,
+                                               lambda i, k: step("broad components", i, k))
+    if config.body_terms:
+        body = fit_body(clips, parents if parents is not None else rigid_tree(clips), config.body)
 
     model = TriangulatedModel(
         labels=tuple(labels), structure=structure, mixtures=mixtures, heading_pairs=pairs,
-        mirror_pairs=all_pairs,
+        mirror_pairs=all_pairs, body=body,
         settings={"heading_bins": config.heading_bins, "feature": "eq12, yaw-canonical (lateral pairs)",
                   "velocity": "backward difference, m/s",
-                  "augmentation": augmentation_summary(config, states.shape[0], train_states.shape[0])},
+                  "augmentation": augmentation_summary(config, states.shape[0], train_states.shape[0]),
+                  "broad_component": broad},
         provenance={"trained": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                     "dtm_labeler": __version__, "config": {k: v for k, v in asdict(config).items()
                                                            if k != "given_structure"},
