@@ -21,6 +21,7 @@ from ..labeling.stream import METHODS, MODES, LabelerSettings
 from ..model.io import load_model
 from ..motion.load import load_clip
 from ..search.label_search import GASettings
+from ..training.calibrate import CalibrationError, calibrate_from_clip
 from .common import CliError, HelpFormatter, expand_inputs, parse_frames, run_main
 
 EPILOG = """examples:
@@ -71,6 +72,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "when the inputs' classes are bank actions")
     p.add_argument("--bank-strategy", choices=("spread", "hard"), default="spread",
                    help="spread: population over all action models with migration; hard: one model at a time")
+    p.add_argument("--calibrate", default=None, metavar="A:B",
+                   help="calibrate the model's body terms to each input on its frames A:B (dtm-calibrate) and "
+                        "label and score only the frames after B")
+    p.add_argument("--calibrate-labels", choices=("model", "capture"), default="model",
+                   help="labels of the calibration frames: the model's own, confirmed by its votes (the input's "
+                        "labels are not used), or the input's (an operator-labelled calibration)")
     p.add_argument("--out", default=None, metavar="FILE.csv", help="write per-frame, per-point labels as CSV")
     p.add_argument("--json", action="store_true", help="print one JSON object with the scores")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -114,6 +121,24 @@ def _load(args, labels):
         clip.meta["frame_range"] = [a, b]
         clips.append(clip)
     return clips
+
+
+def _calibrated(args, model, clip):
+    """(model calibrated on ``--calibrate`` frames of ``clip``, the frames after them, summary);
+    the model and clip unchanged without ``--calibrate``."""
+    if not args.calibrate:
+        return model, clip, None
+    a, b = parse_frames(args.calibrate, clip.n_frames)
+    if b >= clip.n_frames:
+        raise CliError(f"{clip.source}: --calibrate {args.calibrate} leaves no frames to label")
+    try:
+        cal, summary = calibrate_from_clip(model, clip.slice(a, b), args.calibrate_labels)
+    except CalibrationError as e:
+        raise CliError(f"{clip.source}: {e}") from None
+    rest = clip.slice(b, None)
+    first = clip.meta["frame_range"][0]
+    rest.meta["frame_range"] = [first + b, clip.meta["frame_range"][1]]
+    return cal, rest, dict(summary, frames=[first + a, first + b])
 
 
 def _fmt(x, spec=".1f", none="n/a"):
@@ -179,12 +204,13 @@ def _main(argv=None) -> int:
     done = 0
     try:
         for i, clip in enumerate(clips):
-            run = label_clip_run(model, clip, settings, occlude=args.occlude, clutter=args.clutter,
+            model_i, clip, calibration = _calibrated(args, model, clip)
+            run = label_clip_run(model_i, clip, settings, occlude=args.occlude, clutter=args.clutter,
                                  noise_mm=args.noise_mm, seed=args.seed + i, progress=progress,
                                  use_ids=args.track_ids, gap_frames=args.gap_frames,
                                  keep_records=args.out is not None, done=done, total=total)
             run.settings.update(frame_offset=clip.meta["frame_range"][0], rate=clip.rate,
-                                frame_range=clip.meta["frame_range"])
+                                frame_range=clip.meta["frame_range"], calibration=calibration)
             runs.append(run)
             done += clip.n_frames
     except ValueError as e:
@@ -199,6 +225,7 @@ def _main(argv=None) -> int:
     out |= {"occlude": args.occlude, "clutter": args.clutter, "noise_mm": args.noise_mm,
             "gap_frames": args.gap_frames, "window": args.window, "seed": args.seed, "track_ids": args.track_ids,
             "inputs": [{"source": r.source, "frame_range": r.settings["frame_range"]} | _metrics_json(r.metrics)
+                       | ({"calibration": r.settings["calibration"]} if r.settings.get("calibration") else {})
                        for r in runs]}
     for item in out["inputs"]:
         for k in ("per_label", "label_names", "labels"):

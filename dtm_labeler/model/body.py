@@ -40,12 +40,20 @@ observation patterns, the CBGA, the max-product DP of the region checks and the 
 keep working unchanged.
 
 The broad motion component. The mixtures must not veto an unseen pose. Each triangle's
-mixture gets one more component, ``N(mu, s^2 Sigma)`` around the moment-matched Gaussian of
-its training features, with weight ``w`` (eq. 6 with ``K + 1`` components): a pose the
-training never showed costs about ``log w - d log s`` nats, a wrong bone length costs
-``z^2 / 2`` more for each edge it breaks. ``w`` and ``s`` are fitted by EM on held-out frames
-(:mod:`dtm_labeler.training.body_fit`). Being a Gaussian component, it goes through the same
-linear maps (marginals, conditionals) and the same compiled kernel as the others.
+conditional becomes a two-part mixture (extending eq. 5 / 13)
+
+    P(A_t | B_t, C_t) = (1 - w_t) P_motion(A_t | B_t, C_t) + w_t P_broad(A_t | B_t, C_t)
+
+(the joint of the first triangle likewise), with ``P_broad`` the conditional of one Gaussian
+``N(mu_t, s^2 Sigma_t + diag(floor))`` around the moment-matched Gaussian of the triangle's
+training features (:class:`BroadMotion`). Mixing the *conditionals* rather than adding a
+component to the joint mixture matters: in a joint mixture, parents that fit the training
+motion well make the posterior put all weight on the sharp components, under which a new
+position of ``A`` is impossible. Here a pose the training never showed costs at most about
+``-log w_t - log P_broad`` nats per triangle, a wrong bone length ``z^2 / 2`` more for each edge
+it breaks. ``w_t`` and ``s`` are fitted by EM on held-out frames
+(:mod:`dtm_labeler.training.body_fit`). Both parts are marginalised the same way (eq. 30-31:
+a missing ``A`` gives ``log((1 - w) + w) = 0``), and both go through the same compiled kernel.
 """
 from __future__ import annotations
 
@@ -208,17 +216,61 @@ def slot_distances(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.nda
     return np.where(ok, d, 0.0), ok
 
 
-def with_broad_component(mix: GaussianMixture, weight: float, scale: float,
-                         mean: np.ndarray, cov: np.ndarray) -> GaussianMixture:
-    """``mix`` with one more component ``N(mean, scale^2 cov)`` of weight ``weight`` (the
-    others scaled by ``1 - weight``): the heavy tail that keeps an unseen pose from being
-    vetoed (module doc)."""
-    if not 0.0 < weight < 1.0 or scale <= 0:
-        raise ValueError("broad component needs 0 < weight < 1 and scale > 0")
-    w = np.append(np.asarray(mix.weights) * (1.0 - weight), weight)
-    mu = np.vstack([np.asarray(mix.means), np.asarray(mean)[None]])
-    cv = np.concatenate([np.asarray(mix.covariances), (scale ** 2 * np.asarray(cov))[None]])
-    return GaussianMixture(w, mu, cv)
+def broad_covariance(cov: np.ndarray, scale: float, floor: np.ndarray) -> np.ndarray:
+    """``scale^2 cov + diag(floor)``: the moment-matched covariance widened, and at least
+    ``floor`` (variances) in every feature dimension -- a motion that never moved a point in
+    some direction (an arm swinging in the sagittal plane only) must not make moving it that
+    way impossible."""
+    return scale ** 2 * np.asarray(cov) + np.diag(np.asarray(floor, dtype=np.float64))
 
 
-__all__ = ["BodyModel", "EdgeTerms", "SEGMENT", "REACH", "KIND_NAMES", "slot_distances", "with_broad_component"]
+@dataclass
+class BroadMotion:
+    """Per triangle ``t``: the weight ``w_t`` of the broad conditional and its Gaussian (one
+    component over the eq. 12 feature); see the module doc."""
+
+    weights: np.ndarray                 # (T,) in (0, 1)
+    gaussians: list                     # T single-component GaussianMixture (dim 15)
+
+    def __post_init__(self) -> None:
+        self.weights = np.asarray(self.weights, dtype=np.float64).reshape(-1)
+        if len(self.gaussians) != self.weights.size:
+            raise ValueError(f"{len(self.gaussians)} broad Gaussians for {self.weights.size} weights")
+        if not ((self.weights > 0) & (self.weights < 1)).all():
+            raise ValueError("broad weights must lie in (0, 1)")
+        for g in self.gaussians:
+            if g.n_components != 1 or g.dim != 15:
+                raise ValueError("a broad component is one 15-D Gaussian")
+        self.log_w = np.log(self.weights)
+        self.log_1mw = np.log1p(-self.weights)
+
+    def combine(self, tri: np.ndarray, motion: np.ndarray, broad: np.ndarray) -> np.ndarray:
+        """``log((1 - w) exp(motion) + w exp(broad))`` per row of triangles ``tri``."""
+        return np.logaddexp(self.log_1mw[tri] + motion, self.log_w[tri] + broad)
+
+    def with_floor(self, floor: np.ndarray) -> "BroadMotion":
+        """Every Gaussian's covariance plus ``diag(floor)`` (measurement noise)."""
+        return BroadMotion(self.weights, [GaussianMixture(g.weights, g.means, np.asarray(g.covariances)
+                                                          + np.diag(floor)) for g in self.gaussians])
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        out = {"broad_weights": self.weights}
+        for t, g in enumerate(self.gaussians):
+            out[f"broad{t}_mean"] = np.asarray(g.means[0])
+            out[f"broad{t}_covariance"] = np.asarray(g.covariances[0])
+        return out
+
+    @classmethod
+    def from_arrays(cls, arrays: dict, n_triangles: int) -> "BroadMotion":
+        try:
+            w = np.asarray(arrays["broad_weights"], dtype=np.float64)
+            gs = [GaussianMixture(np.ones(1), np.asarray(arrays[f"broad{t}_mean"], dtype=np.float64)[None],
+                                  np.asarray(arrays[f"broad{t}_covariance"], dtype=np.float64)[None])
+                  for t in range(n_triangles)]
+        except KeyError as e:
+            raise ValueError(f"broad components lack {e.args[0]!r}") from None
+        return cls(w, gs)
+
+
+__all__ = ["BodyModel", "BroadMotion", "EdgeTerms", "SEGMENT", "REACH", "KIND_NAMES", "slot_distances",
+           "broad_covariance"]

@@ -30,7 +30,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import numpy as np
 
-from .body import BodyModel, EdgeTerms, slot_distances
+from .body import BodyModel, BroadMotion, EdgeTerms, slot_distances
 from .features import (MISSING, N_PATTERNS, STATE_DIM, feature_map_for, observation_state,
                        observed_map, pattern_codes, pattern_id)
 from .mixture import GaussianMixture
@@ -229,6 +229,19 @@ class BatchedTerms:
                              self.W, self.c, self.cj, self.cp, self.nj, self.np_, self.mj, self.mp)
 
 
+class MixedBatchedTerms:
+    """Batched terms of the two-part conditional ``(1 - w) P_motion + w P_broad`` (see
+    :mod:`.body`): one kernel call for the motion mixtures, one for the broad Gaussians, and
+    a log-add-exp per row. ``root`` as the motion part's."""
+
+    def __init__(self, motion: BatchedTerms, broad: BatchedTerms, mix: BroadMotion):
+        self.motion, self.broad, self.mix = motion, broad, mix
+        self.root = motion.root
+
+    def __call__(self, s: np.ndarray, tri: np.ndarray) -> np.ndarray:
+        return self.mix.combine(tri, self.motion(s, tri), self.broad(s, tri))
+
+
 @dataclass
 class TriangulatedModel:
     """Labels, structure, one mixture per triangle (eq. 12 features), settings, provenance."""
@@ -241,6 +254,7 @@ class TriangulatedModel:
     settings: dict = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
     body: BodyModel | None = None               # motion-independent edge terms (None: none)
+    broad: BroadMotion | None = None            # broad part of every triangle's conditional (None: none)
 
     def __post_init__(self) -> None:
         self.labels = tuple(self.labels)
@@ -264,6 +278,10 @@ class TriangulatedModel:
             raise ValueError(f"body terms for {self.body.n_labels} labels, model has {len(self.labels)}")
         edges = EdgeTerms(self.body, self.triangles) if self.body is not None else None
         self.body_edges = edges if edges is not None and edges.active else None
+        if self.broad is not None and len(self.broad.gaussians) != len(self.mixtures):
+            raise ValueError(f"{len(self.broad.gaussians)} broad components for {len(self.mixtures)} triangles")
+        self.broad_terms = None if self.broad is None else \
+            [TriangleTerms(g, first=(t == 0)) for t, g in enumerate(self.broad.gaussians)]
 
     def edge_terms(self, tri: np.ndarray, d: np.ndarray, observed: np.ndarray) -> np.ndarray:
         """Body factor (:mod:`.body`) of triangles ``tri`` (n,) given the distances ``d`` (n, 3)
@@ -277,7 +295,7 @@ class TriangulatedModel:
         """A copy with some fields replaced (mixtures, body, settings, provenance ...)."""
         kw = dict(labels=self.labels, structure=self.structure, mixtures=self.mixtures,
                   heading_pairs=self.heading_pairs, mirror_pairs=self.mirror_pairs, settings=dict(self.settings),
-                  provenance=dict(self.provenance), body=self.body)
+                  provenance=dict(self.provenance), body=self.body, broad=self.broad)
         kw.update(changes)
         return TriangulatedModel(**kw)
 
@@ -302,12 +320,13 @@ class TriangulatedModel:
         mixtures = [GaussianMixture(np.asarray(m.weights), np.asarray(m.means),
                                     np.asarray(m.covariances) + np.diag(floor)) for m in self.mixtures]
         return self.replace(mixtures=mixtures, provenance=dict(self.provenance, measurement_noise_m=position_sd_m),
-                            body=None if self.body is None else self.body.with_noise(position_sd_m))
+                            body=None if self.body is None else self.body.with_noise(position_sd_m),
+                            broad=None if self.broad is None else self.broad.with_floor(floor))
 
     def warm_up(self) -> "TriangulatedModel":
         """Build every observation pattern's densities, the batched terms and the distance
         bounds now (model load / hot reload) instead of on the first frame that needs them."""
-        for term in self.terms:
+        for term in self.terms + (self.broad_terms or []):
             for pid in range(N_PATTERNS):
                 term.pattern(pid)
         _ = self.batched_full, self.distance_bounds
@@ -318,9 +337,9 @@ class TriangulatedModel:
     def distance_bounds(self) -> np.ndarray:
         """(M, M) largest plausible distance (m) between labels that share a triangle, inf
         otherwise: per component, |mean| + 5 sd (largest eigenvalue) of their relative
-        position under the triangle's mixture; the max over components and triangles --
-        and, for an edge with a body term, at most its allowed range plus 6 sd (the broad
-        motion component alone would allow far more). A search constraint: candidates
+        position under the triangle's mixture and broad Gaussian; the max over components
+        and triangles -- and, for an edge with a body term, at most its allowed range plus
+        6 sd (the broad part alone would allow far more). A search constraint: candidates
         farther apart are never evaluated."""
         if getattr(self, "_bounds", None) is None:
             M = self.n_labels
@@ -332,6 +351,9 @@ class TriangulatedModel:
             for t, tri in enumerate(self.triangles):
                 mix = self.mixtures[t]
                 mu, cov = np.asarray(mix.means), np.asarray(mix.covariances)
+                if self.broad is not None:
+                    g = self.broad.gaussians[t]
+                    mu, cov = np.vstack([mu, g.means]), np.concatenate([cov, g.covariances])
                 maps = {}
                 for (i, j), r in rows.items():
                     A = np.zeros((3, 15))
@@ -351,26 +373,39 @@ class TriangulatedModel:
             self._bounds = D
         return self._bounds
 
+    def _batched_for(self, pid: int) -> "BatchedTerms | MixedBatchedTerms":
+        motion = BatchedTerms(self.terms, pid)
+        if self.broad is None:
+            return motion
+        return MixedBatchedTerms(motion, BatchedTerms(self.broad_terms, pid), self.broad)
+
     @property
-    def batched_full(self) -> BatchedTerms:
-        """:class:`BatchedTerms` of the fully observed pattern (the hot path)."""
+    def batched_full(self) -> "BatchedTerms | MixedBatchedTerms":
+        """Batched terms of the fully observed pattern (the hot path)."""
         if getattr(self, "_batched_full", None) is None:
-            self._batched_full = BatchedTerms(self.terms, FULL_PATTERN)
+            self._batched_full = self._batched_for(FULL_PATTERN)
         return self._batched_full
 
-    def batched(self, pid: int) -> BatchedTerms:
-        """:class:`BatchedTerms` of observation pattern ``pid`` (built on first use)."""
+    def batched(self, pid: int) -> "BatchedTerms | MixedBatchedTerms":
+        """Batched terms of observation pattern ``pid`` (built on first use): :class:`BatchedTerms`,
+        or :class:`MixedBatchedTerms` for a model with broad components."""
         if pid == FULL_PATTERN:
             return self.batched_full
         cache = self.__dict__.setdefault("_batched_patterns", {})
         if pid not in cache:
-            cache[pid] = BatchedTerms(self.terms, pid)
+            cache[pid] = self._batched_for(pid)
         return cache[pid]
 
     def triangle_terms(self, t: int, s: np.ndarray, codes: np.ndarray,
                        finite: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Term of triangle ``t`` for (n, 18) triple states and (n, 3) observation codes."""
-        return self.terms[t].evaluate(s, pattern_id(codes), finite)
+        """Term of triangle ``t`` for (n, 18) triple states and (n, 3) observation codes (the
+        two-part conditional of :mod:`.body` when the model has broad components)."""
+        pids = pattern_id(codes)
+        val, roots = self.terms[t].evaluate(s, pids, finite)
+        if self.broad is None:
+            return val, roots
+        broad, _ = self.broad_terms[t].evaluate(s, pids, finite)
+        return self.broad.combine(np.full(val.shape, t), val, broad), roots
 
     def frame_log_likelihood(self, states: np.ndarray, background_position: float = 0.0) -> np.ndarray:
         """log P(X|G) of labelled, canonicalised frames: (F, n_labels, 6) -> (F,).

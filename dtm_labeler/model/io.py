@@ -12,9 +12,11 @@ Layout (all entries plain numeric arrays; loaded with ``allow_pickle=False``)::
     body_lo, body_hi  (P,)    float64   reach, allowed distance range (m), within- and
     body_within_sd,   (P,)    float64   between-person spread (m)
     body_between_sd
+    broad_weights     (T,)    float64   broad part of each triangle's conditional (version 2, when
+    broad<t>_mean     (15,)   float64   the header's "broad" is true; see dtm_labeler.model.body)
+    broad<t>_covariance (15,15) float64
 
-Versions: 2 adds the body terms (issue 13); the broad motion component is one more mixture
-component and needs no new entry. Version 1 files still load, as models without body terms
+Versions: 2 adds the body terms and the broad components (issue 13). Version 1 files still load, as models without body terms
 (they score exactly as they did; ``provenance["format_version_read"]`` says 1). A file that is
 not a model, has an unknown format version, or whose arrays disagree with the header raises
 :class:`ModelFileError` naming the file and the problem.
@@ -30,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .body import BodyModel
+from .body import BodyModel, BroadMotion
 from .dtm import TriangulatedModel
 from .mixture import GaussianMixture
 from .structure import Structure
@@ -57,6 +59,7 @@ def model_to_bytes(model: TriangulatedModel) -> bytes:
         "provenance": {k: v for k, v in model.provenance.items() if k != "format_version_read"},
         "body": None if model.body is None else {"pairs": int(model.body.pairs.shape[0]),
                                                  "calibration": model.body.calibration},
+        "broad": model.broad is not None,
     }
     arrays = {"header": np.frombuffer(json.dumps(header, indent=1).encode(), dtype=np.uint8)}
     for t, mix in enumerate(model.mixtures):
@@ -64,6 +67,8 @@ def model_to_bytes(model: TriangulatedModel) -> bytes:
             arrays[f"tri{t}_{key}"] = np.asarray(arr, dtype=np.float64)
     if model.body is not None:
         arrays.update(model.body.to_arrays())
+    if model.broad is not None:
+        arrays.update(model.broad.to_arrays())
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
     return buf.getvalue()
@@ -121,10 +126,11 @@ def model_from_arrays(arrays: dict, where: str = "model") -> TriangulatedModel:
             if not isinstance(body_info, dict):
                 raise ModelFileError(f"{where}: header entry 'body' must be an object or null")
             body = BodyModel.from_arrays(arrays, len(labels), body_info.get("calibration"))
+        broad = BroadMotion.from_arrays(arrays, structure.n_triangles) if version >= 2 and header.get("broad") else None
         provenance = dict(header.get("provenance", {}))
         if version != FORMAT_VERSION:
             provenance["format_version_read"] = version
-        return TriangulatedModel(labels=tuple(labels), structure=structure, mixtures=mixtures, body=body,
+        return TriangulatedModel(labels=tuple(labels), structure=structure, mixtures=mixtures, body=body, broad=broad,
                                  heading_pairs=np.asarray(header.get("heading_pairs", []), dtype=np.int64),
                                  mirror_pairs=(np.asarray(header["mirror_pairs"], dtype=np.int64)
                                                if "mirror_pairs" in header else None),

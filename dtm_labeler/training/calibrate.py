@@ -19,7 +19,10 @@ model's labels, or an ``(F, M, 3)`` array in the model's label order with NaN fo
 points) or unlabelled: :func:`self_label` labels them with the model itself (stream
 labeler: tracks, votes) and keeps the confirmed labels -- points whose vote confidence is at
 least ``min_confidence`` -- and :func:`self_calibrate` alternates labelling and calibrating
-(``rounds`` times), so a calibrated model relabels the frames it learned from.
+(``rounds`` times), so a calibrated model relabels the frames it learned from. Self-labelling
+assumes a sparse background (``volume_m3``): a point that fits the generic body poorly (a
+marker placed 10 cm from where the training subjects had it) is labelled rather than left
+out, so its segment can be measured; the medians over frames absorb the few wrong labels.
 
 Library entry points for a node service: :func:`calibrate` (labelled frames, e.g. what the
 node published with high confidence) and :func:`self_calibrate` (raw clouds).
@@ -37,6 +40,7 @@ from ..model.body import SEGMENT, BodyModel
 from ..model.dtm import TriangulatedModel
 from ..motion.clip import MotionClip
 from ..motion.pointsets import model_points
+from ..search.problem import Background
 
 
 @dataclass(frozen=True)
@@ -45,6 +49,8 @@ class CalibrationSettings:
     within_factor: float = 1.5
     scale_clip: tuple = (0.75, 1.33)
     min_confidence: float = 0.8      # self-labelling: votes a label needs to count as confirmed
+    volume_m3: float = 1000.0        # self-labelling: clutter density (larger: a point that fits the generic
+                                     # body poorly is still labelled; the medians are robust to a few wrong ones)
     rounds: int = 2                  # self-calibration: label, calibrate, label again, ...
 
 
@@ -134,6 +140,7 @@ def self_calibrate(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.n
     s = settings or CalibrationSettings()
     current = model
     P = None
+    labeler = labeler or LabelerSettings(background=Background(volume_m3=s.volume_m3))
     for _ in range(max(1, s.rounds)):
         P = self_label(current, clouds, rate, labeler, s.min_confidence)
         current = calibrate(model, P, s)
@@ -142,5 +149,42 @@ def self_calibrate(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.n
     return current, P
 
 
-__all__ = ["CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "self_label",
+LABEL_SOURCES = ("auto", "model", "capture")
+
+
+def clip_clouds(model: TriangulatedModel, clip: MotionClip) -> np.ndarray:
+    """The points the labeler would see of ``clip``, labels ignored: the model's points when
+    the clip has them (or they derive from its markers), otherwise every point of the clip."""
+    try:
+        return model_points(clip, model.labels).positions
+    except (KeyError, ValueError):
+        return clip.positions
+
+
+def calibrate_from_clip(model: TriangulatedModel, clip: MotionClip, labels: str = "auto",
+                        settings: CalibrationSettings | None = None) -> tuple[TriangulatedModel, dict]:
+    """Calibrate on the frames of ``clip``: ``labels='capture'`` uses the clip's own labels
+    (an operator-labelled calibration trial), ``'model'`` labels the clip's points with the
+    model and keeps the confirmed labels (:func:`self_calibrate`), ``'auto'`` takes the
+    capture's labels when it has the model's points and self-labels otherwise. Returns the
+    calibrated model and a summary (``source`` says which was used)."""
+    if labels not in LABEL_SOURCES:
+        raise CalibrationError(f"calibration labels must be one of {', '.join(LABEL_SOURCES)}")
+    if labels == "auto":
+        try:
+            model_points(clip, model.labels)
+            labels = "capture"
+        except (KeyError, ValueError):
+            labels = "model"
+    if labels == "capture":
+        out = calibrate(model, clip, settings)
+        out.provenance["calibration"] = dict(out.provenance["calibration"], source="capture labels")
+    else:
+        out, confirmed = self_calibrate(model, clip_clouds(model, clip), clip.rate, settings)
+        out.provenance["calibration"]["confirmed_fraction"] = float(np.isfinite(confirmed[..., 0]).mean())
+    out.provenance["calibration"]["capture"] = clip.source
+    return out, dict(out.provenance["calibration"])
+
+
+__all__ = ["LABEL_SOURCES", "calibrate_from_clip", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "self_label",
            "self_calibrate", "labelled_positions"]

@@ -48,9 +48,10 @@ from ..model.mixture import GaussianMixture
 from ..model.mixture_em import make_estimator
 from ..model.structure import BODY14_GIVEN, Structure
 from ..search import structure_search as ss
-from .body_fit import BodySettings, add_broad_components, fit_body, validation_rows
+from .body_fit import (BodySettings, broad_components, edge_prior, fit_body, pair_statistics,
+                       validation_rows)
 
-STRUCTURE_METHODS = ("cbga", "greedy", "given", "sga")
+STRUCTURE_METHODS = ("cbga", "greedy", "given", "sga", "body")
 MIXTURE_KINDS = ("mdl", "fixed", "single")
 # body augmentation of models over the 14 body points (relative sds), chosen by cross-subject
 # measurement (README "Other subjects"); other point sets get 0 unless asked for
@@ -370,6 +371,13 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
     # -- structure --------------------------------------------------------------------
     step("structure", 0, 1)
     scores = ss.TripleScores.from_states(states[complete], config.reg_covar) if complete.sum() >= 2 else None
+    body, prior = None, scores       # body terms; structure search scores with the edge prior
+    if config.body_terms:
+        stats = pair_statistics([canonical_states(c, pairs)[..., :3] for c in clips], config.body.max_frames)
+        body = fit_body(stats, parents if parents is not None else rigid_tree(clips), config.body,
+                        joint_centres=set(labels) <= set(BODY14))
+        if scores is not None and config.body.segment_edge_prior > 0:
+            prior = scores.with_edge_prior(edge_prior(stats, config.body))
     if config.structure == "given":
         given = config.given_structure or (BODY14_GIVEN if set(labels) == {x for t in BODY14_GIVEN for x in t}
                                            else None)
@@ -383,12 +391,15 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         kw = dict(population=config.structure_population, generations=config.structure_generations,
                   seed=config.seed, root_pairs=pairs if len(pairs) else None)
         if config.structure == "greedy":
-            structure = ss.greedy(scores, n, kw["root_pairs"]).structure
+            structure = ss.greedy(prior, n, kw["root_pairs"]).structure
+        elif config.structure == "body":
+            structure = ss.along_tree(prior, parents if parents is not None else rigid_tree(clips),
+                                      kw["root_pairs"]).structure
         elif config.structure == "cbga":
-            res = ss.cbga(scores, n, **kw)
-            structure = ss.refine(scores, res, n, np.random.default_rng(config.seed), kw["root_pairs"]).structure
+            res = ss.cbga(prior, n, **kw)
+            structure = ss.refine(prior, res, n, np.random.default_rng(config.seed), kw["root_pairs"]).structure
         else:
-            structure = ss.simple_ga(scores, n, **kw).structure
+            structure = ss.simple_ga(prior, n, **kw).structure
     struct_ll = scores.per_frame(structure) if scores is not None else float("nan")
     step("structure", 1, 1)
 
@@ -415,25 +426,23 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         mixtures.append(mix)
         lengths.append(float(fit.message_length))
     step("mixtures", structure.n_triangles, structure.n_triangles)
-    body, broad = None, None
+    broad, broad_info = None, None
     if config.broad_component:
         held, held_rows = validation_rows([c.n_frames for c in clips], train_states.shape[0] // states.shape[0] - 1,
                                           config.body.validation_fraction)
         recorded = np.arange(train_states.shape[0]) < states.shape[0]
         floor = np.r_[np.full(9, config.velocity_floor_mps ** 2), np.full(6, config.position_floor_m ** 2)]
-        mixtures, broad = add_broad_components(mixtures, structure, train_states, train_codes, held_rows, recorded,
-                                               lambda X, t: fit_triangle(X, t)[0], floor, config.body,
-                                               lambda i, k: step("broad components", i, k))
-    if config.body_terms:
-        body = fit_body(clips, parents if parents is not None else rigid_tree(clips), config.body)
+        broad, broad_info = broad_components(structure, train_states, train_codes, held_rows, recorded,
+                                             lambda X, t: fit_triangle(X, t)[0], floor, config.body,
+                                             lambda i, k: step("broad components", i, k))
 
     model = TriangulatedModel(
         labels=tuple(labels), structure=structure, mixtures=mixtures, heading_pairs=pairs,
-        mirror_pairs=all_pairs, body=body,
+        mirror_pairs=all_pairs, body=body, broad=broad,
         settings={"heading_bins": config.heading_bins, "feature": "eq12, yaw-canonical (lateral pairs)",
                   "velocity": "backward difference, m/s",
                   "augmentation": augmentation_summary(config, states.shape[0], train_states.shape[0]),
-                  "broad_component": broad},
+                  "broad_component": broad_info},
         provenance={"trained": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                     "dtm_labeler": __version__, "config": {k: v for k, v in asdict(config).items()
                                                            if k != "given_structure"},
