@@ -31,6 +31,8 @@ setup(
             "dtm-demo = dtm_labeler.cli.demo:main",
             "dtm-labeler-node = dtm_labeler.ros.node:main",
             "labeler_node = dtm_labeler.ros.node:main",
+            "dtm-labeler-lifecycle-node = dtm_labeler.ros.lifecycle:main",
+            "labeler_lifecycle_node = dtm_labeler.ros.lifecycle:main",
         ],
     },
 )

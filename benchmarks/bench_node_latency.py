@@ -14,10 +14,20 @@ sent without a labelled output (the node labels the newest cloud and drops stale
 Rate ramp: the same streams at increasing rates; "sustained" = the highest rate at which no
 frame was skipped after the first 0.5 s of a run (the start has a cold search).
 
+Flicker cases (issue 12): markers hidden with a new set every frame (``gap_frames`` 1, the
+flicker of partly occluded markers) plus ghosts -- ``flicker14``: the synthetic walker of
+``dtm-demo`` (model trained on another walker), 2 of 14 hidden + 2 ghosts, 10 s at 120 and
+360 Hz; ``flicker41``: the HDM05 41-marker take (last 30 %), 3 flickering + 2 ghosts, 120 Hz.
+Reported: labelled fraction after the first 0.5 s, accuracy and ghost rejection of the labelled
+frames, latency. ``--before-src DIR`` runs every case also with the node of another source tree
+(e.g. ``git archive <rev> | tar -x -C DIR``), side by side in the same run and on the same bags.
+
 Writes results/node_latency.json and results/node_latency.md; prints the table.
 Rule one: this script sets ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a ROS_DOMAIN_ID itself.
 
     .venv/bin/python benchmarks/bench_node_latency.py [--quick] [--rates 120 360] [--ramp 60 120 ...]
+    .venv/bin/python benchmarks/bench_node_latency.py --cases flicker14 flicker41 --before-src /tmp/dtm_before \
+        --out results/node_flicker.json
 """
 from __future__ import annotations
 
@@ -37,23 +47,33 @@ import numpy as np  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("DTM_DATA_DIR", REPO.parent / "shared" / "data"))
+HDM05 = "markers_c3d/hdm05_bd_05-01_01_120.c3d"
 CASES = {
     "body14": dict(path="cmu_skeletal/bvh_from_fbx/cmu_07_01_walk_s07.bvh", points="body14", train="0:100%",
                    test="0:100%"),
     # HDM05 as in bench_stream_latency: the CMU 85_02 jump-twist's second half holds jumps its
     # first half never shows (true labelings score -3000 to -5000 nats there), which measures
     # model failure -- one 1 s cold search after another -- not the node
-    "markers41": dict(path="markers_c3d/hdm05_bd_05-01_01_120.c3d", points="all", train="0:70%",
-                      test="70%:100%"),
+    "markers41": dict(path=HDM05, points="all", train="0:70%", test="70%:100%"),
+    # issue 12: flicker (a new hidden set every frame) + ghosts; fixed rates, no ramp
+    "flicker14": dict(path=None, points="body14", seconds=10.0, rates=(120.0, 360.0), ramp=False,
+                      corrupt=dict(occlude=2, clutter=2, gap_frames=1.0)),
+    "flicker41": dict(path=HDM05, points="all", train="0:70%", test="70%:100%", rates=(120.0,), ramp=False,
+                      corrupt=dict(occlude=3, clutter=2, gap_frames=1.0)),
 }
 
 
 def model_for(case: dict, work: Path, structure: str) -> tuple[Path, object]:
     from dtm_labeler.cli.common import load_inputs
-    from dtm_labeler.cli.demo import cache_dir
+    from dtm_labeler.cli.demo import TRAIN_WALKER, _train_cached, cache_dir
     from dtm_labeler.model.io import load_model, save_model
+    from dtm_labeler.motion import synthesize
     from dtm_labeler.training.train import TrainConfig, train_model
     import hashlib
+    if case["path"] is None:       # dtm-demo's embedded default (the same cached model)
+        path = _train_cached({"synthetic": dict(TRAIN_WALKER), "v": 1}, lambda: [synthesize(**TRAIN_WALKER)],
+                             True, lambda m: print(f"  {m}", flush=True))
+        return path, load_model(path)
     key = json.dumps([case, structure, (DATA / case["path"]).stat().st_mtime], sort_keys=True)
     path = cache_dir() / f"bench_model_{hashlib.sha1(key.encode()).hexdigest()[:12]}.npz"
     if not path.is_file():
@@ -68,15 +88,20 @@ def model_for(case: dict, work: Path, structure: str) -> tuple[Path, object]:
 def make_bag(case: dict, model, rate: float, work: Path, seconds: float | None) -> tuple[Path, int]:
     from dtm_labeler.cli.common import load_inputs
     from dtm_labeler.motion.pointsets import model_points
-    from dtm_labeler.cli.demo import resample
+    from dtm_labeler.cli.demo import TEST_WALKER, resample
     from dtm_labeler.evaluation.corruption import corrupt_clip
+    from dtm_labeler.motion import synthesize
     from dtm_labeler.ros.bag import write_bag
-    clip = load_inputs([str(DATA / case["path"])], case["points"], case["test"])[0]
+    seconds = seconds or case.get("seconds")
+    if case["path"] is None:
+        clip = synthesize(duration=seconds, rate=rate, noise_mm=0.0, **TEST_WALKER)
+    else:
+        clip = load_inputs([str(DATA / case["path"])], case["points"], case["test"])[0]
     clip = resample(model_points(clip, model.labels), rate)
     if seconds:
         clip = clip.slice(0, int(round(seconds * rate)))
-    stream = corrupt_clip(clip, noise_mm=1.0, seed=0)
-    bag = work / f"bag_{case['points']}_{rate:g}"
+    stream = corrupt_clip(clip, noise_mm=1.0, seed=0, **case.get("corrupt", {}))
+    bag = work / f"bag_{case['points']}_{'_'.join(f'{k}{v:g}' for k, v in case.get('corrupt', {}).items())}_{rate:g}"
     write_bag(stream, bag, force=True)
     return bag, len(stream)
 
@@ -85,6 +110,7 @@ def run_once(mon, bag: Path, env: dict, n_frames: int, rate: float) -> dict:
     from dtm_labeler.cli.demo import start_player, stop_process
     with mon.lock:
         i_lab, i_truth = len(mon.stamps), len(mon.truth_stamps)
+    s0 = mon.snapshot()
     d0 = mon.wait_diag(lambda d: True, timeout=3)
     p = start_player(bag, env, ["--restamp", "--wait-for", "markers/unlabeled", "markers/ground_truth",
                                 "--start-delay", "0.2"])
@@ -115,7 +141,17 @@ def run_once(mon, bag: Path, env: dict, n_frames: int, rate: float) -> dict:
     def pct(v, q):
         return float(np.percentile(v, q)) if v.size else float("nan")
     steady = lat[lab >= t0 + int(0.5e9)] if lab.size else lat
+    s1 = mon.snapshot()
+    true = s1["true_markers"] - s0["true_markers"]
+    rejected = [s["ghost_rejection"] * s["ghosts"] if s["ghosts"] else 0.0 for s in (s0, s1)]
+    ghosts = s1["ghosts"] - s0["ghosts"]
     return dict(rate_hz=rate, sent=sent, received=received, labelled=int(lab.size),
+                labelled_fraction_after_warmup=float((late & done).sum() / max(late.sum(), 1)),
+                accuracy=(s1["correct"] - s0["correct"]) / true if true else float("nan"),
+                ghost_rejection=(rejected[1] - rejected[0]) / ghosts if ghosts else float("nan"),
+                node_skipped={k: int(v) - int(d0.get(k, 0)) for k, v in d1.items() if k.startswith("frames_skipped_")},
+                node_resets=sum(int(v) - int(d0.get(k, 0)) for k, v in d1.items()
+                                if k.startswith("resets_") and k != "resets_service"),
                 skipped=int(sent - lab.size), skipped_after_warmup=int((late & ~done).sum()),
                 latency_ms=dict(p50=pct(lat, 50), p90=pct(lat, 90), p99=pct(lat, 99),
                                 max=float(lat.max()) if lat.size else float("nan")),
@@ -124,32 +160,37 @@ def run_once(mon, bag: Path, env: dict, n_frames: int, rate: float) -> dict:
                 node_full_searches=int(d1.get("full_searches", 0)))
 
 
-def bench_case(name: str, case: dict, rates, ramp, work: Path, env: dict, args) -> dict:
+def _print_fixed(r: dict) -> None:
+    print(f"  {r['variant']:>6} {r['rate_hz']:6.0f} Hz  sent {r['sent']:5d}  labelled {r['labelled']:5d} "
+          f"({100 * r['labelled_fraction_after_warmup']:5.1f} % after warm-up)  accuracy {100 * r['accuracy']:5.1f} %"
+          f"  p50 {r['latency_ms']['p50']:7.1f}  p99 {r['latency_ms']['p99']:7.1f}  max {r['latency_ms']['max']:7.1f} ms",
+          flush=True)
+
+
+def run_variant(name: str, case: dict, variant: str, env: dict, model_path: Path, model, rates, ramp,
+                work: Path, args) -> tuple[list, list, object]:
+    """Fixed-rate runs and the ramp with one node process (``variant``: its source tree)."""
     from dtm_labeler.cli.demo import start_node, stop_process, tail
     from dtm_labeler.ros.player import ReplayMonitor
-    print(f"{name}: {case['path']} ({case['points']})", flush=True)
-    model_path, model = model_for(case, work, args.structure)
-    log = work / f"node_{name}.log"
+    log = work / f"node_{name}_{variant}.log"
     node = start_node(model_path, env, log, args.params)
-    out = dict(case=name, data=case["path"], points=case["points"], labels=len(model.labels),
-               train_frames=case["train"], test_frames=case["test"], fixed=[], ramp=[])
+    fixed, ramp_out, best = [], [], None
     try:
         with ReplayMonitor(known_labels=model.labels) as mon:
-            if not mon.wait_ready(30, alive=lambda: node.poll() is None, topics=("markers/labeled", "/diagnostics")):
+            if not mon.wait_ready(60, alive=lambda: node.poll() is None, topics=("markers/labeled", "/diagnostics")):
                 raise RuntimeError(f"node did not start:\n{tail(log)}")
-            mon.wait_diag(lambda d: True, timeout=10)
+            # the node loads its model off the executor: wait until it runs
+            mon.wait_diag(lambda d: d and "loading" not in d.get("_message", ""), timeout=60)
             for rate in rates:
                 bag, n = make_bag(case, model, rate, work, args.seconds)
-                r = run_once(mon, bag, env, n, rate)
-                out["fixed"].append(r)
-                print(f"  {rate:6.0f} Hz  sent {r['sent']:5d}  labelled {r['labelled']:5d}  skipped {r['skipped']:5d}"
-                      f"  latency p50 {r['latency_ms']['p50']:7.1f}  p99 {r['latency_ms']['p99']:7.1f}"
-                      f"  max {r['latency_ms']['max']:7.1f} ms", flush=True)
-            best, fails = None, 0
+                r = dict(run_once(mon, bag, env, n, rate), variant=variant)
+                fixed.append(r)
+                _print_fixed(r)
+            fails = 0
             for rate in ramp:
                 bag, n = make_bag(case, model, rate, work, args.ramp_seconds)
-                r = run_once(mon, bag, env, n, rate)
-                out["ramp"].append(r)
+                r = dict(run_once(mon, bag, env, n, rate), variant=variant)
+                ramp_out.append(r)
                 # a cloud lost by best-effort DDS before the node saw it is not the node's skip;
                 # after warm-up it still counts, as a truth frame without a label
                 ok = r["skipped_after_warmup"] == 0
@@ -160,9 +201,28 @@ def bench_case(name: str, case: dict, rates, ramp, work: Path, env: dict, args) 
                     best = rate
                 elif best is not None or fails >= 2:
                     break
-            out["sustained_rate_hz"] = best
     finally:
         stop_process(node)
+    return fixed, ramp_out, best
+
+
+def bench_case(name: str, case: dict, rates, ramp, work: Path, env: dict, args) -> dict:
+    print(f"{name}: {case['path'] or 'synthetic walker (dtm-demo)'} ({case['points']}, {case.get('corrupt', {})})",
+          flush=True)
+    model_path, model = model_for(case, work, args.structure)
+    rates = case.get("rates", rates)
+    ramp = ramp if case.get("ramp", True) else []
+    out = dict(case=name, data=case["path"] or "synthetic", points=case["points"], labels=len(model.labels),
+               train_frames=case.get("train"), test_frames=case.get("test"), corrupt=case.get("corrupt", {}),
+               fixed=[], ramp=[])
+    variants = [("after", env)]
+    if args.before_src:
+        variants.insert(0, ("before", dict(env, PYTHONPATH=str(Path(args.before_src).resolve()))))
+    for variant, venv in variants:
+        fixed, ramp_out, best = run_variant(name, case, variant, venv, model_path, model, rates, ramp, work, args)
+        out["fixed"] += fixed
+        out["ramp"] += ramp_out
+        out[f"sustained_rate_hz_{variant}" if args.before_src else "sustained_rate_hz"] = best
     return out
 
 
@@ -170,28 +230,40 @@ def markdown(res: dict) -> str:
     lines = ["# Node end-to-end latency", "",
              f"{res['when']}, {res['machine']}; load average at start {res['load_average']}.", "",
              "Latency = reception of `markers/labeled` in a listener process - the cloud's header stamp "
-             f"(the player's send schedule); node parameters {res['node_params'] or 'default'}, player and listener in their own "
-             "processes, DDS on loopback.", "",
-             "| case | labels | rate (Hz) | sent | labelled | skipped | p50 (ms) | p90 (ms) | p99 (ms) | max (ms) |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             f"(the player's send schedule); node parameters {res['node_params'] or 'default'}, player and listener in "
+             "their own processes, DDS on loopback. Labelled = frames with a labelled output, after the first "
+             "0.5 s; accuracy and ghost rejection over the labelled frames."
+             + (f" before = the node of `{res['before_src']}`, after = this tree; same bags, one run."
+                if res.get("before_src") else ""), "",
+             "| case | corruption | labels | node | rate (Hz) | sent | labelled (after 0.5 s) | accuracy | ghosts "
+             "rejected | p50 (ms) | p99 (ms) | max (ms) | node skipped | resets |",
+             "|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
     for c in res["cases"]:
+        corrupt = ", ".join(f"{k} {v:g}" for k, v in c.get("corrupt", {}).items()) or "1 mm noise"
         for r in c["fixed"]:
             l = r["latency_ms"]
-            lines.append(f"| {c['case']} | {c['labels']} | {r['rate_hz']:g} | {r['sent']} | {r['labelled']} | "
-                         f"{r['skipped']} | {l['p50']:.1f} | {l['p90']:.1f} | {l['p99']:.1f} | {l['max']:.1f} |")
-    lines += ["", "| case | highest rate without skips after the first 0.5 s (Hz) | ramp (Hz: skipped after warm-up) |",
-              "|---|---:|---|"]
-    for c in res["cases"]:
-        ramp = ", ".join(f"{r['rate_hz']:g}: {r['skipped_after_warmup']}" for r in c["ramp"])
-        best = c.get("sustained_rate_hz")
-        text = f"{best:g}" if best else (f"< {c['ramp'][0]['rate_hz']:g}" if c["ramp"] else "n/a")
-        lines.append(f"| {c['case']} | {text} | {ramp} |")
+            skipped = ", ".join(f"{k[len('frames_skipped_'):]} {v}" for k, v in r.get("node_skipped", {}).items() if v)
+            lines.append(f"| {c['case']} | {corrupt} | {c['labels']} | {r.get('variant', '')} | {r['rate_hz']:g} | "
+                         f"{r['sent']} | {r['labelled']} ({100 * r['labelled_fraction_after_warmup']:.1f} %) | "
+                         f"{100 * r['accuracy']:.1f} % | {100 * r['ghost_rejection']:.1f} % | {l['p50']:.1f} | "
+                         f"{l['p99']:.1f} | {l['max']:.1f} | {skipped or '0'} | {r.get('node_resets', '')} |")
+    ramps = [c for c in res["cases"] if c["ramp"]]
+    if ramps:
+        lines += ["", "| case | node | highest rate without skips after the first 0.5 s (Hz) | ramp (Hz: skipped after "
+                  "warm-up) |", "|---|---|---:|---|"]
+    for c in ramps:
+        for variant in sorted({r.get("variant", "") for r in c["ramp"]}):
+            rs = [r for r in c["ramp"] if r.get("variant", "") == variant]
+            ramp = ", ".join(f"{r['rate_hz']:g}: {r['skipped_after_warmup']}" for r in rs)
+            best = c.get(f"sustained_rate_hz_{variant}", c.get("sustained_rate_hz"))
+            text = f"{best:g}" if best else (f"< {rs[0]['rate_hz']:g}" if rs else "n/a")
+            lines.append(f"| {c['case']} | {variant} | {text} | {ramp} |")
     return "\n".join(lines) + "\n"
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", nargs="+", choices=sorted(CASES), default=sorted(CASES))
+    ap.add_argument("--cases", nargs="+", choices=sorted(CASES), default=["body14", "markers41"])
     ap.add_argument("--rates", nargs="+", type=float, default=[120.0, 360.0])
     ap.add_argument("--ramp", nargs="+", type=float, default=[30.0, 60.0, 90.0, 120.0, 180.0, 240.0, 360.0, 480.0])
     ap.add_argument("--seconds", type=float, default=None, help="stream length per fixed-rate run (default: all)")
@@ -200,6 +272,8 @@ def main() -> int:
     ap.add_argument("--param", action="append", default=[], metavar="NAME:=VALUE",
                     help="node parameter (repeatable); default: the node's defaults")
     ap.add_argument("--quick", action="store_true", help="body14 only, short runs")
+    ap.add_argument("--before-src", default=None, metavar="DIR",
+                    help="also run every case with the node of this source tree (before/after, same run)")
     ap.add_argument("--out", default=str(REPO / "results" / "node_latency.json"))
     args = ap.parse_args()
     if args.quick:
@@ -210,7 +284,7 @@ def main() -> int:
         return 2
     from dtm_labeler.cli.demo import ros_env
     env = ros_env()
-    res = dict(when=time.strftime("%Y-%m-%d %H:%M"), node_params=args.params, machine=f"{platform.machine()}, {os.cpu_count()} cores",
+    res = dict(when=time.strftime("%Y-%m-%d %H:%M"), node_params=args.params, before_src=args.before_src, machine=f"{platform.machine()}, {os.cpu_count()} cores",
                load_average=[round(x, 2) for x in os.getloadavg()], domain_id=int(env["ROS_DOMAIN_ID"]), cases=[])
     with tempfile.TemporaryDirectory(prefix="dtm_bench_") as tmp:
         for name in args.cases:

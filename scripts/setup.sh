@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One-time (idempotent) set-up: venv with pinned requirements, this package (editable),
-# and the dtm_labeler_msgs interface package built into the venv (rosidl, ~10 s).
+# and the interface packages (dtm_labeler_msgs, mocap4r2_msgs' markers) built into the venv (rosidl).
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 cd "$here"
@@ -20,13 +20,18 @@ if ! cmp -s requirements.txt .venv/.requirements.installed 2>/dev/null; then
   cp requirements.txt .venv/.requirements.installed
 fi
 pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e . >/dev/null
-if [ -d msg_defs ] && ! python -c "import dtm_labeler_msgs.msg" 2>/dev/null \
-   || [ -n "$(find msg_defs -newer .venv/.msgs.built 2>/dev/null | head -1)" ] \
-   || [ ! -f .venv/.msgs.built ]; then
-  if [ -f msg_defs/package.xml ]; then
-    echo "[setup] building msg_defs (dtm_labeler_msgs) into the venv"
-    bash scripts/build_msgs.sh msg_defs "$here/.venv/build_msgs"
-    touch .venv/.msgs.built
+# interface packages built into the venv with rosidl (~10-20 s each, once): our messages, and the
+# marker interfaces of mocap4r2_msgs (not on the package index; a ROS install uses its own)
+build_msgs() {  # <package dir> <python module>
+  local dir=$1 mod=$2 stamp=".venv/.msgs.$(basename "$1").built"
+  [ -f "$dir/package.xml" ] || return 0
+  if ! python -c "import $mod.msg" 2>/dev/null || [ ! -f "$stamp" ] \
+     || [ -n "$(find "$dir" -newer "$stamp" 2>/dev/null | head -1)" ]; then
+    echo "[setup] building $dir ($mod) into the venv"
+    bash scripts/build_msgs.sh "$dir" "$here/.venv/build_$(basename "$dir")"
+    touch "$stamp"
   fi
-fi
+}
+build_msgs msg_defs dtm_labeler_msgs
+build_msgs vendor/mocap4r2_msgs mocap4r2_msgs
 echo "[setup] ready: source .venv/bin/activate"

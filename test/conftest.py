@@ -23,3 +23,14 @@ def data_dir() -> Path:
     if not (DATA_DIR / "index.csv").is_file():
         pytest.skip(f"real mocap data not found at {DATA_DIR} (set DTM_DATA_DIR or place ../shared/data)")
     return DATA_DIR
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _no_node_left_behind():
+    """A fixture that failed before yielding leaves its node process running (and talking on
+    this test session's DDS domain): kill them all at the end of the session."""
+    yield
+    import sys
+    helpers = sys.modules.get("node_helpers")
+    if helpers is not None:
+        helpers.kill_leftovers()

@@ -133,17 +133,27 @@ def node_env(extra: Optional[Dict[str, str]] = None) -> Dict[str, str]:
 
 
 class NodeProcess:
-    """The labeler node as a child process in namespace ``ns``."""
+    """The labeler node as a child process in namespace ``ns``. Every one started is killed at
+    the end of the test session if a test left it running (:func:`kill_leftovers`). Lock-step
+    tests (one frame, then its output) run the node's searches inline unless ``params`` say
+    otherwise: in the background mode the first frames are published unconfirmed until the
+    worker's search joins (tested on its own, under a real-time stream)."""
+
+    started: List["NodeProcess"] = []
 
     def __init__(self, ns: str, params: Optional[Dict[str, Any]] = None, params_file: Optional[Path] = None,
-                 extra_args: Sequence[str] = (), console_script: bool = False):
+                 extra_args: Sequence[str] = (), console_script: bool = False, module: str = "dtm_labeler.ros.node",
+                 cmd: Optional[Sequence[str]] = None, env: Optional[Dict[str, str]] = None):
         self.ns = ns.strip("/")
+        params = {"recovery": "inline"} | dict(params or {})
         self.log_path = _tmpdir() / f"node_{self.ns}_{time.monotonic_ns()}.log"
         script = Path(sys.executable).parent / "dtm-labeler-node"
-        if console_script and script.is_file():
+        if cmd is not None:
+            cmd = list(cmd)
+        elif console_script and script.is_file():
             cmd = [str(script)]
         else:
-            cmd = [sys.executable, "-m", "dtm_labeler.ros.node"]
+            cmd = [sys.executable, "-m", module]
         args = cmd + ["--ros-args", "-r", f"__ns:=/{self.ns}"]
         if params_file is not None:
             args += ["--params-file", str(params_file)]
@@ -156,8 +166,10 @@ class NodeProcess:
         args += list(extra_args)
         self.args = args
         self._log = open(self.log_path, "wb")
-        self.proc = subprocess.Popen(args, env=node_env(), stdout=self._log, stderr=subprocess.STDOUT,
-                                     cwd=str(REPO))
+        self.t_start = time.monotonic()
+        self.proc = subprocess.Popen(args, env=env or node_env(), stdout=self._log, stderr=subprocess.STDOUT,
+                                     cwd=str(REPO), start_new_session=True)
+        NodeProcess.started.append(self)
 
     @property
     def fqn(self) -> str:
@@ -183,13 +195,16 @@ class NodeProcess:
         return text in self.log()
 
     def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> int:
+        self.stop_seconds = 0.0
         if self.proc.poll() is None:
+            t = time.monotonic()
             self.proc.send_signal(sig)
             try:
                 self.proc.wait(timeout)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait(5)
+            self.stop_seconds = time.monotonic() - t
         self._log.close()
         return self.proc.returncode
 
@@ -224,13 +239,25 @@ class NodeClient:
             PointCloud2, node.topic("markers/unlabeled"),
             QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE if input_reliable
                        else ReliabilityPolicy.BEST_EFFORT))
+        self.labeled_times: List[float] = []       # time.monotonic() at reception, one per labeled
         self.sub_l = self.node.create_subscription(LabeledMarkerArray, node.topic("markers/labeled"),
-                                                   self._store(self.labeled), q)
+                                                   self._on_labeled, q)
         self.sub_c = self.node.create_subscription(PointCloud2, node.topic("markers/labeled_cloud"),
                                                    self._store(self.clouds), q)
         self.sub_v = self.node.create_subscription(MarkerArray, node.topic("markers/visualization"),
                                                    self._store(self.viz), q)
         self.sub_d = self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, q)
+        self.mocap4r2: List[Any] = []
+        self._input_pubs: Dict[str, Any] = {"pointcloud2": self.pub}
+        self._input_nodes: List[Any] = []
+        self._input_qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE if input_reliable
+                                     else ReliabilityPolicy.BEST_EFFORT)
+        try:
+            from mocap4r2_msgs.msg import Markers
+            self.sub_m = self.node.create_subscription(Markers, node.topic("markers/labeled_mocap4r2"),
+                                                       self._store(self.mocap4r2), q)
+        except ImportError:
+            self.sub_m = None
         self.params = AsyncParameterClient(self.node, node.fqn)
         self.ex = SingleThreadedExecutor(context=self.ctx)
         self.ex.add_node(self.node)
@@ -250,6 +277,32 @@ class NodeClient:
                 lst.append(msg)
                 self.cond.notify_all()
         return cb
+
+    def _on_labeled(self, msg):
+        with self.cond:
+            self.labeled.append(msg)
+            self.labeled_times.append(time.monotonic())
+            self.cond.notify_all()
+
+    def max_gap(self, t0: float, t1: float) -> float:
+        """The longest time without a labelled output between ``t0`` and ``t1`` (monotonic)."""
+        with self.cond:
+            t = [x for x in self.labeled_times if t0 <= x <= t1]
+        return float(np.max(np.diff([t0] + t + [t1])))
+
+    def max_node_stall(self, t0: float, t1: float) -> float:
+        """The longest time between ``t0`` and ``t1`` in which the node's worker was not labelling:
+        each gap between two outputs less the time the second frame spent in the node
+        (``latency_ms``: receive -> published, the labeler's own search included). What remains is
+        the node not labelling (swapping engines, applying settings, waiting on anything) plus
+        up to one frame period of waiting for input."""
+        with self.cond:
+            pairs = [(t, m.latency_ms * 1e-3) for t, m in zip(self.labeled_times, self.labeled) if t0 <= t <= t1]
+        if not pairs:
+            return t1 - t0
+        times = [t0] + [t for t, _ in pairs]
+        stall = [t - prev - lat for prev, (t, lat) in zip(times, pairs)]
+        return float(max(max(stall), t1 - times[-1]))
 
     def _on_diag(self, msg):
         vals: Dict[str, str] = {}
@@ -351,6 +404,47 @@ class NodeClient:
         self.pub.publish(msg)
         return header
 
+    def input_pub(self, kind: str):
+        """The publisher on markers/unlabeled for input type ``kind``. Each other type gets a
+        participant of its own (its own context): Fast DDS refuses a second type on a topic
+        name a participant has used, even after the first publisher is destroyed."""
+        if kind not in self._input_pubs:
+            import rclpy
+            from dtm_labeler.ros.inputs import message_class
+            ctx = rclpy.Context()
+            rclpy.init(context=ctx)
+            node = rclpy.create_node(f"test_input_{kind}_{self.target.ns}", context=ctx)
+            self._input_nodes.append((node, ctx))
+            self._input_pubs[kind] = node.create_publisher(message_class(kind), self.target.topic(
+                "markers/unlabeled"), self._input_qos)
+        return self._input_pubs[kind]
+
+    def publish_as(self, kind: str, xyz, stamp: float, frame_id: str = "mocap", names=None, frame_number: int = 0):
+        """Publish one frame as ``kind`` (pointcloud2 | mocap4r2_markers | pointcloud); mocap4r2
+        markers carry ``names`` (USE_NAME) when given, else list indices (USE_INDEX, as the
+        OptiTrack driver sends them)."""
+        if kind == "pointcloud2":
+            return self.publish(xyz, stamp, frame_id=frame_id)
+        from builtin_interfaces.msg import Time
+        from std_msgs.msg import Header
+        sec = int(np.floor(stamp))
+        header = Header(stamp=Time(sec=sec, nanosec=int(round((stamp - sec) * 1e9)) % 1_000_000_000),
+                        frame_id=frame_id)
+        msg = make_input(kind, xyz, names, frame_number)
+        msg.header = header
+        self.input_pub(kind).publish(msg)
+        return header
+
+    def call(self, srv_type, name: str, request=None, timeout: float = 10.0):
+        """Call a service of the node (``name`` relative to its full name, e.g. 'reset')."""
+        cli = self.node.create_client(srv_type, f"{self.target.fqn}/{name}")
+        try:
+            if not cli.wait_for_service(timeout_sec=timeout):
+                raise AssertionError(f"service {name} not available")
+            return self._wait_future(cli.call_async(request or srv_type.Request()), timeout)
+        finally:
+            self.node.destroy_client(cli)
+
     @staticmethod
     def stamp_of(msg) -> float:
         return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
@@ -405,6 +499,9 @@ class NodeClient:
         return list(self._wait_future(self.params.list_parameters()).result.names)
 
     def close(self) -> None:
+        for node, ctx in self._input_nodes:
+            node.destroy_node()
+            ctx.try_shutdown()
         try:
             self.ex.shutdown(timeout_sec=1.0)
         except Exception:
@@ -412,6 +509,52 @@ class NodeClient:
         self.node.destroy_node()
         self.ctx.try_shutdown()
         self.thread.join(2.0)
+
+
+class Streamer:
+    """Publishes the walk at ``rate`` Hz from a thread of the test process (a live driver);
+    with ``ids``, every marker carries a persistent id (as Qualisys and Vicon streams do)."""
+
+    def __init__(self, client: "NodeClient", feed: FrameFeed, rate: float = 120.0, ids: bool = False):
+        self.client, self.feed, self.rate, self.ids = client, feed, rate, ids
+        self.sent = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        t_next = time.monotonic()
+        while not self._stop.is_set():
+            xyz, truth, stamp = self.feed.next()
+            self.client.publish(xyz, stamp, ids=truth + 100 if self.ids else None)
+            self.sent += 1
+            t_next += 1.0 / self.rate
+            self._stop.wait(max(t_next - time.monotonic(), 0.0))
+
+    def stop(self):
+        self._stop.set()
+        self._thread.join(2.0)
+
+
+def make_input(kind: str, xyz, names=None, frame_number: int = 0):
+    """An input message of type ``kind`` holding ``xyz`` (header left empty)."""
+    if kind == "pointcloud":
+        from geometry_msgs.msg import Point32
+        from sensor_msgs.msg import PointCloud
+        msg = PointCloud()
+        msg.points = [Point32(x=float(x), y=float(y), z=float(z)) for x, y, z in np.asarray(xyz)]
+        return msg
+    from geometry_msgs.msg import Point
+    from mocap4r2_msgs.msg import Marker, Markers
+    msg = Markers(frame_number=int(frame_number))
+    for i, (x, y, z) in enumerate(np.asarray(xyz, dtype=float)):
+        m = Marker(translation=Point(x=x, y=y, z=z), marker_index=i)
+        if names is not None:
+            m.id_type, m.marker_name = Marker.USE_NAME, str(names[i])
+        else:
+            m.id_type = Marker.USE_INDEX
+        msg.markers.append(m)
+    return msg
 
 
 def _to_params(values: Dict[str, Any]):
@@ -425,12 +568,27 @@ def _to_params(values: Dict[str, Any]):
     return out
 
 
+def kill_leftovers() -> None:
+    """Kill node processes (with their recovery workers) that tests left running."""
+    for p in NodeProcess.started:
+        if p.alive():
+            try:
+                os.killpg(p.proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+    NodeProcess.started.clear()
+
+
 def start(ns: str, **kw) -> tuple:
-    """Start a node process and a connected client: ``(NodeProcess, NodeClient)``."""
+    """Start a node process and a connected client: ``(NodeProcess, NodeClient)``; with a
+    ``model_path``, also wait until the node has loaded it (or refused it): the node loads
+    models on its loader thread, after it is up."""
     proc = NodeProcess(ns, **kw)
     try:
         client = NodeClient(proc)
         client.wait_connected()
+        if (kw.get("params") or {}).get("model_path"):
+            client.wait_diag(lambda d: d.get("model_status") not in (None, "loading"), 20, "model loaded")
     except BaseException:
         proc.stop(signal.SIGKILL)
         raise

@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 
 from dtm_labeler.evaluation.switching import join_clips, run_sequence, switch_metrics
-from dtm_labeler.labeling.bank_labeler import (BankFrameResult, BankLabeler, BankSettings, _Sub, allocate,
+from dtm_labeler.labeling.bank_labeler import (BankFrameResult, BankLabeler, BankSettings, Migration, allocate,
                                                migration_probability)
+from dtm_labeler.search.evolve import Island
 from dtm_labeler.search.problem import FrameProblem
 from dtm_labeler.labeling.stream import LabelerSettings
 from dtm_labeler.model.bank import ModelBank
@@ -59,23 +60,26 @@ def test_migration_moves_individuals_toward_the_better_model(data):
     rng = np.random.default_rng(5)
     truth = np.arange(M)
     assert probs[0].fitness(truth[None])[0] > probs[1].fitness(truth[None])[0]   # walk fits a walking frame
+    migrate = Migration(probs, lab.bank_settings, rng)
+
+    def island(pop, m):
+        return Island(pop.copy(), probs[m].fitness, None, probs[m].fitness(pop))
     moved_to_walk, moved_to_run = [], []
     for rep in range(20):
         base = np.repeat(truth[None], 16, 0)
         pop = ops.mutate(base, n, rng, 0.3)
         half = 8
-        subs = {0: _Sub(pop[:half].copy(), probs[0].fitness(pop[:half])),
-                1: _Sub(pop[half:].copy(), probs[1].fitness(pop[half:]))}
-        lab._migrate(subs, probs, [0, 1])
-        moved_to_walk.append(len(subs[0].pop) - half)
+        isl = [island(pop[:half], 0), island(pop[half:], 1)]
+        migrate(isl, 1)
+        moved_to_walk.append(len(isl[0].pop) - half)
     assert np.mean(moved_to_walk) > 3.0          # most movable run individuals (7 of 8 non-elite) went
     assert min(moved_to_walk) > 0
     # the reverse: individuals in the walk model rarely leave for the run model
     for rep in range(20):
         pop = ops.mutate(np.repeat(truth[None], 16, 0), n, rng, 0.3)
-        subs = {0: _Sub(pop.copy(), probs[0].fitness(pop)), 1: _Sub(truth[None].copy(), probs[1].fitness(truth[None]))}
-        lab._migrate(subs, probs, [0, 1])
-        moved_to_run.append(16 - len(subs[0].pop))
+        isl = [island(pop, 0), island(truth[None], 1)]
+        migrate(isl, 1)
+        moved_to_run.append(16 - len(isl[0].pop))
     assert np.mean(moved_to_run) < 2.0
 
 
@@ -123,30 +127,39 @@ def test_node_uses_the_bank(tmp_path, data):
 
     from dtm_labeler.model.bank import save_bank
     from dtm_labeler.model.io import save_model
-    from dtm_labeler.ros.node import LabelerNode, _Frame
+    from dtm_labeler.ros.node import LabelerNode
+    from dtm_labeler.ros.worker import Frame
     bank, tw, tr = data
     save_bank(bank, tmp_path / "bank")
     save_model(bank["walk"], tmp_path / "walk.npz")
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
-    node = LabelerNode(context=ctx, namespace="/t_bank", start_worker=False, parameter_overrides=[
+    node = LabelerNode(context=ctx, namespace="/t_bank", parameter_overrides=[
         Parameter("use_bank", value=True), Parameter("bank_path", value=str(tmp_path / "bank")),
         Parameter("model_path", value=str(tmp_path / "walk.npz"))])
+    core = node.core
     published = []
-    node._pub_labeled.publish = published.append
+    core.outputs.labeled.publish = published.append
 
     def diag():
         st = {s.name.rsplit(": ", 1)[1]: s for s in node.diagnostics()}
         return {kv.key: kv.value for kv in st["model"].values}
 
+    def wait_engine(pred, what):       # models load on the node's loader thread
+        end = time.monotonic() + 60
+        while not (core.worker.engine is not None and pred(core.worker.engine)):
+            assert time.monotonic() < end, what
+            time.sleep(0.01)
+
     def feed(clip, n, t0):
         rng = np.random.default_rng(0)
         for k in range(n):
             xyz = clip.positions[k][rng.permutation(14)]
-            node._label(_Frame(xyz, None, Header(), t0 + k / clip.rate, time.perf_counter(), 0.0))
+            t = t0 + k / clip.rate
+            core.handler(Frame(xyz, None, Header(), t, t, time.perf_counter(), 0.0), core.worker.engine)
 
     try:
-        assert isinstance(node._labeler, BankLabeler)
+        wait_engine(lambda e: e.actions == ("walk", "run"), "the bank")
         d = diag()
         assert d["model_status"] == "loaded" and d["use_bank"] == "True" and d["bank_actions"] == "walk,run"
         feed(tr, 40, 0.0)
@@ -157,14 +170,12 @@ def test_node_uses_the_bank(tmp_path, data):
         (tmp_path / "bad" / "bank.json").write_text("{")
         r = node.set_parameters([Parameter("bank_path", value=str(tmp_path / "bad"))])[0]
         assert not r.successful and "corrupt" in r.reason
-        assert isinstance(node._labeler, BankLabeler)
-        # bank off: back to the single model at model_path (applied by the worker; run it here)
+        assert core.worker.engine.actions == ("walk", "run")
+        # bank off: back to the single model at model_path
         r = node.set_parameters([Parameter("use_bank", value=False)])[0]
         assert r.successful
-        pending, node._pending = node._pending, []
-        for item in pending:
-            node._apply(item)
-        assert not isinstance(node._labeler, BankLabeler) and node._labeler.model.labels == bank.labels
+        wait_engine(lambda e: e.actions == (), "the single model")
+        assert core.worker.engine.labels == tuple(bank.labels)
         feed(tw, 3, 10.0)
         assert published[-1].active_model == "" and diag()["use_bank"] == "False"
         r = node.set_parameters([Parameter("use_bank", value=True), Parameter("bank_path", value="")])

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import node_helpers as H
-from dtm_labeler.ros.node import NO_TRACK
+from dtm_labeler.ros.messages import NO_TRACK
 
 
 @pytest.fixture(scope="module")
@@ -177,6 +177,7 @@ def test_time_going_backwards_resets_the_window(running):
 def test_long_gap_resets_the_window(running):
     proc, cl, feed, wm = running
     before = counter(cl, "resets_gap")
+    still_labelling(cl, feed, 20)        # a clean stream (a discontinuity right after another is a fault)
     xyz, truth, stamp = feed.next(dt=10.0)
     out = cl.send(xyz, stamp)
     assert np.mean(labels_of(out) == truth) > 0.9
@@ -227,6 +228,21 @@ def test_occluded_labels_are_predicted(running):
     still_labelling(cl, feed)
 
 
+def test_millimetre_cloud_warned_once(running):
+    proc, cl, feed, wm = running
+    before = counter(cl, "frames_millimetres")
+    n0 = len(cl.diags)
+    for _ in range(9):                       # the node checks a sample: one frame in 8
+        xyz, truth, stamp = feed.next()
+        cl.send(xyz * 1000.0, stamp)
+    cl.wait_diag(lambda d: int(d["frames_millimetres"]) >= before + 1)
+    warned = [d for d in cl.diags[n0:] if "millimetres" in d["labeling.message"]]
+    assert warned and warned[0]["labeling.level"] == "1"
+    assert proc.log().count("look like millimetres") == 1
+    feed.stamp += 1.0                        # a gap: the next frames start afresh
+    still_labelling(cl, feed, 15)
+
+
 def test_node_survived_and_sigterm_exits_cleanly(running):
     proc, cl, feed, wm = running
     d = cl.wait_diag(lambda d: True)
@@ -251,11 +267,15 @@ def test_labeler_exception_skips_the_frame_in_process():
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     node = LabelerNode(context=ctx, namespace="/t_inproc",
-                       parameter_overrides=[Parameter("model_path", value=str(wm.path))])
+                       parameter_overrides=[Parameter("model_path", value=str(wm.path)),
+                                            Parameter("recovery", value="inline")])
     published = []
-    node._pub_labeled.publish = published.append
+    node.core.outputs.labeled.publish = published.append
     try:
-        lab = node._labeler
+        end = time.monotonic() + 20
+        while node.core.worker.engine is None and time.monotonic() < end:   # loaded off the executor
+            time.sleep(0.01)
+        lab = node.core.worker.engine
         real = lab.process
         calls = []
 
@@ -271,11 +291,11 @@ def test_labeler_exception_skips_the_frame_in_process():
             sec = int(stamp)
             hdr = Header(frame_id="m")
             hdr.stamp.sec, hdr.stamp.nanosec = sec, int((stamp - sec) * 1e9)
-            node._on_cloud(make_xyz_cloud(xyz, header=hdr))
+            node.core._on_input(make_xyz_cloud(xyz, header=hdr))
             end = time.monotonic() + 10
-            while len(published) + node._stats.skipped["error"] < i + 1 and time.monotonic() < end:
+            while len(published) + node.core.stats.skipped["error"] < i + 1 and time.monotonic() < end:
                 time.sleep(0.002)
-        assert node._stats.skipped["error"] == 1 and "injected" in node._stats.labeler_error
+        assert node.core.stats.skipped["error"] == 1 and "injected" in node.core.stats.last_error
         assert len(published) == 1
         assert np.mean(labels_of(published[0]) == truth) > 0.9
         vals = {kv.key: kv.value for st in node.diagnostics() for kv in st.values}

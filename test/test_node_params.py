@@ -18,13 +18,15 @@ from dtm_labeler.ros import params as P
 
 def test_yaml_lists_every_parameter_with_its_default():
     values = P.load_params_file(H.PARAMS_FILE)
-    hint = "regenerate: python -m dtm_labeler.ros.params --write-yaml params/labeler.yaml"
+    hint = "regenerate: python -m dtm_labeler.labeling.config --write-yaml params/labeler.yaml"
     assert set(values) == set(P.DEFAULTS), (set(values) ^ set(P.DEFAULTS), hint)
     for k, v in values.items():
         assert v == P.DEFAULTS[k] and type(v) is type(P.DEFAULTS[k]), (k, v, P.DEFAULTS[k], hint)
     assert H.PARAMS_FILE.read_text() == P.render_yaml(), hint
-    # the same file with the wildcard key gives the same values
-    text = H.PARAMS_FILE.read_text().replace("\ndtm_labeler:\n", "\n/**:\n")
+    # keyed /** (so it also applies to a node in a namespace); the same block keyed by the node
+    # name gives the same values
+    assert "\n/**:\n  ros__parameters:\n" in H.PARAMS_FILE.read_text()
+    text = H.PARAMS_FILE.read_text().replace("\n/**:\n", "\ndtm_labeler:\n")
     wild = H._tmpdir() / "wildcard.yaml"
     wild.write_text(text)
     assert P.load_params_file(wild) == values
@@ -171,7 +173,7 @@ def _node(ctx, args):
 
 @pytest.mark.parametrize("key", ["dtm_labeler", "/**"])
 def test_params_file_applies_under_node_name_and_wildcard(rclpy_ctx, key):
-    text = H.PARAMS_FILE.read_text().replace("\ndtm_labeler:\n", f"\n{key}:\n")
+    text = H.PARAMS_FILE.read_text().replace("\n/**:\n", f"\n{key}:\n")
     text = text.replace("window: 10", "window: 4").replace('method: "cbga"', 'method: "sga"')
     f = H._tmpdir() / f"p_{key.strip('/*') or 'wild'}.yaml"
     f.write_text(text)
@@ -180,7 +182,7 @@ def test_params_file_applies_under_node_name_and_wildcard(rclpy_ctx, key):
         assert node.get_parameter("window").value == 4
         assert node.get_parameter("method").value == "sga"
         assert node.get_parameter("max_points").value == 33
-        assert node._settings.window == 4 and node._settings.max_points == 33
+        assert node.core.settings.labeler.window == 4 and node.core.settings.labeler.max_points == 33
         assert node.describe_parameter("window").integer_range[0].to_value == 10000
         assert node.describe_parameter("output_qos").read_only
         assert set(P.DEFAULTS) <= set(node._parameters)
@@ -204,7 +206,7 @@ def test_bad_startup_values_fall_back_to_defaults(rclpy_ctx):
         assert not r.successful and "mode" in r.reason
         assert node.get_parameter("window").value == 10
         r = node.set_parameters_atomically([Parameter("window", value=5), Parameter("mode", value="single")])
-        assert r.successful and node._settings.window == 5 and node._settings.mode == "single"
+        assert r.successful and node.core.settings.labeler.window == 5 and node.core.settings.labeler.mode == "single"
     finally:
         node.destroy_node()
 
@@ -238,7 +240,7 @@ def test_declared_parameters_over_the_services(running):
 
 def test_stream_output_and_headers(running):
     proc, cl, feed, wm = running
-    assert cl.run_frames(feed, 40) > 0.95
+    assert cl.run_frames(feed, 40) >= 0.9      # the first frames wait for the background search
     xyz, truth, stamp = feed.next()
     hdr = cl.publish(xyz, stamp, frame_id="world")
     out = cl.wait_for(lambda: cl.labeled_at(stamp), 5, "frame")
@@ -277,7 +279,7 @@ def test_runtime_changes_take_effect(running):
     cl.wait_diag(lambda d: d["mode"] == "single" and d["method"] == "cbga")
     xyz, truth, stamp = feed.next()
     out = cl.send(xyz, stamp)
-    assert {m.confidence for m in out.markers if m.label_index >= 0} == {1.0}
+    assert min(m.confidence for m in out.markers if m.label_index >= 0) > 0.9     # one frame, its own posterior
     # max_points: an effect on the output itself -- at most 5 points searched, the rest ignored
     before = int(cl.wait_diag(lambda d: True)["points_ignored_max_points"])
     assert cl.set_atomically(max_points=5, method="cbga", mode="stream", window=10).successful
@@ -317,6 +319,16 @@ def test_visualization_period_throttles_markers(running):
     cl.run_frames(feed, 5)
     assert len(cl.viz) == n0
     assert all(r.successful for r in cl.set(publish_visualization=True))
+    # namespace and lifetime of the RViz markers (a stopped node leaves none behind)
+    assert all(r.successful for r in cl.set(viz_namespace="mocap/labels", viz_marker_lifetime_s=0.25))
+    xyz, truth, stamp = feed.next()
+    cl.send(xyz, stamp)
+    viz = cl.wait_for(lambda: [v for v in cl.viz if v.markers and abs(cl.stamp_of(v.markers[-1]) - stamp) < 1e-6],
+                      5, "visualization")[0]
+    shown = [m for m in viz.markers if m.action == 0]
+    assert shown and all(m.ns.startswith("mocap/labels/") for m in shown)
+    assert all((m.lifetime.sec, m.lifetime.nanosec) == (0, 250_000_000) for m in shown)
+    assert all(r.successful for r in cl.set(viz_namespace="dtm_labeler", viz_marker_lifetime_s=1.0))
 
 
 def test_bad_values_rejected_and_nothing_changes(running):

@@ -83,6 +83,16 @@ def test_atomic_set_with_a_bad_value_does_not_reload(running):
     assert cl.run_frames(feed, 5) > 0.95
 
 
+def test_reload_service_reads_the_file_again(running):
+    from std_srvs.srv import Trigger
+    proc, cl, feed, wm = running
+    before = int(cl.wait_diag(lambda d: True)["reloads_ok"])
+    r = cl.call(Trigger, "reload")
+    assert r.success and str(wm.path) in r.message
+    cl.wait_diag(lambda d: int(d["reloads_ok"]) == before + 1 and d["model_status"] == "loaded")
+    assert cl.run_frames(feed, 10) > 0.95
+
+
 def test_reload_to_a_new_path(running):
     proc, cl, feed, wm = running
     resets = int(cl.wait_diag(lambda d: True)["resets_model_reload"])

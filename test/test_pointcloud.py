@@ -89,7 +89,7 @@ def test_xyz_round_trip_with_ids():
         ("x", 0, F32), ("y", 4, F32), ("z", 8, F32), ("id", 12, U32)]
     assert msg.point_step == 16
     out, got = read_points_xyz(msg)
-    assert got.dtype == np.uint32
+    assert got.dtype == np.int64
     np.testing.assert_array_equal(got, ids)
     np.testing.assert_allclose(out, xyz, atol=1e-6)
 
@@ -144,7 +144,7 @@ def test_empty_cloud():
     assert out.shape == (0, 3) and out.dtype == np.float64 and ids is None
     msg = make_xyz_cloud(np.zeros((0, 3)), ids=np.zeros(0, np.uint32))
     out, ids = read_points_xyz(msg)
-    assert out.shape == (0, 3) and ids.shape == (0,) and ids.dtype == np.uint32
+    assert out.shape == (0, 3) and ids.shape == (0,) and ids.dtype == np.int64
     # an organised cloud with height 0 / a hand-made empty message
     empty = build_cloud({"x": [], "y": [], "z": []},
                         [("x", F32, 1, 0), ("y", F32, 1, 4), ("z", F32, 1, 8)], 12, 0, 7)
@@ -212,7 +212,7 @@ def test_big_endian(xyz_type, id_type):
     out, got = read_points_xyz(msg)
     np.testing.assert_allclose(out, xyz, atol=1e-6 if size == 4 else 0)
     np.testing.assert_array_equal(got, ids)
-    assert got.dtype == np.uint32
+    assert got.dtype == np.int64
 
 
 def test_float64_xyz_exact():
@@ -231,7 +231,7 @@ def test_id_integer_types(id_type):
     layout = [("x", F32, 1, 0), ("y", F32, 1, 4), ("z", F32, 1, 8), ("id", id_type, 1, 12)]
     msg = build_cloud({"x": 0, "y": 1, "z": 2, "id": ids}, layout, 16, 1, n)
     out, got = read_points_xyz(msg)
-    assert got.dtype == np.uint32
+    assert got.dtype == np.int64
     np.testing.assert_array_equal(got, ids)
     assert np.all(out == [0, 1, 2])
 
@@ -300,14 +300,67 @@ def test_axis_with_count_3():
         read_points_xyz(_cloud(layout, point_step=20))
 
 
-def test_id_float_or_negative():
-    layout = XYZ_LAYOUT + [("id", F32, 1, 12)]
-    with pytest.raises(PointCloudError, match="field 'id' has datatype FLOAT32"):
-        read_points_xyz(_cloud(layout, point_step=16))
+def test_id_minus_one_means_no_id_and_integral_float_ids():
+    from dtm_labeler.ros.pointcloud import NO_ID, complete_ids
     layout = XYZ_LAYOUT + [("id", I32, 1, 12)]
     msg = build_cloud({"x": 0, "y": 0, "z": 0, "id": [3, -1, 4]}, layout, 16, 1, 3)
+    ids = read_points_xyz(msg)[1]
+    assert ids.tolist() == [3, NO_ID, 4] and complete_ids(ids) is None
+    msg = build_cloud({"x": 0, "y": 0, "z": 0, "id": [3, 0xFFFFFFFF, 4]}, XYZ_LAYOUT + [("id", U32, 1, 12)],
+                      16, 1, 3)
+    assert read_points_xyz(msg)[1].tolist() == [3, NO_ID, 4]
+    for ftype in (F32, F64):
+        layout = XYZ_LAYOUT + [("id", ftype, 1, 16)]
+        msg = build_cloud({"x": 0, "y": 0, "z": 0, "id": [7.0, -1.0, np.nan, 2.0 ** 24]}, layout, 24, 1, 4)
+        assert read_points_xyz(msg)[1].tolist() == [7, NO_ID, NO_ID, 2 ** 24]
+    full = read_points_xyz(build_cloud({"x": 0, "y": 0, "z": 0, "id": [5, 6]}, XYZ_LAYOUT + [("id", F32, 1, 12)],
+                                       16, 1, 2))[1]
+    assert complete_ids(full).tolist() == [5, 6]
+
+
+def test_ids_that_cannot_be_read_are_rejected():
+    layout = XYZ_LAYOUT + [("id", I32, 1, 12)]
+    msg = build_cloud({"x": 0, "y": 0, "z": 0, "id": [3, -2, 4]}, layout, 16, 1, 3)
     with pytest.raises(PointCloudError, match="negative"):
         read_points_xyz(msg)
+    layout = XYZ_LAYOUT + [("id", F32, 1, 12)]
+    msg = build_cloud({"x": 0, "y": 0, "z": 0, "id": [3.0, 2.5, 4.0]}, layout, 16, 1, 3)
+    with pytest.raises(PointCloudError, match="integral"):
+        read_points_xyz(msg)
+    layout = XYZ_LAYOUT + [("id", U32, 2, 12)]
+    with pytest.raises(PointCloudError, match="count 2"):
+        read_points_xyz(_cloud(layout, point_step=20))
+
+
+def test_row_step_zero_padding_fields_and_empty_fields():
+    """Layouts real drivers send: row_step left 0, PCL's '_' padding fields (several), a field
+    of count 0, and an unrelated field of a datatype this reader does not know."""
+    xyz = _xyz(5, 3).astype(np.float32)
+    layout = [("x", F32, 1, 0), ("y", F32, 1, 4), ("z", F32, 1, 8), ("_", U8, 4, 12), ("_", U8, 4, 16),
+              ("id", U32, 1, 20)]
+    msg = build_cloud({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "_": 0, "id": np.arange(5)},
+                      [f for f in layout if f[0] != "_"], 24, 1, 5)
+    from sensor_msgs.msg import PointField
+    msg.fields = [PointField(name=n, datatype=d, count=c, offset=o) for n, d, c, o in layout]
+    msg.fields.append(PointField(name="intensity", datatype=F32, count=0, offset=24))
+    msg.row_step = 0
+    out, ids = read_points_xyz(msg)
+    np.testing.assert_array_equal(out, xyz.astype(np.float64))
+    assert ids.tolist() == list(range(5))
+    assert cloud_to_structured(msg).dtype.names == ("x", "y", "z", "id")
+    msg.fields.append(PointField(name="rgba", datatype=42, count=1, offset=12))
+    assert read_points_xyz(msg)[0].shape == (5, 3)         # a field it does not need is not read
+    with pytest.raises(PointCloudError, match="unknown PointField datatype 42"):
+        cloud_to_structured(msg)                           # ... but the full decoder names it
+
+
+def test_millimetre_clouds_are_recognised():
+    from dtm_labeler.ros.pointcloud import looks_like_millimetres
+    body = np.random.default_rng(0).uniform([-0.3, -0.3, 0.0], [0.3, 0.3, 1.8], size=(14, 3))
+    assert not looks_like_millimetres(body)
+    assert not looks_like_millimetres(body + [40.0, -30.0, 0.0])     # far from the origin, in metres
+    assert looks_like_millimetres(body * 1000.0)
+    assert not looks_like_millimetres(np.array([[1500.0, 0, 0], [np.nan, 0, 0]]))
 
 
 def test_data_length_mismatch():

@@ -216,10 +216,10 @@ def test_full_search_restarts_while_short_of_the_level(model, walker):
     for restarts, level in ((0, 1e6), (3, 1e6), (3, -1e6)):
         lab = StreamLabeler(model, LabelerSettings(mode="single", full=weak, restarts=restarts))
         lab.process(walker.positions[2], 2 / walker.rate)
-        lab.level = level                              # the running level this frame is judged by
+        lab.level[:] = level                           # the running level this frame is judged by
         runs = []
-        orig = lab.full_search.search
-        lab.full_search.search = lambda *a, **k: runs.append(1) or orig(*a, **k)
+        orig = lab.full_search.search_models
+        lab.full_search.search_models = lambda *a, **k: runs.append(1) or orig(*a, **k)
         r = lab.process(walker.positions[3], 3 / walker.rate)
         counts[(restarts, level)] = len(runs)
         assert r.generations == 0 and r.full_search and np.isfinite(r.log_likelihood)

@@ -131,12 +131,6 @@ def test_refined_cbga_at_least_greedy(seed):
 
 # ---------------------------------------------------------------- GA pieces
 def test_ga_pieces():
-    f = np.array([-5.0, -1.0, -3.0])
-    tf = ga.transformed_fitness(f, k=2.0, c=1.0)
-    assert np.all(np.argsort(tf) == np.argsort(f))
-    np.testing.assert_allclose(tf, 2.0 / (1.0 - f))
-    with pytest.raises(ValueError, match="c greater"):
-        ga.transformed_fitness(np.array([2.0]), c=1.0)
     p = ga.geometric_rank_probabilities(5, 0.2)
     assert p.sum() == pytest.approx(1) and np.all(np.diff(p) < 0)
     with pytest.raises(ValueError):

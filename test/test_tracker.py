@@ -131,3 +131,19 @@ def test_reset():
     tr.reset()
     u = tr.update(np.array([[0, 0, 0.0]]), 0.1)
     assert u.new.all() and u.track_ids.tolist() == [0] and tr.t == 0.1
+
+
+def test_new_input_ids_continue_a_lost_track():
+    """A marker back from a one-frame occlusion under a new input id continues its track (the id
+    becomes an alias), so the labels carried by the track stay."""
+    tr = Tracker()
+    p = np.array([[0.0, 0.0, 1.0], [0.5, 0.0, 1.0], [1.0, 0.0, 1.0]])
+    tr.update(p, 0.00, ids=np.array([10, 11, 12]))
+    tr.update(p[[0, 2]] + [0.01, 0, 0], 0.01, ids=np.array([10, 12]))            # 11 hidden
+    u = tr.update(p + [0.02, 0, 0], 0.02, ids=np.array([10, 99, 12]))            # back as 99
+    assert u.track_ids.tolist() == [10, 11, 12] and not u.new.any()
+    assert np.isfinite(u.states[1, 3:]).all()
+    u = tr.update(p + [0.03, 0, 0], 0.03, ids=np.array([10, 99, 12]))            # the alias holds
+    assert u.track_ids.tolist() == [10, 11, 12]
+    far = tr.update(np.vstack([p + [0.04, 0, 0], [[5.0, 5.0, 1.0]]]), 0.04, ids=np.array([10, 99, 12, 50]))
+    assert far.track_ids.tolist() == [10, 11, 12, 50] and far.new.tolist() == [False, False, False, True]

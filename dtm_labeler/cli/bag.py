@@ -20,7 +20,8 @@ import threading
 
 from tqdm import tqdm
 
-from .common import CliError, HelpFormatter, load_inputs, point_spec, run_main
+from ..labeling import config
+from .common import CliError, HelpFormatter, amount_arg, add_corruption_arguments, load_inputs, point_spec, run_main
 
 EPILOG = """examples:
   dtm-bag make walk.bvh --out walk_bag --frames 90%: --occlude 1 --clutter 2 --noise-mm 1
@@ -32,13 +33,6 @@ EPILOG = """examples:
 """
 
 
-def _nonneg_int(text: str) -> int:
-    v = int(text)
-    if v < 0:
-        raise argparse.ArgumentTypeError("must be >= 0")
-    return v
-
-
 def _pos_float(text: str) -> float:
     v = float(text)
     if not (v > 0 and math.isfinite(v)):
@@ -46,15 +40,9 @@ def _pos_float(text: str) -> float:
     return v
 
 
-def _nonneg_float(text: str) -> float:
-    v = float(text)
-    if not (v >= 0 and math.isfinite(v)):
-        raise argparse.ArgumentTypeError("must be >= 0")
-    return v
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from ..labeling.stream import METHODS, MODES, LabelerSettings
     from ..ros.bag import STORAGES
 
     p = argparse.ArgumentParser(prog="dtm-bag", formatter_class=HelpFormatter, epilog=EPILOG,
@@ -70,20 +58,14 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--storage", choices=STORAGES, default="mcap")
     m.add_argument("--points", default="body14", help="body14, all, or NAME,NAME,... (the labels in the bag)")
     m.add_argument("--frames", default=None, help="frame range A:B, integers or percentages (90%%:)")
-    m.add_argument("--occlude", type=_nonneg_int, default=0, metavar="K", help="hide K true points per frame")
-    m.add_argument("--gap-frames", type=float, default=1.0, metavar="G",
-                   help="mean length of a simulated occlusion in frames (1: new hidden set every frame)")
-    m.add_argument("--clutter", type=_nonneg_int, default=0, metavar="K",
-                   help="K ghost points per frame (short-lived tracks near the body)")
-    m.add_argument("--noise-mm", type=_nonneg_float, default=0.0, metavar="S",
-                   help="Gaussian noise, std per coordinate (mm)")
+    add_corruption_arguments(m)
     m.add_argument("--ids", action=argparse.BooleanOptionalAction, default=True,
                    help="add a uint32 'id' field with mocap-like track ids to the cloud")
     m.add_argument("--frame-id", default="mocap", help="header.frame_id")
     m.add_argument("--seed", type=int, default=0, help="seed of shuffling, occlusions, ghosts and noise")
     m.add_argument("--rate-hz", type=_pos_float, default=None, metavar="HZ",
                    help="re-time the frames at this rate (default: the recording's rate)")
-    m.add_argument("--start-time", type=_nonneg_float, default=1.0, metavar="S",
+    m.add_argument("--start-time", type=amount_arg, default=1.0, metavar="S",
                    help="stamp of the first frame, seconds since the epoch")
     m.add_argument("--no-ground-truth", action="store_true", help="write only /markers/unlabeled")
     m.add_argument("--force", action="store_true", help="replace BAG if it exists")
@@ -98,12 +80,12 @@ def build_parser() -> argparse.ArgumentParser:
     y.add_argument("--rate", type=_pos_float, default=1.0, help="playback speed factor")
     y.add_argument("--loop", action="store_true", help="play again and again until interrupted")
     y.add_argument("--topics", nargs="+", default=None, metavar="TOPIC", help="play only these topics")
-    y.add_argument("--start-delay", type=_nonneg_float, default=0.0, metavar="S",
+    y.add_argument("--start-delay", type=amount_arg, default=0.0, metavar="S",
                    help="pause after the subscribers are there, before the first message")
     y.add_argument("--wait-for", nargs="*", default=None, metavar="TOPIC",
                    help="wait until each of these topics has a subscriber (default: markers/unlabeled; "
                         "give no topic to start at once)")
-    y.add_argument("--wait-timeout", type=_nonneg_float, default=30.0, metavar="S",
+    y.add_argument("--wait-timeout", type=amount_arg, default=30.0, metavar="S",
                    help="play anyway after waiting this long for subscribers")
     y.add_argument("--clock", action="store_true", help="publish /clock (for use_sim_time)")
     y.add_argument("--restamp", action="store_true",
@@ -123,13 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     la.add_argument("--out", default=None, metavar="OUT_BAG", help="bag to write (default: only score)")
     la.add_argument("--storage", choices=STORAGES, default=None, help="storage of OUT_BAG (default: as BAG)")
     la.add_argument("--topic", default="markers/unlabeled", help="cloud topic to label")
-    la.add_argument("--method", choices=METHODS, default=LabelerSettings.method)
-    la.add_argument("--mode", choices=MODES, default=LabelerSettings.mode)
-    la.add_argument("--window", type=int, default=LabelerSettings.window, metavar="W")
-    la.add_argument("--params-file", default=None, metavar="YAML",
-                    help="take the labeler settings from a node parameter file (params/labeler.yaml format); "
-                         "--method/--mode/--window/--seed given explicitly still win")
-    la.add_argument("--seed", type=int, default=0, help="seed of the search")
+    config.add_arguments(la)
     la.add_argument("--force", action="store_true", help="replace OUT_BAG if it exists")
     la.add_argument("--json", action="store_true", help="print one JSON object")
     la.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -216,7 +192,6 @@ def _play(args) -> int:
 # ------------------------------------------------------------------------------------ label
 
 def _label(args) -> int:
-    from ..labeling.stream import LabelerSettings
     from ..model.io import load_model
     from ..ros.bag import BagError, label_bag
 
@@ -225,15 +200,7 @@ def _label(args) -> int:
     except (OSError, ValueError, KeyError) as e:
         raise CliError(f"{args.model}: cannot read model: {e}") from None
     try:
-        if args.params_file:
-            from ..ros import params as P
-            values = dict(P.DEFAULTS) | P.load_params_file(args.params_file)
-            given = {a for a in ("method", "mode", "window", "seed")
-                     if any(x == f"--{a}" or x.startswith(f"--{a}=") for x in args._argv)}
-            values.update({a: getattr(args, a) for a in given})
-            settings = P.settings_from_params(P.validate(values))
-        else:
-            settings = LabelerSettings(method=args.method, mode=args.mode, window=args.window, seed=args.seed)
+        settings = config.settings_from_params(config.params_from_args(args))
     except (ValueError, KeyError, OSError) as e:
         raise CliError(str(e)) from None
     bar = tqdm(desc="labeling", unit="frame", file=sys.stderr, disable=True if (args.quiet or args.json) else None,
@@ -288,7 +255,6 @@ def _info(args) -> int:
 def _main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
-    args._argv = argv
     return {"make": _make, "play": _play, "label": _label, "info": _info}[args.command](args)
 
 

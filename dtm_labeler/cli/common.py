@@ -85,6 +85,41 @@ def load_inputs(inputs: Sequence[str], points: str | list[str], frames: str | No
     return clips
 
 
+def count_arg(text: str) -> int:
+    v = int(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError("must be >= 0")
+    return v
+
+
+def amount_arg(text: str) -> float:
+    v = float(text)
+    if not v >= 0 or v == float("inf"):
+        raise argparse.ArgumentTypeError("must be a finite number >= 0")
+    return v
+
+
+def _frames(text: str) -> float:
+    v = float(text)
+    if not v >= 1 or v == float("inf"):
+        raise argparse.ArgumentTypeError("must be >= 1")
+    return v
+
+
+def add_corruption_arguments(parser: argparse.ArgumentParser, occlude: int = 0, gap_frames: float = 1.0,
+                             clutter: int = 0, noise_mm: float = 0.0) -> None:
+    """The simulated capture faults of a labelled recording turned into a stream (hidden points,
+    their gap lengths, ghost points, noise; :func:`dtm_labeler.evaluation.corruption.corrupt_clip`),
+    declared once for every console script that makes streams."""
+    parser.add_argument("--occlude", type=count_arg, default=occlude, metavar="K", help="hide K true points per frame")
+    parser.add_argument("--gap-frames", type=_frames, default=gap_frames, metavar="G",
+                        help="mean length of a simulated occlusion in frames (1: new hidden set every frame)")
+    parser.add_argument("--clutter", type=count_arg, default=clutter, metavar="K",
+                        help="K ghost points per frame (short-lived tracks near the body)")
+    parser.add_argument("--noise-mm", type=amount_arg, default=noise_mm, metavar="S",
+                        help="Gaussian noise, std per coordinate (mm)")
+
+
 def run_main(main_body, argv=None) -> int:
     try:
         return main_body(argv)

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import CliError, HelpFormatter, run_main
+from .common import CliError, HelpFormatter, add_corruption_arguments, run_main
 
 EPILOG = """examples:
   dtm-demo
@@ -248,10 +248,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate-hz", type=float, default=None, metavar="HZ",
                    help="stream rate (synthetic: generated at it; --data: resampled to it); default 120 / the "
                         "recording's")
-    p.add_argument("--occlude", type=int, default=1, metavar="K", help="hidden true points per frame")
-    p.add_argument("--gap-frames", type=float, default=24.0, metavar="G", help="mean occlusion length in frames")
-    p.add_argument("--clutter", type=int, default=2, metavar="K", help="ghost points per frame")
-    p.add_argument("--noise-mm", type=float, default=1.0, metavar="S", help="Gaussian position noise (mm)")
+    add_corruption_arguments(p, occlude=1, gap_frames=24.0, clutter=2, noise_mm=1.0)
     p.add_argument("--seed", type=int, default=1, help="seed of the corruption")
     p.add_argument("--param", action="append", default=[], metavar="NAME:=VALUE",
                    help="extra node parameter (repeatable), e.g. --param method:=greedy")

@@ -16,13 +16,16 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..evaluation.pipeline import ClipRun, label_clip_run, model_clip
+from ..evaluation.switching import label_clip_bank
 from ..evaluation.metrics import Metrics, MetricsAccumulator
-from ..labeling.stream import METHODS, MODES, LabelerSettings
+from ..labeling import config
+from ..labeling.bank_labeler import BankSettings, bank_settings_from_params
+from ..labeling.config import LabelerSettings
+from ..model.bank import BankFileError, load_bank
 from ..model.io import load_model
 from ..motion.load import load_clip
-from ..search.label_search import GASettings
 from ..training.calibrate import CalibrationError, calibrate_from_clip
-from .common import CliError, HelpFormatter, expand_inputs, parse_frames, run_main
+from .common import CliError, HelpFormatter, add_corruption_arguments, expand_inputs, parse_frames, run_main
 
 EPILOG = """examples:
   dtm-train walk.bvh --frames 0:90% --out walk.npz
@@ -43,35 +46,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="model file from dtm-train (.npz); omitted with --bank")
     p.add_argument("inputs", nargs="+", metavar="INPUT",
                    help="labelled recordings (.bvh .amc .c3d .csv) or folders of them")
-    p.add_argument("--method", choices=METHODS, default="cbga",
-                   help="cbga: constraint-based GA; sga: simple GA; greedy: Song et al. DP; exhaustive: all "
-                        "assignments (tiny models only); tracker: carry labels along tracks, search only to start")
-    p.add_argument("--mode", choices=MODES, default="stream",
-                   help="stream: tracks, warm start and votes over the window; single: every frame on its own")
     p.add_argument("--frames", default="0:100%", help="frame range A:B of every input, integers or percentages")
-    p.add_argument("--occlude", type=int, default=0, metavar="K", help="hide K true points per frame")
-    p.add_argument("--clutter", type=int, default=0, metavar="K", help="add K ghost points per frame")
-    p.add_argument("--noise-mm", type=float, default=0.0, metavar="S", help="Gaussian noise, std per coordinate (mm)")
-    p.add_argument("--assume-noise-mm", type=float, default=None, metavar="S",
-                   help="measurement noise the labeler is told about (widens the model); default: --noise-mm")
-    p.add_argument("--gap-frames", type=float, default=1.0, metavar="G",
-                   help="mean length of a simulated occlusion in frames (1: new hidden set every frame)")
-    p.add_argument("--window", type=int, default=LabelerSettings.window, metavar="W",
-                   help="vote window in frames (stream mode)")
-    full = LabelerSettings().full
-    p.add_argument("--population", type=int, default=full.population, metavar="P",
-                   help="GA population of the full search")
-    p.add_argument("--generations", type=int, default=full.max_generations, metavar="G",
-                   help="GA generation cap of the full search")
+    add_corruption_arguments(p)
     p.add_argument("--track-ids", action="store_true",
                    help="give the labeler the simulated mocap track ids instead of letting its tracker associate")
-    p.add_argument("--seed", type=int, default=0, help="seed of the corruption and of the search")
     p.add_argument("--bank", default=None, metavar="DIR",
                    help="label with a model bank (directory or single-file bank from dtm-train --action ... "
                         "--bank DIR): one model per action used at once; JSON adds active_action_accuracy "
                         "when the inputs' classes are bank actions")
-    p.add_argument("--bank-strategy", choices=("spread", "hard"), default="spread",
-                   help="spread: population over all action models with migration; hard: one model at a time")
+    config.add_arguments(p, layers=("labeler", "bank"))
     p.add_argument("--calibrate", default=None, metavar="A:B",
                    help="calibrate the model's body terms to each input on its frames A:B (dtm-calibrate) and "
                         "label and score only the frames after B")
@@ -84,23 +67,13 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _settings(args) -> LabelerSettings:
-    if args.occlude < 0 or args.clutter < 0 or args.noise_mm < 0:
-        raise CliError("--occlude, --clutter and --noise-mm must be >= 0")
-    if args.gap_frames < 1:
-        raise CliError("--gap-frames must be >= 1")
-    full = LabelerSettings().full
+def _settings(args) -> tuple[LabelerSettings, BankSettings]:
+    """Labeler and bank settings: ``--params-file``, then the flags given; the labeler is told
+    the noise the stream is given (``--noise-mm``) unless ``--assume-noise-mm`` says otherwise."""
     try:
-        if args.population is not None or args.generations is not None:
-            kw = dict(vars(full))
-            if args.population is not None:
-                kw["population"] = args.population
-            if args.generations is not None:
-                kw["max_generations"] = args.generations
-            full = GASettings(**kw)
-        assumed = args.noise_mm if args.assume_noise_mm is None else args.assume_noise_mm
-        return LabelerSettings(method=args.method, mode=args.mode, window=args.window, full=full, seed=args.seed,
-                               noise_mm=assumed)
+        values = config.params_from_args(args, layers=("labeler", "bank"))
+        values.setdefault("noise_mm", args.noise_mm)
+        return config.settings_from_params(values), bank_settings_from_params(values)
     except ValueError as e:
         raise CliError(str(e)) from None
 
@@ -121,24 +94,6 @@ def _load(args, labels):
         clip.meta["frame_range"] = [a, b]
         clips.append(clip)
     return clips
-
-
-def _calibrated(args, model, clip):
-    """(model calibrated on ``--calibrate`` frames of ``clip``, the frames after them, summary);
-    the model and clip unchanged without ``--calibrate``."""
-    if not args.calibrate:
-        return model, clip, None
-    a, b = parse_frames(args.calibrate, clip.n_frames)
-    if b >= clip.n_frames:
-        raise CliError(f"{clip.source}: --calibrate {args.calibrate} leaves no frames to label")
-    try:
-        cal, summary = calibrate_from_clip(model, clip.slice(a, b), args.calibrate_labels)
-    except CalibrationError as e:
-        raise CliError(f"{clip.source}: {e}") from None
-    rest = clip.slice(b, None)
-    first = clip.meta["frame_range"][0]
-    rest.meta["frame_range"] = [first + b, clip.meta["frame_range"][1]]
-    return cal, rest, dict(summary, frames=[first + a, first + b])
 
 
 def _fmt(x, spec=".1f", none="n/a"):
@@ -179,12 +134,12 @@ def _write_csv(path: str, runs: list[ClipRun], names: tuple[str, ...], multi: bo
 
 def _main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    settings = _settings(args)
+    settings, bank_settings = _settings(args)
     if args.bank is not None:
         if args.model is not None:
             args.inputs = [args.model] + list(args.inputs)
             args.model = None
-        return _bank_main(args, settings)
+        return _bank_main(args, settings, bank_settings)
     if args.model is None:
         raise CliError("MODEL is required (or --bank DIR)")
     try:
@@ -192,41 +147,75 @@ def _main(argv=None) -> int:
     except (OSError, ValueError, KeyError) as e:
         msg = str(e).strip("'\"")
         raise CliError(msg if str(args.model) in msg else f"{args.model}: cannot read model: {msg}") from None
-    clips = _load(args, model.labels)
+
+    def label_one(clip, **kw):
+        model_i, rest, calibration = _calibrated(args, model, clip)
+        run = label_clip_run(model_i, rest, settings, **kw)
+        run.settings.update(frame_range=rest.meta["frame_range"], calibration=calibration)
+        return run
+
+    runs, pooled = _label_all(args, settings, model.labels, label_one)
+    out = {"method": settings.method, "mode": settings.mode, "model": str(args.model)} | _metrics_json(pooled)
+    if _report(args, settings, out, runs, ["calibration"] if args.calibrate else []):
+        _print_summary(args, settings, model, pooled, runs)
+    return 0
+
+
+def _calibrated(args, model, clip):
+    """(model calibrated on ``--calibrate`` frames of ``clip``, the frames after them, summary);
+    the model and clip unchanged without ``--calibrate``."""
+    if not args.calibrate:
+        return model, clip, None
+    a, b = parse_frames(args.calibrate, clip.n_frames)
+    if b >= clip.n_frames:
+        raise CliError(f"{clip.source}: --calibrate {args.calibrate} leaves no frames to label")
+    try:
+        cal, summary = calibrate_from_clip(model, clip.slice(a, b), args.calibrate_labels)
+    except CalibrationError as e:
+        raise CliError(f"{clip.source}: {e}") from None
+    rest = clip.slice(b, None)
+    first = clip.meta["frame_range"][0]
+    rest.meta["frame_range"] = [first + b, clip.meta["frame_range"][1]]
+    return cal, rest, dict(summary, frames=[first + a, first + b])
+
+
+def _label_all(args, settings, labels, label_one):
+    """Every input through ``label_one(clip, **corruption, seed, progress, ...)`` (input ``i``
+    corrupted with ``seed + i``), one progress bar; returns the runs and the pooled metrics;
+    ``--out`` written."""
+    clips = _load(args, labels)
     total = sum(c.n_frames for c in clips)
     bar = tqdm(total=total, desc="labeling", unit="frame", file=sys.stderr, disable=True if args.quiet else None,
                leave=False)
-
-    def progress(done: int, _total: int) -> None:
-        bar.update(done - bar.n)
-
     runs: list[ClipRun] = []
     done = 0
     try:
         for i, clip in enumerate(clips):
-            model_i, clip, calibration = _calibrated(args, model, clip)
-            run = label_clip_run(model_i, clip, settings, occlude=args.occlude, clutter=args.clutter,
-                                 noise_mm=args.noise_mm, seed=args.seed + i, progress=progress,
-                                 use_ids=args.track_ids, gap_frames=args.gap_frames,
-                                 keep_records=args.out is not None, done=done, total=total)
-            run.settings.update(frame_offset=clip.meta["frame_range"][0], rate=clip.rate,
-                                frame_range=clip.meta["frame_range"], calibration=calibration)
+            run = label_one(clip, occlude=args.occlude, clutter=args.clutter, noise_mm=args.noise_mm,
+                            seed=settings.seed + i, progress=lambda d, _t: bar.update(d - bar.n),
+                            use_ids=args.track_ids, gap_frames=args.gap_frames,
+                            keep_records=args.out is not None, done=done, total=total)
+            frames = run.settings.get("frame_range") or clip.meta["frame_range"]    # (after a calibration window)
+            run.settings.update(frame_offset=frames[0], rate=clip.rate, frame_range=frames)
             runs.append(run)
             done += clip.n_frames
     except ValueError as e:
         raise CliError(str(e)) from None
     finally:
         bar.close()
-    pooled = MetricsAccumulator.merge(r.accumulator for r in runs).metrics()
     if args.out:
-        _write_csv(args.out, runs, model.labels, multi=len(runs) > 1)
+        _write_csv(args.out, runs, tuple(labels), multi=len(runs) > 1)
+    return runs, MetricsAccumulator.merge(r.accumulator for r in runs).metrics()
 
-    out = {"method": args.method, "mode": args.mode, "model": str(args.model)} | _metrics_json(pooled)
+
+def _report(args, settings, out: dict, runs: list[ClipRun], input_keys: list[str]) -> bool:
+    """Complete the JSON object (corruption, settings, one entry per input with ``input_keys``
+    of its run settings) and print it with ``--json``; True when a text summary is due."""
     out |= {"occlude": args.occlude, "clutter": args.clutter, "noise_mm": args.noise_mm,
-            "gap_frames": args.gap_frames, "window": args.window, "seed": args.seed, "track_ids": args.track_ids,
-            "inputs": [{"source": r.source, "frame_range": r.settings["frame_range"]} | _metrics_json(r.metrics)
-                       | ({"calibration": r.settings["calibration"]} if r.settings.get("calibration") else {})
-                       for r in runs]}
+            "gap_frames": args.gap_frames, "window": settings.window, "seed": settings.seed,
+            "track_ids": args.track_ids,
+            "inputs": [{"source": r.source, "frame_range": r.settings["frame_range"]}
+                       | {k: r.settings[k] for k in input_keys} | _metrics_json(r.metrics) for r in runs]}
     for item in out["inputs"]:
         for k in ("per_label", "label_names", "labels"):
             item.pop(k, None)
@@ -234,84 +223,42 @@ def _main(argv=None) -> int:
         out["out"] = str(args.out)
     if args.json:
         print(json.dumps(out, indent=1))
-        return 0
-    _print_summary(args, model, pooled, runs)
-    return 0
+        return False
+    return True
 
 
-def _bank_main(args, settings) -> int:
-    from ..evaluation.switching import label_clip_bank
-    from ..labeling.bank_labeler import BankSettings
-    from ..model.bank import BankFileError, load_bank
-    if settings.method not in ("cbga", "tracker"):
-        raise CliError("--bank searches with the CBGA: use --method cbga or tracker")
+def _bank_main(args, settings, bank_settings) -> int:
     try:
         bank = load_bank(args.bank)
     except (BankFileError, OSError) as e:
         raise CliError(str(e)) from None
-    clips = _load(args, bank.labels)
-    total = sum(c.n_frames for c in clips)
-    bar = tqdm(total=total, desc="labeling", unit="frame", file=sys.stderr, disable=True if args.quiet else None,
-               leave=False)
-    runs: list[ClipRun] = []
-    done = 0
-    try:
-        for i, clip in enumerate(clips):
-            run = label_clip_bank(bank, clip, settings, BankSettings(strategy=args.bank_strategy),
-                                  occlude=args.occlude, clutter=args.clutter, noise_mm=args.noise_mm,
-                                  seed=args.seed + i, progress=lambda d, _t: bar.update(d - bar.n),
-                                  use_ids=args.track_ids, gap_frames=args.gap_frames,
-                                  keep_records=args.out is not None, done=done, total=total)
-            run.settings.update(frame_offset=clip.meta["frame_range"][0], rate=clip.rate,
-                                frame_range=clip.meta["frame_range"])
-            runs.append(run)
-            done += clip.n_frames
-    except ValueError as e:
-        raise CliError(str(e)) from None
-    finally:
-        bar.close()
-    pooled = MetricsAccumulator.merge(r.accumulator for r in runs).metrics()
-    if args.out:
-        _write_csv(args.out, runs, bank.labels, multi=len(runs) > 1)
+    runs, pooled = _label_all(args, settings, bank.labels,
+                              lambda clip, **kw: label_clip_bank(bank, clip, settings, bank_settings, **kw))
     known = [r for r in runs if r.settings["active_action_accuracy"] is not None]
     agree = (sum(r.settings["active_action_accuracy"] * r.metrics.frames for r in known)
              / sum(r.metrics.frames for r in known)) if known else None
-    out = {"method": args.method, "mode": args.mode, "bank": str(args.bank), "actions": bank.actions,
-           "bank_strategy": args.bank_strategy} | _metrics_json(pooled)
-    out |= {"active_action_accuracy": agree, "occlude": args.occlude, "clutter": args.clutter,
-            "noise_mm": args.noise_mm, "gap_frames": args.gap_frames, "window": args.window, "seed": args.seed,
-            "track_ids": args.track_ids,
-            "inputs": [{"source": r.source, "frame_range": r.settings["frame_range"],
-                        "true_class": r.settings["true_class"],
-                        "active_action_accuracy": r.settings["active_action_accuracy"],
-                        "active_action_frames": r.settings["active_action_frames"]} | _metrics_json(r.metrics)
-                       for r in runs]}
-    for item in out["inputs"]:
-        for k in ("per_label", "label_names", "labels"):
-            item.pop(k, None)
-    if args.out:
-        out["out"] = str(args.out)
-    if args.json:
-        print(json.dumps(out, indent=1))
+    out = {"method": settings.method, "mode": settings.mode, "bank": str(args.bank), "actions": bank.actions,
+           "bank_strategy": bank_settings.strategy} | _metrics_json(pooled) | {"active_action_accuracy": agree}
+    if not _report(args, settings, out, runs, ["true_class", "active_action_accuracy", "active_action_frames"]):
         return 0
     print(f"bank           {args.bank} ({len(bank.actions)} actions: {', '.join(bank.actions)}; "
-          f"{args.bank_strategy})")
+          f"{bank_settings.strategy})")
     for r in runs:
         fr = r.settings["active_action_frames"]
         print(f"  {Path(r.source).name[:40]:40s} class {r.settings['true_class'] or '?':6s} active "
               + ", ".join(f"{a} {c}" for a, c in fr.items() if c) + f"; agreement {_pct(r.settings['active_action_accuracy'])}")
     args.model = args.bank
-    _print_summary(args, bank[bank.actions[0]], pooled, runs)
+    _print_summary(args, settings, bank[bank.actions[0]], pooled, runs)
     return 0
 
 
-def _print_summary(args, model, m: Metrics, runs: list[ClipRun]) -> None:
+def _print_summary(args, settings, model, m: Metrics, runs: list[ClipRun]) -> None:
     lat = m.latency_ms
     print(f"model          {args.model} ({len(model.labels)} labels)")
-    print(f"method         {args.method}, {args.mode} mode" + (f", window {args.window}" if args.mode == "stream"
+    print(f"method         {settings.method}, {settings.mode} mode" + (f", window {settings.window}" if settings.mode == "stream"
                                                                  else ""))
     print(f"corruption     occlude {args.occlude}, clutter {args.clutter}, noise {args.noise_mm:g} mm, "
-          f"seed {args.seed}")
+          f"seed {settings.seed}")
     if len(runs) > 1:
         print(f"{'input':34s} {'frames':>7s} {'accuracy':>9s} {'swaps/min':>9s} {'errors':>7s} {'p50 ms':>7s}")
         for r in runs:

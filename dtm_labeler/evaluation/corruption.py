@@ -89,11 +89,6 @@ class CorruptedStream:
     def n_labels(self) -> int:
         return len(self.names)
 
-    def truth_assignments(self) -> np.ndarray:
-        """(F, M) row index per label per frame, -1 missing (``label_to_index`` stacked)."""
-        return np.stack([f.label_to_index for f in self.frames]) if self.frames else \
-            np.zeros((0, self.n_labels), dtype=np.int64)
-
 
 def occlusion_mask(available: np.ndarray, k: int, rng: np.random.Generator, gap_frames: float = 1.0) -> np.ndarray:
     """(F, M) bool: which available points to hide so that ``min(k, available)`` are hidden

@@ -25,6 +25,7 @@ from .corruption import corrupt_clip
 from ..search.problem import Background, FrameProblem
 from .metrics import MetricsAccumulator
 from ..labeling.stream import LabelerSettings, StreamLabeler
+from ..labeling.tracked import Engine
 from ..model.dtm import TriangulatedModel
 from ..model.features import point_states
 from ..motion.clip import MotionClip
@@ -51,11 +52,7 @@ PAPER_TABLE3 = {
 
 SUMMARY_KEYS = ("frames", "points", "accuracy", "frame_accuracy", "search_accuracy", "ghosts", "ghost_rejection",
                 "swaps_per_min", "search_errors", "search_checked", "search_error_rate", "latency_ms", "fps",
-                "full_search_rate", "per_label")
-
-
-def settings_for(method: str, mode: str, window: int = 10, seed: int = 0) -> LabelerSettings:
-    return LabelerSettings(method=method, mode=mode, window=window, seed=seed)
+                "full_search_rate", "per_label", "calibration_error", "reliability")
 
 
 def spread_frames(n_frames: int, count: int, start: int = 1) -> np.ndarray:
@@ -81,12 +78,13 @@ def label_single(model: TriangulatedModel, clip: MotionClip, frames: Sequence[in
     t0 = time.perf_counter()
     mc = model_clip(model, clip)
     stream = corrupt_clip(mc, occlude=occlude, clutter=clutter, noise_mm=noise_mm, seed=seed)
-    base = settings or settings_for(method, "single", seed=seed)
-    base = dataclasses.replace(base, method=method, mode="single", noise_mm=noise_mm)   # a known system noise
+    base = dataclasses.replace(settings or LabelerSettings(), method=method, mode="single",
+                               noise_mm=noise_mm)             # a known system noise
+    engine = Engine.prepare(model, noise_mm)                  # widened once for every frame's labeler
     acc = MetricsAccumulator(model.labels, stream.rate)
     for i in frames:
         i = int(i)
-        lab = StreamLabeler(model, dataclasses.replace(base, seed=seed * 100003 + i))
+        lab = StreamLabeler(engine, dataclasses.replace(base, seed=seed * 100003 + i))
         if i > 0:                                     # prime the tracker: velocities only
             prev = stream[i - 1]
             lab.tracker.update(prev.xyz[np.isfinite(prev.xyz).all(1)], prev.stamp)
@@ -102,8 +100,8 @@ def label_stream(model: TriangulatedModel, clip: MotionClip, method: str, window
                  settings: LabelerSettings | None = None) -> dict:
     """Stream-mode metrics over all frames of ``clip`` (one labeler, as ``dtm-label``)."""
     t0 = time.perf_counter()
-    base = settings or settings_for(method, "stream", window, seed)
-    base = dataclasses.replace(base, method=method, mode="stream", window=window, seed=seed, noise_mm=noise_mm)
+    base = dataclasses.replace(settings or LabelerSettings(), method=method, mode="stream", window=window, seed=seed,
+                               noise_mm=noise_mm)
     run = label_clip_run(model, clip, base, occlude=occlude, clutter=clutter, noise_mm=noise_mm, seed=seed,
                          gap_frames=gap_frames, keep_records=False)
     out = _summary(run.accumulator, time.perf_counter() - t0)

@@ -212,7 +212,7 @@ def run_variant(model: TriangulatedModel, test: MotionClip, variant: str, plan: 
         try:
             model, confirmed = self_calibrate(model, cal.positions, cal.rate)
         except CalibrationError as e:
-            out["calibration_error"] = str(e)
+            out["subject_calibration_error"] = str(e)
             return out
         info = model.provenance["calibration"]
         out["calibration"] = {k: info[k] for k in ("frames", "segments", "segments_total", "scale",

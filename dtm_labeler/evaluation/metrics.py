@@ -18,6 +18,11 @@ Definitions (per frame, over the points that were actually in the input and fini
 * **latency** -- per-frame processing time (p50 / p99 / max, ms); **fps** -- frames per
   second of total processing time (sum of the per-frame latencies unless a wall time is
   given).
+* **calibration_error** -- expected calibration error of the published confidences: labels
+  published are put in ``CONFIDENCE_BINS`` equal-width bins by confidence; the count-weighted
+  mean over bins of ``|mean confidence - fraction right|`` (0 = a consumer can read the
+  confidence as a probability). **reliability** lists the bins (range, labels, mean
+  confidence, fraction right).
 * **confusion** -- ``(M + 1, M + 1)`` counts, rows = true label, columns = published
   label; index ``M`` is "clutter" for rows and "unlabelled" for columns.
 """
@@ -29,6 +34,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 SEARCH_ERROR_TOL = 1e-6
+CONFIDENCE_BINS = 10
 
 
 def accuracy(true_labels: np.ndarray, published: np.ndarray) -> float | None:
@@ -82,13 +88,16 @@ class Metrics:
     full_search_rate: float | None
     per_label: dict[str, float | None]
     confusion: np.ndarray = field(repr=False)
+    calibration_error: float | None = None
+    reliability: list = field(default_factory=list)     # [lo, hi, labels, mean confidence, fraction right]
 
     def as_dict(self, confusion: bool = False) -> dict:
         """JSON-ready dict (confusion matrix only when asked: it is (M+1)^2 numbers)."""
         d = {k: getattr(self, k) for k in (
             "frames", "duration_s", "points", "correct", "accuracy", "frame_accuracy", "search_accuracy",
             "ghosts", "ghost_rejection", "swaps", "swaps_per_min", "search_errors", "search_checked",
-            "search_error_rate", "latency_ms", "fps", "full_search_rate", "per_label")}
+            "search_error_rate", "latency_ms", "fps", "full_search_rate", "calibration_error", "reliability",
+            "per_label")}
         d["labels"] = len(self.labels)
         d["label_names"] = list(self.labels)
         if confusion:
@@ -138,6 +147,7 @@ class MetricsAccumulator:
         self.full_searches = 0
         self.full_known = 0
         self.latencies: list[float] = []
+        self.conf_bins = np.zeros((CONFIDENCE_BINS, 3))     # labels, summed confidence, right
         self.wall_s: float | None = None
         self._last = np.full(self.M, -1, dtype=np.int64)     # published label at last visible frame
 
@@ -145,7 +155,7 @@ class MetricsAccumulator:
     def add(self, true_labels: np.ndarray, published: np.ndarray, *, latency_ms: float | None = None,
             log_likelihood: float = float("nan"), truth_fitness: float = float("nan"),
             search_labels: np.ndarray | None = None, full_search: bool | None = None,
-            valid: np.ndarray | None = None) -> None:
+            valid: np.ndarray | None = None, confidence: np.ndarray | None = None) -> None:
         """One frame. ``true_labels`` / ``published`` (n,) label index per input point, -1 =
         clutter / unlabelled; ``valid`` (n,) bool: points that really were in the input
         (finite); others are ignored."""
@@ -160,6 +170,8 @@ class MetricsAccumulator:
             t, p = t[v], p[v]
             if search_labels is not None:
                 search_labels = np.asarray(search_labels).reshape(-1)[v]
+            if confidence is not None:
+                confidence = np.asarray(confidence, dtype=float).reshape(-1)[v]
         marked = t[t >= 0]
         if np.unique(marked).size != marked.size:
             raise ValueError("a true label occurs on more than one point")
@@ -181,6 +193,11 @@ class MetricsAccumulator:
         prev = self._last
         self.swaps += int((seen & (prev >= 0) & (cur >= 0) & (prev != cur)).sum())
         self._last = np.where(seen, cur, prev)
+        if confidence is not None:
+            pub = p >= 0
+            c = np.clip(np.asarray(confidence, dtype=float)[pub], 0.0, 1.0)
+            b = np.minimum((c * CONFIDENCE_BINS).astype(np.int64), CONFIDENCE_BINS - 1)
+            np.add.at(self.conf_bins, b, np.stack([np.ones_like(c), c, (p[pub] == t[pub]).astype(float)], 1))
         # search errors, latency
         if np.isfinite(truth_fitness):
             self.search_checked += 1
@@ -197,7 +214,8 @@ class MetricsAccumulator:
         """One frame from a :class:`~dtm_labeler.labeling.stream.FrameResult`-like object."""
         self.add(true_labels, result.labels, latency_ms=result.latency_ms,
                  log_likelihood=result.log_likelihood, truth_fitness=result.truth_fitness,
-                 search_labels=result.search_labels, full_search=result.full_search, valid=valid)
+                 search_labels=result.search_labels, full_search=result.full_search, valid=valid,
+                 confidence=result.confidence)
 
     def break_continuity(self) -> None:
         """Forget the last published labels (a new, unrelated stream follows)."""
@@ -213,6 +231,7 @@ class MetricsAccumulator:
             if a.labels != out.labels:
                 raise ValueError("accumulators have different labels")
             out.confusion += a.confusion
+            out.conf_bins += a.conf_bins
             for k in ("search_confusion_diag", "search_points", "frames", "duration_s", "frames_all_correct",
                       "frames_with_points", "swaps", "search_errors", "search_checked", "full_searches",
                       "full_known"):
@@ -247,4 +266,15 @@ class MetricsAccumulator:
             latency_ms=percentile_summary(self.latencies), fps=fps,
             full_search_rate=ratio(self.full_searches, self.full_known),
             per_label={name: ratio(int(diag[i]), int(rows[i])) for i, name in enumerate(self.labels)},
-            confusion=c.copy())
+            confusion=c.copy(), **self._reliability())
+
+    def _reliability(self) -> dict:
+        n, csum, right = self.conf_bins.T
+        total = n.sum()
+        if total == 0:
+            return {"calibration_error": None, "reliability": []}
+        used = n > 0
+        ece = float((n[used] * np.abs(csum[used] / n[used] - right[used] / n[used])).sum() / total)
+        rows = [[b / CONFIDENCE_BINS, (b + 1) / CONFIDENCE_BINS, int(n[b]), float(csum[b] / n[b]), float(right[b] / n[b])]
+                for b in np.flatnonzero(used)]
+        return {"calibration_error": ece, "reliability": rows}

@@ -51,10 +51,6 @@ class FrameRecord:
     evaluations: int
     reset: str = ""
 
-    @property
-    def search_error(self) -> bool:
-        return bool(np.isfinite(self.truth_fitness) and self.truth_fitness > self.log_likelihood + 1e-6)
-
 
 @dataclass
 class ClipRun:

@@ -476,7 +476,7 @@ GEN_COLORS = {"today": "tab:gray", "body": "tab:blue", "body + calibration": "ta
 
 def _gen_acc(cell: dict | None, mode: str) -> str:
     if not cell or mode not in cell:
-        return "n/a" if not cell or "calibration_error" not in cell else "calibration failed"
+        return "n/a" if not cell or "subject_calibration_error" not in cell else "calibration failed"
     return pct(cell[mode]["accuracy"], 2)
 
 
@@ -546,6 +546,62 @@ def _generalisation(res: dict, out: Path, figures: list) -> list[str]:
         name = _save(fig, out / "fig_generalisation.png", figures)
         lines += [f"![generalisation]({name})", ""]
     return lines
+def _stream_cells(results: dict, path: tuple = ()):
+    """(path, cell) of every stream-mode cell with reliability bins, anywhere in ``results``."""
+    if isinstance(results, dict):
+        if results.get("reliability") and "accuracy" in results:
+            yield path, results
+            return
+        for k, v in results.items():
+            yield from _stream_cells(v, path + (str(k),))
+
+
+def pooled_reliability(cells) -> tuple[list, float | None]:
+    """Reliability bins of several cells pooled (bins by their lower edge) and their ECE."""
+    acc: dict[float, list] = {}
+    for c in cells:
+        for lo, hi, n, conf, right in c["reliability"]:
+            a = acc.setdefault(lo, [lo, hi, 0, 0.0, 0.0])
+            a[2] += n
+            a[3] += n * conf
+            a[4] += n * right
+    rows = [[lo, hi, n, cs / n, r / n] for lo, hi, n, cs, r in (acc[k] for k in sorted(acc)) if n]
+    total = sum(r[2] for r in rows)
+    ece = sum(r[2] * abs(r[3] - r[4]) for r in rows) / total if total else None
+    return rows, ece
+
+
+def _confidence(results: dict, out: Path, figures: list) -> list[str]:
+    """Reliability of the published confidences over every stream cell of this run."""
+    cells = list(_stream_cells(results))
+    if not cells:
+        return []
+    rows, ece = pooled_reliability(c for _, c in cells)
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(4.6, 4.2))
+    mid = [(r[0] + r[1]) / 2 for r in rows]
+    ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--", label="calibrated")
+    ax.bar(mid, [r[4] for r in rows], width=0.09, alpha=0.6, label="fraction right")
+    ax.plot([r[3] for r in rows], [r[4] for r in rows], "o-", color="C3", label="mean confidence")
+    ax.set_xlabel("published confidence")
+    ax.set_ylabel("fraction of labels right")
+    ax.set_xlim(0, 1), ax.set_ylim(0, 1.02)
+    ax.legend(loc="upper left", fontsize=8)
+    ax.set_title(f"reliability, ECE {100 * ece:.1f} %")
+    name = _save(fig, out / "fig_reliability.png", figures)
+    per = sorted(((c["calibration_error"], "/".join(p)) for p, c in cells if c.get("calibration_error") is not None),
+                 reverse=True)[:5]
+    return ["## Confidence: can a consumer threshold it?", "",
+            "Every label the labeler publishes carries a confidence (`labeling/confidence.py`: the local "
+            "posterior of the label among the labelings one move away, the share of the vote window behind "
+            "it, and how far the frame fits below the model's training fit). Of the labels published with "
+            "confidence c, about a fraction c should be right. Pooled over the "
+            f"{len(cells)} stream-mode cells of this report ({sum(r[2] for r in rows)} labels), in ten bins "
+            f"of confidence: expected calibration error **{pct(ece)}**.", "",
+            md_table(["confidence", "labels", "mean confidence", "fraction right"],
+                     [[f"{r[0]:.1f}-{r[1]:.1f}", str(r[2]), f"{r[3]:.3f}", f"{r[4]:.3f}"] for r in rows]), "",
+            f"![reliability]({name})", "",
+            "Least calibrated cells: " + "; ".join(f"{p} {pct(e)}" for e, p in per) + ".", ""]
 
 
 def write_report(out_dir: Path, results: dict, meta: dict) -> dict:
@@ -573,6 +629,7 @@ def write_report(out_dir: Path, results: dict, meta: dict) -> dict:
         lines += _markers(results["markers"], out_dir)
     if "generalisation" in results and "cases" in results["generalisation"]:
         lines += _generalisation(results["generalisation"], out_dir, figures)
+    lines += _confidence(results, out_dir, figures)
     if meta.get("notes"):
         lines += ["## Notes", ""] + [f"* {n}" for n in meta["notes"]] + [""]
     report = out_dir / "report.md"

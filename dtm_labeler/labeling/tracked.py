@@ -1,26 +1,101 @@
-"""What every stream labeler shares: the per-frame input handling around the search.
+"""The labeler: one per-frame pipeline for one model or a bank of models.
 
-:class:`TrackedLabeler` holds the stream state (tracker, vote book, the label each track
-carries, last stamp, body centre and heading) and the steps before and after a search:
-sanitising the cloud, time checks, bounding the points, tracking (:meth:`_begin`); warm-start
-seeds from the tracks (:meth:`_seeds`); the targeted hill-climb of a carried-over labeling
-(:meth:`_hill_climb`); the fitness of the true labeling for evaluation
-(:meth:`_truth_fitness`); votes and bookkeeping after the search (:meth:`_publish`).
-:class:`~dtm_labeler.labeling.stream.StreamLabeler` (one model) and
-:class:`~dtm_labeler.labeling.bank_labeler.BankLabeler` (one model per action) differ only
-in how they search and when they accept.
+:class:`TrackedLabeler` is a template (the shape of scikit-learn's ``BaseMixture``): it owns
+the stream state and every step of a frame, written once --
+
+1. :meth:`_begin`: sanitise the cloud (non-finite points dropped), time checks (backwards,
+   repeated stamps, gaps reset the stream), bound the points (``max_points`` nearest the
+   body), track (:class:`~.tracker.Tracker`: ids, velocities);
+2. one :class:`~dtm_labeler.search.problem.FrameProblem` per model (the fitness of eq. 14,
+   18-21 with marginalisation, eq. 30-31);
+3. the search (:meth:`_search_frame`): in ``stream`` mode the labels the tracks carried
+   last frame seed a *fast path* -- a hill-climb over targeted moves and exact region checks
+   (:mod:`dtm_labeler.search.dtm_dp`) -- accepted when the labeling fits as well as recent
+   frames did; otherwise a warm-started GA, and a full GA (repeated from fresh populations,
+   ``restarts``) when that still falls short; ``single`` mode searches every frame afresh;
+4. the running fitness level and its scatter (what "fits as well as recent frames" means);
+5. votes over the window (eq. 32) and the published labels with confidences (:meth:`_publish`).
+
+What a subclass says is only how a frame is searched over its models
+(:class:`~.stream.StreamLabeler`: one model; :class:`~.bank_labeler.BankLabeler`: one
+island per action model with migration, the active action) through a few hooks:
+:meth:`_searched`, :meth:`_island_sizes`, :meth:`_migration`, :meth:`_force_full`,
+:meth:`_after_frame` and :meth:`_result_fields`. Measurement noise (``noise_mm``), budgets,
+restarts, seeding (``fresh_fraction``) and region sweeps are read here, so no setting can be
+ignored by one of them.
+
+The models a labeler scores with come as an :class:`Engine`: the models as trained or loaded,
+widened by the declared measurement noise and warmed up (densities built, kernel compiled).
+Building one is slow (about 0.1 s per model); :meth:`Engine.prepare` is pure, so a node can
+build it on another thread and hand it over with :meth:`TrackedLabeler.update_settings`
+(``engine=``) or :meth:`TrackedLabeler.set_engine`, which are then fast.
 """
 from __future__ import annotations
 
+import dataclasses
+import time
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
+from ..model.dtm import TriangulatedModel
+from ..model.features import FULL, POSITION_ONLY
 from ..search import label_ops
 from ..search.dtm_dp import regions_of, relabel_regions
-from ..search.label_search import polish, targeted_moves
+from ..search.label_search import GASearch, LabelSearch, SearchOutcome, make_search, polish, targeted_moves
 from ..search.problem import FrameProblem
-from .tracker import TrackUpdate
+from .config import LabelerSettings
+from .confidence import label_posteriors, published_confidence
+from .fit_check import label_misfit, term_floors
+from .recovery import InlineRecovery, ProcessRecovery, Recovery, RecoveryRequest, RecoveryResult
+from .tracker import Tracker, TrackUpdate
+from .voting import VoteBook
+
+#: level learning rates: frames that fit teach the level fast, frames that do not (a subject
+#: that fits worse than the training people) slowly
+LEVEL_RATE_FIT, LEVEL_RATE_MISFIT = 0.2, 0.05
+#: weight of a new frame in the running RMS scatter of good frames' fitness
+SPREAD_RATE = 0.02
+#: accept / refit margins in units of that scatter (when larger than the nats floors)
+ACCEPT_SCATTERS, REFIT_SCATTERS = 5.0, 8.0
+#: a point seen without a velocity (just appeared) carries half the dimensions of one with
+POSITION_ONLY_WEIGHT = 0.5
+#: audits per audit period: region sweeps, the last of them a full search from scratch
+AUDITS_PER_PERIOD = 4
+
+
+@dataclass(frozen=True)
+class Engine:
+    """The models a labeler scores with (one per action; one entry for a single model)."""
+
+    names: tuple[str, ...]                       # action names ('' for a single model)
+    base: tuple[TriangulatedModel, ...]          # as trained / loaded
+    models: tuple[TriangulatedModel, ...]        # widened by noise_mm and warmed up
+    noise_mm: float
+    floors: tuple[np.ndarray, ...] = ()          # per model: triangle term floors (fit_check.term_floors)
+
+    @classmethod
+    def prepare(cls, models: TriangulatedModel | Sequence[TriangulatedModel], noise_mm: float,
+                names: Sequence[str] | None = None) -> "Engine":
+        """Widen every model by ``noise_mm`` of measurement noise (:meth:`TriangulatedModel.with_noise`)
+        and warm it up. Slow; touches no labeler, so it may run on any thread."""
+        base = (models,) if isinstance(models, TriangulatedModel) else tuple(models)
+        names = tuple(names) if names is not None else ("",) * len(base)
+        if not base or len(names) != len(base):
+            raise ValueError("an engine needs at least one model and one name per model")
+        if any(m.labels != base[0].labels for m in base[1:]):
+            raise ValueError("the models of one engine must share their labels, in order")
+        models = tuple(m.with_noise(noise_mm * 1e-3).warm_up() for m in base)
+        return cls(names, base, models, float(noise_mm), tuple(term_floors(m) for m in models))
+
+    def with_noise(self, noise_mm: float) -> "Engine":
+        """The same models for another declared noise (self when it is the same)."""
+        return self if noise_mm == self.noise_mm else Engine.prepare(self.base, noise_mm, self.names)
+
+    @property
+    def labels(self) -> tuple[str, ...]:
+        return self.base[0].labels
 
 
 @dataclass
@@ -35,6 +110,69 @@ class FrameInput:
     reason: str               # why the window was reset, if it was
     n_ignored: int            # finite points beyond max_points
     dt: float | None          # seconds since the previous frame
+    ids: np.ndarray           # (n,) the ids reported: the input's, else the tracker's
+
+
+@dataclass
+class FrameResult:
+    labels: np.ndarray            # (n,) published label index per input point, -1 = unlabelled
+    confidence: np.ndarray        # (n,) in [0, 1]
+    track_ids: np.ndarray         # (n,) int64, -1 for dropped (non-finite) points
+    search_labels: np.ndarray     # (n,) this frame's search result before voting
+    assignment: np.ndarray        # (M,) input point index per label from the search, -1 = missing
+    log_likelihood: float         # fitness of the search result (see FrameProblem)
+    latency_ms: float
+    full_search: bool
+    generations: int
+    evaluations: int
+    n_dropped: int = 0            # non-finite points removed
+    n_ignored: int = 0            # finite points beyond max_points, left unlabelled
+    reset: str = ""               # why the window was reset this frame, if it was
+    heading: float = float("nan")
+    truth_fitness: float = float("nan")   # fitness of the true labeling (evaluation only)
+    doubtful: bool = False        # published before a search vouched for it (background recovery running)
+    recovered: bool = False       # a background search's labeling joined in this frame
+    recovering: bool = False      # a background search is running after this frame
+    posterior: np.ndarray | None = None    # (n,) local posterior of the search's label of each point
+    vote_share: np.ndarray | None = None   # (n,) votes of the published label / frames the track was seen
+
+
+@dataclass
+class Candidate:
+    """A labeling of this frame under one model: assignment (label -> point, ``n`` missing)."""
+
+    assignment: np.ndarray
+    fitness: float
+    neighbourhood: tuple | None = None     # (alternatives, their fitness) around it, if already scored
+
+
+@dataclass
+class FrameSearch:
+    """What the search of one frame found: the best labeling under each searched model."""
+
+    candidates: dict[int, Candidate]
+    full: bool
+    generations: int = 0
+    evaluations: int = 0
+    doubtful: bool = False        # no search vouches for it yet (a recovery runs in the background)
+    recovered: bool = False       # a background search's labeling joined this frame
+
+    @property
+    def best_model(self) -> int:
+        return max(self.candidates, key=lambda m: self.candidates[m].fitness)
+
+    @property
+    def best(self) -> Candidate:
+        return self.candidates[self.best_model]
+
+    def merge(self, other: "FrameSearch") -> None:
+        """Keep, per model, the better of the two candidates (ties: ``other``)."""
+        for m, c in other.candidates.items():
+            if m not in self.candidates or c.fitness >= self.candidates[m].fitness:
+                self.candidates[m] = c
+        self.full = self.full or other.full
+        self.generations += other.generations
+        self.evaluations += other.evaluations
 
 
 def scatter(values: np.ndarray, keep: np.ndarray, n_in: int, fill) -> np.ndarray:
@@ -44,11 +182,78 @@ def scatter(values: np.ndarray, keep: np.ndarray, n_in: int, fill) -> np.ndarray
     return out
 
 
-class TrackedLabeler:
-    """Base of the stream labelers (see the module doc); subclasses set ``settings``,
-    ``tracker`` and ``votes`` and implement ``process``."""
+def label_weight(assignment: np.ndarray, problem: FrameProblem) -> float:
+    """How many labelled points, a point without a velocity (just reappeared) counting half:
+    it carries 3 observed dimensions instead of 6, and about half the fitness."""
+    codes = problem.codes[assignment[assignment < problem.n]]
+    return max(float((codes == FULL).sum() + POSITION_ONLY_WEIGHT * (codes == POSITION_ONLY).sum()), 1.0)
 
-    def _reset_stream(self) -> None:
+
+def frame_weight(problem: FrameProblem) -> float:
+    """:func:`label_weight` of the best case: the frame's points (at most one per label,
+    those with velocities first) all labelled."""
+    codes = problem.codes[:-1]
+    full = min(int((codes == FULL).sum()), problem.M)
+    return max(full + POSITION_ONLY_WEIGHT * min(int((codes == POSITION_ONLY).sum()), problem.M - full), 1.0)
+
+
+class TrackedLabeler:
+    """The per-frame pipeline (module doc). Subclasses call :meth:`_init_engine` and fill
+    the hooks; ``result_type`` is the dataclass of :meth:`process`'s result."""
+
+    result_type = FrameResult
+
+    def _init_engine(self, engine: Engine, settings: LabelerSettings | None) -> None:
+        self.settings = settings or LabelerSettings()
+        self.engine = engine.with_noise(self.settings.noise_mm)
+        self.recovery: Recovery = InlineRecovery(self)
+        self._epoch = 0
+        self._build()
+        self._configure_recovery()
+
+    def _configure_recovery(self) -> None:
+        """The executor of recovery searches the settings ask for, told about the current
+        models and settings."""
+        background = self.settings.recovery == "background"        # "auto" is inline here: the node resolves it
+        if background == self.recovery.inline or self.recovery.failed == "closed":
+            self.recovery.close()
+            self.recovery = ProcessRecovery(self) if background else InlineRecovery(self)
+        else:
+            self.recovery.configure(self)
+
+    def close(self) -> None:
+        """Stop the background recovery worker, if any (the labeler then searches inline)."""
+        self.recovery.close()
+        self.recovery = InlineRecovery(self)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- set-up --------------------------------------------------------------------------------
+    @property
+    def models(self) -> tuple[TriangulatedModel, ...]:
+        return self.engine.models
+
+    @property
+    def n_labels(self) -> int:
+        return self.models[0].n_labels
+
+    def _build(self) -> None:
+        """Everything the settings and the engine determine; restarts the stream."""
+        s = self.settings
+        self.rng = np.random.default_rng(s.seed)
+        self.tracker = Tracker(s.tracker)
+        self.votes = VoteBook(s.window if s.mode == "stream" else 1, self.n_labels)
+        method = "cbga" if s.method == "tracker" else s.method
+        self.full_search: LabelSearch = make_search(method, s.full)
+        self.warm_search: LabelSearch = make_search(method, s.warm)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget tracks, votes and fitness levels (the next frame is searched afresh)."""
         self.tracker.reset()
         self.votes.reset()
         self.track_label: dict[int, int] = {}      # label each track carries (also while coasting)
@@ -59,20 +264,394 @@ class TrackedLabeler:
         self._frame_no = 0
         self._new_tracks = np.zeros(0, dtype=np.int64)   # tracks started last frame
         self._event_points = np.zeros(0, dtype=np.int64)
+        self._region_cursor = -1
+        self._provisional = False
+        self._epoch = getattr(self, "_epoch", 0) + 1   # results of searches asked before are dropped
+        self._last_search_stamp = None
+        self._audits = 0
+        self._reset_levels()
 
-    def _note_search(self) -> None:
-        """A GA search chose this frame's labeling: region checks are due for a while."""
-        self._since_search = 0
+    def _reset_levels(self) -> None:
+        K = len(self.models)
+        self.level = np.full(K, np.nan)            # running fitness per labelled point, per model
+        self.spread = np.zeros(K)                  # running RMS of good frames' fitness about it
 
-    def _region_checks_due(self, M: int) -> bool:
-        """Region checks run for one pass over the regions after a GA search or a reset
-        (a search may land on a locally wrong labeling that tracking then carries on), and
-        on every ``region_every``-th frame in between (a slow background check); steady
-        frames otherwise cost only the hill-climb."""
+    def set_engine(self, engine: Engine) -> None:
+        """Swap the models (hot reload); the stream restarts. Fast when ``engine`` was
+        prepared for the current ``noise_mm``."""
+        self.engine = engine.with_noise(self.settings.noise_mm)
+        self._build()
+        self._configure_recovery()
+
+    def update_settings(self, settings: LabelerSettings, engine: Engine | None = None) -> None:
+        """Apply new settings between frames. Search budgets take effect at once; a new
+        measurement noise swaps the widened models (``engine``, prepared for it elsewhere,
+        makes that fast) and restarts the fitness levels but keeps the tracks; tracker,
+        window, mode or method restart the stream; a new seed restarts the random stream."""
+        old, self.settings = self.settings, settings
+        if settings.noise_mm != self.engine.noise_mm or engine is not None:
+            self.engine = (engine or self.engine).with_noise(settings.noise_mm)
+            self._reset_levels()
+        if (settings.tracker, settings.window, settings.mode, settings.method) == \
+                (old.tracker, old.window, old.mode, old.method):
+            self.full_search.settings = settings.full
+            self.warm_search.settings = settings.warm
+            if settings.seed != old.seed:
+                self.rng = np.random.default_rng(settings.seed)
+        else:
+            self._build()
+        self._configure_recovery()
+
+    def observe(self, xyz: np.ndarray, stamp: float, ids: np.ndarray | None = None) -> None:
+        """A frame that will not be labelled (the consumer was busy and takes a newer one): the
+        tracks follow it, so that labels stay on their markers across the skip. Costs the
+        tracker update only (a fraction of a millisecond)."""
+        inp = self._begin(xyz, stamp, ids)
+        lost = set(int(t) for t in inp.upd.lost)
+        if lost:
+            self.track_label = {t: lab for t, lab in self.track_label.items() if t not in lost}
+
+    def predicted_position(self, track_id: int, stamp: float) -> np.ndarray:
+        """Where a (possibly coasting) track is predicted at ``stamp`` (NaN if unknown)."""
+        return self.tracker.position_of(track_id, stamp)
+
+    # -- hooks ---------------------------------------------------------------------------------
+    def _searched(self) -> list[int]:
+        """Indices of the models searched this frame."""
+        return list(range(len(self.models)))
+
+    def _island_sizes(self, ga_population: int, searched: list[int]) -> list[int]:
+        """GA individuals per searched model."""
+        return [ga_population] * len(searched)
+
+    def _migration(self, problems: list[FrameProblem], searched: list[int]):
+        """Per-generation hook of the multi-model GA (None: islands evolve alone)."""
+        return None
+
+    def _force_full(self) -> bool:
+        """Skip the fast path and the warm GA this frame."""
+        return False
+
+    def _after_frame(self, problems: list[FrameProblem], found: FrameSearch, published: int,
+                     inp: FrameInput) -> None:
+        """After the search and the level update, before the votes."""
+
+    def _result_fields(self, published: int) -> dict:
+        """Extra fields of ``result_type``."""
+        return {}
+
+    # -- the frame -----------------------------------------------------------------------------
+    def process(self, xyz: np.ndarray, stamp: float, ids: np.ndarray | None = None,
+                truth: np.ndarray | None = None):
+        """Label one frame. ``truth`` (M,) -- the true input index per label, -1 missing -- is
+        only for evaluation: its fitness on the same problem is returned (search errors)."""
+        t0 = time.perf_counter()
         s = self.settings
-        return self._since_search < M or (s.region_every > 0 and self._frame_no % s.region_every == 0)
+        inp = self._begin(xyz, stamp, ids)
+        problems = [FrameProblem(m, inp.upd.states, s.background, self.heading, s.heading_snap_deg)
+                    for m in self.models]
+        found = self._search_frame(problems, inp, self._join(inp))
+        self.last_frame = (problems, inp, found)             # for diagnostics: what this frame saw
+        m_pub = found.best_model
+        self._learn(problems, found)
+        self._after_frame(problems, found, m_pub, inp)
+        best = found.best
+        truth_f = self._truth_fitness(problems[m_pub], truth, inp)
+        assign, search_labels, pub, conf, post, share = self._publish(problems[m_pub], best, inp, found.doubtful)
+        keep, n_in = inp.keep, inp.n_in
+        return self.result_type(
+            labels=scatter(pub, keep, n_in, -1), confidence=scatter(conf, keep, n_in, 0.0),
+            track_ids=scatter(inp.ids, keep, n_in, -1),
+            search_labels=scatter(search_labels, keep, n_in, -1), assignment=_input_index(assign, keep),
+            log_likelihood=float(best.fitness), latency_ms=(time.perf_counter() - t0) * 1e3,
+            full_search=found.full, generations=found.generations, evaluations=found.evaluations,
+            n_dropped=int((~inp.finite).sum()), n_ignored=inp.n_ignored, reset=inp.reason,
+            heading=self.heading if self.heading is not None else float("nan"), truth_fitness=truth_f,
+            doubtful=found.doubtful, recovered=found.recovered, recovering=self.recovery.busy,
+            posterior=scatter(post, keep, n_in, np.nan), vote_share=scatter(share, keep, n_in, 0.0),
+            **self._result_fields(m_pub))
 
-    def _begin(self, xyz: np.ndarray, stamp: float, ids: np.ndarray | None, n_labels: int) -> FrameInput:
+    def _search_frame(self, problems: list[FrameProblem], inp: FrameInput,
+                      joined: np.ndarray | None) -> FrameSearch:
+        """Fast path; when it cannot vouch for the frame, a recovery search (warm GA, full GA
+        with restarts) -- at once (inline) or in the background while the best labeling known
+        is published as doubtful. ``joined``: a finished background search's labeling mapped
+        onto this frame (:meth:`_join`), preferred to the carried one when it fits better."""
+        s = self.settings
+        n = problems[0].n
+        searched = self._searched()
+        velocity_known = bool((problems[0].codes[:-1] == FULL).any())
+        seeds = self._seeds(inp.upd.track_ids, n) if s.mode == "stream" and not self._provisional else None
+        if joined is not None:
+            seeds = self._prefer(problems, searched, seeds, joined)
+        if seeds is not None:
+            for p in problems:
+                p.anchor_heading(seeds[0])
+        self._provisional = not velocity_known     # a labeling without velocities is re-searched next frame
+        fast = None
+        if seeds is not None and not self._force_full():
+            if s.method == "tracker":
+                self._init_levels(problems, searched)
+                return FrameSearch({m: Candidate(seeds[0], float(problems[m].fitness(seeds)[0])) for m in searched},
+                                   full=False, evaluations=len(searched))
+            fast = self._fast_path(problems, searched, seeds[0])
+            if fast is not None and not fast.doubtful:
+                fast.recovered = joined is not None
+                return self._maybe_audit(problems, inp, searched, fast)
+        if self.recovery.inline:
+            res = self.recover(self._request(problems, inp, searched, seeds, "recover"), problems=problems)
+            found = FrameSearch({m: Candidate(a, f) for m, (a, f) in res.candidates.items()}, res.full,
+                                res.generations, res.evaluations)
+            if found.full or found.generations > 0:
+                self._since_search = 0
+            return found
+        return self._while_recovering(problems, inp, searched, seeds, fast)
+
+    def _while_recovering(self, problems, inp, searched, seeds, fast) -> FrameSearch:
+        """Background mode, the frame needs a search: ask for one (unless one runs) and publish
+        the best labeling known meanwhile -- the hill-climbed carried one, else the carried one,
+        else none -- flagged doubtful (confidence 0, not learnt from)."""
+        if not self.recovery.busy and not self._provisional:
+            self.recovery.submit(self._request(problems, inp, searched, seeds,
+                                               "recover" if seeds is not None else "full"))
+        self._init_levels(problems, searched)
+        if fast is None:
+            ind = seeds[0] if seeds is not None else problems[0].empty_assignment()
+            fast = FrameSearch({m: Candidate(ind, float(problems[m].fitness(ind[None])[0])) for m in searched},
+                               full=False, evaluations=len(searched))
+        fast.doubtful = True
+        return fast
+
+    def _maybe_audit(self, problems, inp, searched, fast: FrameSearch) -> FrameSearch:
+        """Background recovery: audits of a labeling the fast path accepted, every
+        ``audit_period_s`` / 4 of stream time while the worker is idle -- an exact region sweep
+        from it (every label's region relabelled given the rest), and every fourth time a full
+        search from scratch; the result joins a later frame when it fits better (:meth:`_join`).
+        The running level adapts to a wrong labeling that tracking carries on -- a limb's labels
+        shifted one marker, a ghost holding a hidden marker's label; an independent search does
+        not. The worker's core would be idle otherwise. Inline (offline) there are none: every
+        frame's labeling is already the search's."""
+        period = self.settings.audit_period_s / AUDITS_PER_PERIOD
+        if period <= 0 or self.recovery.inline or self.recovery.busy or self._provisional or \
+                self.settings.method != "cbga" or not self.recovery.background_ready:
+            return fast
+        now = self.last_stamp
+        if self._last_search_stamp is not None and now - self._last_search_stamp < period:
+            return fast
+        self._audits += 1
+        kind = "audit" if self._audits % AUDITS_PER_PERIOD == 0 else "sweep"
+        best = fast.best.assignment
+        self.recovery.submit(self._request(problems, inp, searched, best[None], kind))
+        return fast
+
+    def _request(self, problems, inp, searched, seeds, kind: str) -> RecoveryRequest:
+        self._last_search_stamp = self.last_stamp
+        seed = 0 if self.recovery.inline else int(self.rng.integers(2 ** 31))   # inline: this labeler's stream
+        return RecoveryRequest(self._epoch, self._frame_no, inp.upd.states, inp.upd.track_ids, self.heading,
+                               seeds, searched, self._search_state(), seed, kind)
+
+    def recover(self, request: RecoveryRequest, rng: np.random.Generator | None = None,
+                problems: list[FrameProblem] | None = None) -> RecoveryResult:
+        """Run a recovery search (what :class:`~.recovery.Recovery` executors call): a warm GA
+        from the request's seeds; a full GA with restarts when there are none or the warm
+        result falls short of the level. Inline it runs on this labeler's own state and random
+        stream; in a worker, on the request's."""
+        s = self.settings
+        if rng is not None:                       # a worker: the asking labeler's state
+            self.rng = rng
+            self._set_search_state(request.state)
+        seeds, searched = request.seeds, request.searched
+        if problems is None:
+            problems = [FrameProblem(m, request.states, s.background, request.heading, s.heading_snap_deg)
+                        for m in self.models]
+            if seeds is not None:
+                for p in problems:
+                    p.anchor_heading(seeds[0])
+        if request.kind == "sweep":
+            return self._sweep(problems, searched, seeds[0], request)
+        found = None
+        if seeds is not None and request.kind == "recover":
+            found = self._ga(self.warm_search, problems, searched, seeds)
+            found.full = False
+            m = found.best_model
+            found.full = not np.isnan(self.level[m]) and self._falls_short(found.best, problems[m], m)
+        self._init_levels(problems, searched)
+        if found is None or found.full:
+            full = self._full_search(problems, searched, seeds if request.kind != "audit" else None)
+            if found is None:
+                found = full
+            else:
+                found.merge(full)
+        return RecoveryResult(request, {m: (c.assignment, c.fitness) for m, c in found.candidates.items()},
+                              found.full, found.generations, found.evaluations, self._search_state())
+
+    def _sweep(self, problems, searched, ind, request) -> RecoveryResult:
+        """The sweep audit: exact region relabelling of every label's region from ``ind``
+        (the full search's final sweep, :meth:`GASearch._sweep_regions`), under each model."""
+        cands, evals = {}, 0
+        for m in searched:
+            f = float(problems[m].fitness(ind[None])[0])
+            if isinstance(self.full_search, GASearch):
+                a, f, e = self.full_search._sweep_regions(problems[m], ind, f, None)
+            else:
+                a, e = ind, 0
+            cands[m], evals = (a, f), evals + e + 1
+        return RecoveryResult(request, cands, False, 0, evals, self._search_state())
+
+    def _init_levels(self, problems: list[FrameProblem], searched: list[int]) -> None:
+        for m in searched:
+            if np.isnan(self.level[m]):
+                self.level[m] = self._initial_level(problems[m])
+
+    def _search_state(self) -> dict:
+        """What a search reads of the labeler (the worker gets it with each request)."""
+        return {"level": self.level.copy(), "spread": self.spread.copy()}
+
+    def _set_search_state(self, state: dict) -> None:
+        self.level, self.spread = state["level"].copy(), state["spread"].copy()
+
+    def _join(self, inp: FrameInput) -> np.ndarray | None:
+        """A finished background search, mapped onto this frame: label -> the point of the
+        track it labelled in the frame it was asked for (missing where that track is gone);
+        labels it left out keep the carried labeling's points where those are free. None when
+        nothing finished, or it belongs to an earlier stream (reset since)."""
+        res = self.recovery.poll()
+        if res is None or res.request.epoch != self._epoch or self.recovery.inline:
+            return None
+        req = res.request
+        m = max(res.candidates, key=lambda q: res.candidates[q][1])
+        assign = np.asarray(res.candidates[m][0])
+        n_req = req.track_ids.size
+        tid = np.where(assign < n_req, req.track_ids[np.minimum(assign, max(n_req - 1, 0))], -1)
+        now = inp.upd.track_ids
+        order = np.argsort(now)
+        pos = np.minimum(np.searchsorted(now[order], tid), max(now.size - 1, 0))
+        hit = (tid >= 0) & (now.size > 0) & (now[order][pos] == tid) if now.size else np.zeros_like(tid, bool)
+        n = now.size
+        out = np.full(self.n_labels, n, dtype=np.int64)
+        out[hit] = order[pos[hit]]
+        carried = self._seeds(now, n)
+        if carried is not None:
+            free = ~np.isin(carried[0], out) & (out == n)
+            out[free] = carried[0][free]
+        if res.full:
+            self._since_search = 0
+        return out
+
+    def _prefer(self, problems, searched, seeds, joined) -> np.ndarray:
+        """Seeds with the better of the carried labeling and a joined search's first, judged
+        on this frame under each searched model."""
+        cand = joined[None] if seeds is None else np.stack([joined, seeds[0]])
+        f = np.max([problems[m].fitness(cand) for m in searched], axis=0)
+        return cand[np.argsort(-f, kind="stable")]
+
+    def _ga(self, search: LabelSearch, problems: list[FrameProblem], searched: list[int],
+            seeds: np.ndarray | None) -> FrameSearch:
+        """One search over the searched models: a GA with one island per model (migration
+        between them, :meth:`_migration`), or a deterministic search per model."""
+        if isinstance(search, GASearch):
+            out = search.search_models([problems[m] for m in searched],
+                                       self._island_sizes(search.settings.population, searched),
+                                       self.rng, seeds, self._migration(problems, searched))
+            self._after_ga(searched, out)
+            return FrameSearch({searched[i]: Candidate(a, f) for i, (a, f) in out.per_model.items()},
+                               full=True, generations=out.generations, evaluations=out.evaluations)
+        found = FrameSearch({}, full=True)
+        for m in searched:
+            out: SearchOutcome = search.search(problems[m], self.rng, seeds)
+            found.merge(FrameSearch({m: Candidate(out.assignment, out.fitness)}, True, out.generations,
+                                    out.evaluations))
+        return found
+
+    def _after_ga(self, searched: list[int], out: SearchOutcome) -> None:
+        """The islands' final sizes (the bank carries its models' shares to the next frame)."""
+
+    def _full_search(self, problems: list[FrameProblem], searched: list[int],
+                     seeds: np.ndarray | None) -> FrameSearch:
+        """The full GA, repeated from fresh populations (up to ``restarts`` times) while its
+        best falls ``refit_drop`` short of the level times the frame's labellable points
+        (:func:`frame_weight`): on 28-41 markers one run can stall in a deep local optimum --
+        limbs' labels exchanged -- that its mutations do not leave, while independent runs
+        rarely share it. A frame that fits well costs one run. Judged against every point the
+        frame could label, not only those labelled: a stalled run often leaves several points
+        unlabelled, which a per-labelled-point level forgives."""
+        found = self._ga(self.full_search, problems, searched, seeds)
+        restarts = self.settings.restarts if self.settings.method in ("cbga", "sga") else 0   # others: deterministic
+        for _ in range(restarts):
+            m = found.best_model
+            if found.best.fitness >= self.level[m] * frame_weight(problems[m]) - self._refit_margin(m):
+                break
+            found.merge(self._ga(self.full_search, problems, searched, None))
+        return found
+
+    def _fast_path(self, problems: list[FrameProblem], searched: list[int], seed: np.ndarray):
+        """The carried-over labeling hill-climbed over its targeted neighbourhood
+        (:meth:`_hill_climb`) under each searched model; accepted when under some model it
+        fits as well per labelled point as recent frames did (else ``doubtful``); None when
+        there is no level to judge by yet (or the method is not the CBGA)."""
+        if self.settings.method != "cbga" or any(np.isnan(self.level[m]) for m in searched):
+            return None
+        cands, evals = {}, 0
+        for m in searched:
+            last = {}
+            ind, f, e = self._hill_climb(problems[m], seed, last)
+            hood = (last["cand"], last["fitness"]) if last and np.array_equal(last["ind"], ind) else None
+            cands[m], evals = Candidate(ind, f, hood), evals + e
+        ok = any(c.fitness >= self._expected(c.assignment, problems[m], m) - self._accept_margin(m)
+                 for m, c in cands.items())
+        return FrameSearch(cands, full=False, evaluations=evals, doubtful=not ok)
+
+    # -- fitness level -------------------------------------------------------------------------
+    def _learn(self, problems: list[FrameProblem], found: FrameSearch) -> None:
+        """Update each searched model's running level (per labelled point) and the scatter of
+        good frames about it; a frame without velocities teaches nothing."""
+        if self._provisional or found.doubtful:
+            return
+        for m, c in found.candidates.items():
+            p = problems[m]
+            resid = c.fitness - self._expected(c.assignment, p, m)
+            fits = resid >= -self._accept_margin(m)
+            if fits:
+                self.spread[m] = float(np.sqrt((1 - SPREAD_RATE) * self.spread[m] ** 2 + SPREAD_RATE * resid ** 2))
+            rate = LEVEL_RATE_FIT if fits else LEVEL_RATE_MISFIT
+            self.level[m] = (1 - rate) * self.level[m] + rate * c.fitness / label_weight(c.assignment, p)
+
+    def _initial_level(self, problem: FrameProblem) -> float:
+        """Typical fitness per labelled point: the model's training log-likelihood per label
+        plus the per-label gain of the background model (see FrameProblem)."""
+        ll = float(problem.model.settings.get("loglik_per_label", 0.0))
+        gains = problem.label_gain[:-1]
+        if gains.size == 0:                        # no points this frame: nothing to calibrate on
+            return ll
+        full_gain = gains[problem.codes[:-1] == FULL]
+        return ll + float(full_gain.mean() if full_gain.size else np.median(gains))
+
+    def _margin(self, floor: float, k: float, m: int) -> float:
+        """A drop threshold: ``floor`` nats, or ``k`` times the running RMS scatter of good
+        frames' fitness about the expected level where that is larger -- a model over 41
+        markers scatters more per frame than one over 14, and a fixed threshold would send
+        good frames to the GA (false alarms cost a search each)."""
+        return max(floor, k * self.spread[m])
+
+    def _accept_margin(self, m: int) -> float:
+        """How far below the level a carried-over labeling (or a frame the level learns from) may fit."""
+        return self._margin(self.settings.accept_drop, ACCEPT_SCATTERS, m)
+
+    def _refit_margin(self, m: int) -> float:
+        """How far below the level a search result may fit before a (further) full search."""
+        return self._margin(self.settings.refit_drop, REFIT_SCATTERS, m)
+
+    def _expected(self, assignment: np.ndarray, problem: FrameProblem, m: int) -> float:
+        """Running fitness level of model ``m`` scaled to this frame's labelled points."""
+        return self.level[m] * label_weight(assignment, problem)
+
+    def _falls_short(self, c: Candidate, problem: FrameProblem, m: int) -> bool:
+        """The labeling fits ``refit_drop`` nats (or 8 x the running scatter) worse than the
+        running level predicts for its labelled points: a search should look further."""
+        return c.fitness < self._expected(c.assignment, problem, m) - self._refit_margin(m)
+
+    # -- input ---------------------------------------------------------------------------------
+    def _begin(self, xyz: np.ndarray, stamp: float, ids: np.ndarray | None) -> FrameInput:
         s = self.settings
         xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         finite = np.isfinite(xyz).all(1)
@@ -89,7 +668,7 @@ class TrackedLabeler:
             self.reset()
         self.last_stamp = stamp
         keep = np.flatnonzero(finite)
-        max_pts = s.max_points or 2 * n_labels + 8
+        max_pts = s.max_points or 2 * self.n_labels + 8
         n_ignored = 0
         if keep.size > max_pts:        # bounded work: the points nearest the body's last centre
             ref = self.centre if self.centre is not None else np.median(xyz[keep], axis=0)
@@ -101,13 +680,15 @@ class TrackedLabeler:
         # points whose velocity is first known this frame (their track began last frame)
         self._event_points = np.flatnonzero(np.isin(upd.track_ids, self._new_tracks))
         self._new_tracks = upd.track_ids[upd.new]
-        return FrameInput(xyz.shape[0], finite, keep, pts, upd, reason, n_ignored, dt)
+        out_ids = upd.track_ids if ids is None else np.asarray(ids, dtype=np.int64)[keep]
+        return FrameInput(xyz.shape[0], finite, keep, pts, upd, reason, n_ignored, dt, out_ids)
 
-    def _seeds(self, track_ids: np.ndarray, n: int, M: int) -> np.ndarray | None:
+    def _seeds(self, track_ids: np.ndarray, n: int) -> np.ndarray | None:
         """Warm start: the labels the tracks carried last frame (vectorised lookup); None when
         fewer than half of the frame's labels can be carried (a fresh search is due)."""
         if not self.track_label:
             return None
+        M = self.n_labels
         seed = np.full(M, n, dtype=np.int64)
         tids = np.fromiter(self.track_label.keys(), dtype=np.int64, count=len(self.track_label))
         labs = np.fromiter(self.track_label.values(), dtype=np.int64, count=len(self.track_label))
@@ -121,6 +702,15 @@ class TrackedLabeler:
             return seed[None]
         return label_ops.repair(seed[None], n, self.rng, fill=False)
 
+    # -- fast path -----------------------------------------------------------------------------
+    def _region_checks_due(self, M: int) -> bool:
+        """Region checks run for one pass over the regions after a GA search or a reset
+        (a search may land on a locally wrong labeling that tracking then carries on), and
+        on every ``region_every``-th frame in between (a slow background check); steady
+        frames otherwise cost only the hill-climb."""
+        s = self.settings
+        return self._since_search < M or (s.region_every > 0 and self._frame_no % s.region_every == 0)
+
     def _close_label_pairs(self, problem: FrameProblem, ind: np.ndarray) -> np.ndarray:
         """Pairs of labels whose points are closer than ``swap_radius_m`` (where the tracker
         may have swapped two markers that passed each other)."""
@@ -129,27 +719,42 @@ class TrackedLabeler:
         i, j = np.nonzero(np.triu(d < self.settings.swap_radius_m, 1))
         return np.stack([have[i], have[j]], axis=1)
 
-    def _hill_climb(self, problem: FrameProblem, seed: np.ndarray) -> tuple[np.ndarray, float, int]:
-        """Steepest ascent of a carried-over labeling over its targeted moves (mirror,
-        left/right and close-pair swaps, labels onto free points)."""
+    def _moves(self, problem: FrameProblem, seed: np.ndarray):
+        """The targeted neighbourhood of a labeling near ``seed`` (mirror, left/right and
+        close-pair swaps, labels onto free points within the distance bounds, releases)."""
         n = problem.n
         close = self._close_label_pairs(problem, seed)
 
         def moves(ind):
             free = np.flatnonzero(~label_ops.used_mask(ind[None], n)[0])
             return targeted_moves(ind, n, problem.mirror_pairs, free, close,
-                                  problem.allowed(ind) if free.size else None)
+                                  problem.allowed(ind) if free.size else None, self._releasable(problem, ind))
+        return moves
 
-        ind, f, evals = polish(problem, seed, None, self.settings.fast_rounds, neighbours=moves)
+    def _hill_climb(self, problem: FrameProblem, seed: np.ndarray,
+                    last: dict | None = None) -> tuple[np.ndarray, float, int]:
+        """Steepest ascent of a carried-over labeling over its targeted moves (:meth:`_moves`),
+        then the region checks. ``last``: see :func:`polish`."""
+        moves = self._moves(problem, seed)
+        ind, f, evals = polish(problem, seed, None, self.settings.fast_rounds, neighbours=moves, last=last)
         if self.settings.region_checks > 0 and problem.M > 3:
             centres = self._event_centres(problem, ind)
             if self._region_checks_due(problem.M):
-                self._region_cursor = (getattr(self, "_region_cursor", -1) + 1) % problem.M
+                self._region_cursor = (self._region_cursor + 1) % problem.M
                 centres = [self._region_cursor] + [c for c in centres if c != self._region_cursor]
             if centres:
                 ind, f, e = self._region_checks(problem, ind, f, moves, centres[:self.settings.region_checks])
                 evals += e
         return ind, f, evals
+
+    def _releasable(self, problem: FrameProblem, ind: np.ndarray) -> np.ndarray:
+        """Labels the hill-climb may also try to leave missing (``release_moves``): what a ghost
+        that took over a hidden marker's track needs (measured at 14 points with gaps and ghosts:
+        search errors 59 -> 7 of 900 frames; at 41 markers with a model that fits some true
+        markers worse than clutter it makes things worse, 113 -> 207 of 1000)."""
+        if not self.settings.release_moves:
+            return np.zeros(0, dtype=np.int64)
+        return np.flatnonzero(ind < problem.n)
 
     def _event_centres(self, problem: FrameProblem, ind: np.ndarray) -> list[int]:
         """Labels where this frame's labeling is least settled: for each point whose track
@@ -189,6 +794,7 @@ class TrackedLabeler:
         return relabel_regions(problem, ind, f, regions_of(problem.model, self.settings.region_size),
                                centres, refine)
 
+    # -- output --------------------------------------------------------------------------------
     @staticmethod
     def _truth_fitness(problem: FrameProblem, truth: np.ndarray | None, inp: FrameInput) -> float:
         """Fitness of the true labeling (``truth``: input index per label, -1 missing)."""
@@ -200,10 +806,12 @@ class TrackedLabeler:
         tr = np.asarray(truth, dtype=np.int64)
         return float(problem.fitness(np.where(tr < 0, n, pos[np.where(tr < 0, inp.n_in, tr)])[None])[0])
 
-    def _publish(self, problem: FrameProblem, assignment: np.ndarray, inp: FrameInput):
-        """Votes (eq. 32) and bookkeeping after the search. Returns (assignment with -1 for
-        missing, this frame's search labels per point, published labels, confidences)."""
+    def _publish(self, problem: FrameProblem, best: Candidate, inp: FrameInput, doubtful: bool):
+        """Votes (eq. 32), confidences (:mod:`.confidence`) and bookkeeping after the search.
+        Returns (assignment with -1 for missing, this frame's search labels per point,
+        published labels, confidences, local posteriors, vote shares)."""
         n = problem.n
+        assignment = best.assignment
         assign = np.where(assignment >= n, -1, assignment)
         search_labels = np.full(n, -1, dtype=np.int64)
         present = assign >= 0
@@ -211,9 +819,16 @@ class TrackedLabeler:
         upd = inp.upd
         self.votes.add(upd.track_ids, search_labels)
         if self.settings.mode == "stream":
-            pub, conf = self.votes.publish(upd.track_ids, search_labels)
+            pub, share = self.votes.publish(upd.track_ids, search_labels)
         else:
-            pub, conf = search_labels.copy(), (search_labels >= 0).astype(float)
+            pub, share = search_labels.copy(), (search_labels >= 0).astype(float)
+        alt, f_alt = best.neighbourhood or (self._moves(problem, assignment)(assignment), None)
+        post = label_posteriors(problem, assignment, best.fitness, alt, self.settings.confidence_temperature, f_alt)
+        post_point = np.full(n, np.nan)
+        post_point[assign[present]] = post[present]
+        deficit = self._initial_level(problem) - best.fitness / label_weight(assignment, problem) \
+            if present.any() else 0.0
+        conf = published_confidence(post_point, search_labels, pub, share, doubtful, deficit)
         # the next frame starts from this frame's search result, not from the votes: a
         # correction must not be undone by the window's older majority. Labels stay with
         # their tracks while they coast (occluded for a few frames).
@@ -229,4 +844,16 @@ class TrackedLabeler:
         if present.any():
             self.centre = inp.pts[assign[present]].mean(0)
             self.heading = float(problem.yaw(np.where(assign < 0, n, assign)[None])[0])
-        return assign, search_labels, pub, conf
+        return assign, search_labels, pub, conf, post_point, share
+
+
+def _input_index(assign: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Search assignment (index into the kept points, -1 missing) -> input point index."""
+    out = np.full(assign.shape, -1, dtype=np.int64)
+    present = assign >= 0
+    out[present] = keep[assign[present]]
+    return out
+
+
+__all__ = ["TrackedLabeler", "Engine", "FrameResult", "FrameInput", "FrameSearch", "Candidate", "scatter",
+           "label_weight", "frame_weight"]

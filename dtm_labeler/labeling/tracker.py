@@ -1,8 +1,19 @@
 """Frame-to-frame point association, so every point gets a track id and (when it was seen
 before) a velocity for the eq. 12 features.
 
-Constant-velocity prediction, a gate that widens with the track's speed, and optimal
-assignment (``scipy.optimize.linear_sum_assignment``). When the input carries track ids
+Constant-velocity prediction, a gate that widens with the track's speed and with the time
+since it was last seen, and optimal assignment (``scipy.optimize.linear_sum_assignment``).
+When the input carries ids (a mocap system's unlabelled trajectories), a point keeps the
+track of its id; a point with an id never seen before may still continue a track that lost
+its point (the systems start a new id when a marker comes back from an occlusion -- with
+flickering markers, every few frames): it is associated with the tracks left over by the same
+gated assignment, and its id becomes an alias of that track.
+The gate of a track seen ``dt`` ago is ``gate_m + gate_speed_factor |v| dt`` at the stream's
+own frame interval. When the update comes ``x`` later than that interval after the previous
+one (frames were skipped by a slow consumer, or lost) every gate grows by ``accel_mps2 x^2 / 2`` -- how far an acceleration can
+take a marker off its constant-velocity prediction -- and, for a track whose velocity is not
+known yet (seen once), by ``new_track_speed_mps x``: the tracks survive the skip instead of all
+breaking (which would force a fresh search, and a slower frame, and more skips). When the input carries track ids
 they are used instead. New, lost and re-appearing points are normal: a new track has no
 velocity (NaN, marginalised by the model), a lost one coasts for ``max_misses`` frames.
 """
@@ -14,15 +25,23 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 
+#: the longest skip the gates are widened for (a longer pause is a gap: the stream is reset)
+MAX_SKIP_S = 0.25
+
+
 @dataclass
 class TrackerSettings:
     gate_m: float = 0.06               # base association radius (metres)
     gate_speed_factor: float = 0.5     # + this x predicted travel in the frame
     max_misses: int = 12               # frames a lost track coasts before deletion
+    accel_mps2: float = 50.0           # + accel dt^2 / 2: what acceleration adds to the prediction error
+    new_track_speed_mps: float = 2.0   # a track seen once may have moved this fast
 
     def __post_init__(self) -> None:
-        if not self.gate_m > 0 or self.gate_speed_factor < 0 or self.max_misses < 0:
-            raise ValueError("gate_m must be > 0, gate_speed_factor >= 0, max_misses >= 0")
+        if not self.gate_m > 0 or min(self.gate_speed_factor, self.max_misses, self.accel_mps2,
+                                      self.new_track_speed_mps) < 0:
+            raise ValueError("gate_m must be > 0; gate_speed_factor, max_misses, accel_mps2, "
+                             "new_track_speed_mps >= 0")
 
 
 @dataclass
@@ -39,17 +58,32 @@ class Tracker:
         self.reset()
 
     def reset(self) -> None:
+        self.alias_in = np.zeros(0, dtype=np.int64)     # input ids (sorted) that continue a track ...
+        self.alias_to = np.zeros(0, dtype=np.int64)     # ... and the track ids they continue
         self.ids = np.zeros(0, dtype=np.int64)
         self.pos = np.zeros((0, 3))
         self.vel = np.zeros((0, 3))
         self.last_t = np.zeros(0)
         self.misses = np.zeros(0, dtype=np.int64)
+        self.known = np.zeros(0, dtype=bool)           # velocity estimated (seen twice or more)
         self._next_id = 0
         self.t = None
+        self.frame_dt = None                           # running typical interval between updates
 
     def predicted(self, t: float) -> np.ndarray:
         dt = (t - self.last_t)[:, None]
         return self.pos + np.nan_to_num(self.vel) * dt
+
+    def gate(self, t: float) -> np.ndarray:
+        """(K,) association radius of every track at time ``t`` (see the module doc)."""
+        s = self.settings
+        dt = t - self.last_t
+        # skipped time: how much longer than usual since the tracker's last update (not since each
+        # track was last seen: an occluded marker's coasting track keeps its ordinary gate)
+        extra = min(max(t - self.t - self.frame_dt, 0.0), MAX_SKIP_S) if self.frame_dt and self.t is not None else 0.0
+        speed = s.gate_speed_factor * np.linalg.norm(self.vel, axis=1)
+        return (s.gate_m + speed * dt + 0.5 * s.accel_mps2 * extra * extra
+                + np.where(self.known, 0.0, s.new_track_speed_mps * extra))
 
     def update(self, xyz: np.ndarray, t: float, ids: np.ndarray | None = None) -> TrackUpdate:
         xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
@@ -57,17 +91,25 @@ class Tracker:
         match = np.full(n, -1, dtype=np.int64)        # index into current tracks
         if ids is not None:
             ids = np.asarray(ids, dtype=np.int64).reshape(-1)
-            where = {int(k): i for i, k in enumerate(self.ids)}
-            match = np.array([where.get(int(k), -1) for k in ids], dtype=np.int64)
-        elif self.ids.size and n:
-            pred = self.predicted(t)
-            cost = np.linalg.norm(pred[:, None, :] - xyz[None, :, :], axis=-1)          # (K, n)
-            speed = np.linalg.norm(np.nan_to_num(self.vel), axis=1)
-            gate = self.settings.gate_m + self.settings.gate_speed_factor * speed * (t - self.last_t)
-            big = 1e6
-            r, c = linear_sum_assignment(np.where(cost <= gate[:, None], cost, big))
+            if self.alias_in.size:
+                pos = np.minimum(np.searchsorted(self.alias_in, ids), self.alias_in.size - 1)
+                ids = np.where(self.alias_in[pos] == ids, self.alias_to[pos], ids)
+            if self.ids.size and n:
+                order = np.argsort(self.ids)
+                pos = np.minimum(np.searchsorted(self.ids[order], ids), self.ids.size - 1)
+                hit = self.ids[order][pos] == ids
+                match[hit] = order[pos[hit]]
+        free_pts = np.flatnonzero(match < 0)
+        free_trk = np.setdiff1d(np.arange(self.ids.size), match[match >= 0])
+        if free_pts.size and free_trk.size:
+            pred = self.predicted(t)[free_trk]
+            cost = np.linalg.norm(pred[:, None, :] - xyz[free_pts][None, :, :], axis=-1)   # (K, n)
+            gate = self.gate(t)[free_trk]
+            r, c = linear_sum_assignment(np.where(cost <= gate[:, None], cost, 1e6))
             ok = cost[r, c] <= gate[r]
-            match[c[ok]] = r[ok]
+            match[free_pts[c[ok]]] = free_trk[r[ok]]
+            if ids is not None and ok.any():           # new ids that continue a track
+                self._add_alias(ids[free_pts[c[ok]]], self.ids[free_trk[r[ok]]])
         states = np.full((n, 6), np.nan)
         states[:, :3] = xyz
         m = match >= 0
@@ -89,23 +131,42 @@ class Tracker:
         seen[match[m]] = True
         self.pos[match[m]] = xyz[m]
         self.vel[match[m]] = np.where(np.isfinite(v), v, 0.0)
+        self.known[match[m]] = np.isfinite(v).all(1)
         self.last_t[match[m]] = t
         self.misses[match[m]] = 0
         self.misses[~seen] += 1
         keep = self.misses <= self.settings.max_misses
         lost = self.ids[~keep]
-        self.ids, self.pos, self.vel = self.ids[keep], self.pos[keep], self.vel[keep]
+        if self.alias_in.size and lost.size:
+            live = ~np.isin(self.alias_to, lost)
+            self.alias_in, self.alias_to = self.alias_in[live], self.alias_to[live]
+        self.ids, self.pos, self.vel, self.known = self.ids[keep], self.pos[keep], self.vel[keep], self.known[keep]
         self.last_t, self.misses = self.last_t[keep], self.misses[keep]
         self.ids = np.concatenate([self.ids, track_ids[new]])
         self.pos = np.vstack([self.pos, xyz[new]])
         self.vel = np.vstack([self.vel, np.zeros((int(new.sum()), 3))])
+        self.known = np.concatenate([self.known, np.zeros(int(new.sum()), dtype=bool)])
         self.last_t = np.concatenate([self.last_t, np.full(int(new.sum()), t)])
         self.misses = np.concatenate([self.misses, np.zeros(int(new.sum()), dtype=np.int64)])
+        if self.t is not None and t > self.t:                 # the typical interval: a slow running median
+            step = t - self.t
+            self.frame_dt = step if self.frame_dt is None else self.frame_dt + 0.05 * float(np.clip(
+                step - self.frame_dt, -self.frame_dt, self.frame_dt))
         self.t = t
         return TrackUpdate(track_ids, states, new, lost)
 
+    def _add_alias(self, new_ids: np.ndarray, track_ids: np.ndarray) -> None:
+        keys = np.concatenate([self.alias_in, new_ids])
+        vals = np.concatenate([self.alias_to, track_ids])
+        order = np.argsort(keys, kind="stable")
+        self.alias_in, self.alias_to = keys[order], vals[order]
+
     def position_of(self, track_id: int, t: float) -> np.ndarray:
-        """Predicted position of a (possibly coasting) track, NaN if unknown."""
+        """Predicted position of a (possibly coasting) track (or of an input id that continues
+        one), NaN if unknown."""
+        a = np.flatnonzero(self.alias_in == track_id)
+        if a.size:
+            track_id = int(self.alias_to[a[0]])
         i = np.flatnonzero(self.ids == track_id)
         if i.size == 0:
             return np.full(3, np.nan)

@@ -1,6 +1,8 @@
 """Votes over frames (eq. 32): ``N(track, label) += 1`` for every frame in the window where
 the search gave ``label`` to ``track``; the published labeling maximises the total votes
-subject to one label per track and one track per label (Hungarian assignment)."""
+subject to one label per track and one track per label (Hungarian assignment). The share of
+a published label is its votes over the frames of the window in which the track was *seen*
+(labelled or not): a marker hidden for part of the window is not less certain for it."""
 from __future__ import annotations
 
 from collections import deque
@@ -22,32 +24,42 @@ class VoteBook:
 
     def add(self, track_ids: np.ndarray, labels: np.ndarray) -> None:
         """One frame's search result: ``labels[i]`` (-1 = none) for point with ``track_ids[i]``."""
-        keep = labels >= 0
-        self.frames.append((np.asarray(track_ids)[keep].copy(), np.asarray(labels)[keep].copy()))
+        self.frames.append((np.asarray(track_ids).copy(), np.asarray(labels).copy()))
 
     def tally(self, track_ids: np.ndarray) -> np.ndarray:
         """(n, n_labels) vote counts (eq. 32) for the given tracks over the window."""
+        return self._count(track_ids)[0]
+
+    def seen(self, track_ids: np.ndarray) -> np.ndarray:
+        """(n,) frames of the window in which each track was seen (labelled or not)."""
+        return self._count(track_ids)[1]
+
+    def _count(self, track_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Votes (n, n_labels) and frames seen (n,) of ``track_ids``: one pass over the window."""
         track_ids = np.asarray(track_ids)
         votes = np.zeros((track_ids.size, self.n_labels))
+        seen = np.zeros(track_ids.size)
         if not self.frames or track_ids.size == 0:
-            return votes
+            return votes, seen
+        tids = np.concatenate([f[0] for f in self.frames])
+        labs = np.concatenate([f[1] for f in self.frames])
         order = np.argsort(track_ids)
         sorted_ids = track_ids[order]
-        for tids, labs in self.frames:
-            pos = np.searchsorted(sorted_ids, tids)
-            pos_c = np.minimum(pos, sorted_ids.size - 1)
-            hit = sorted_ids[pos_c] == tids
-            np.add.at(votes, (order[pos_c[hit]], labs[hit]), 1.0)
-        return votes
+        pos = np.minimum(np.searchsorted(sorted_ids, tids), sorted_ids.size - 1)
+        hit = sorted_ids[pos] == tids
+        np.add.at(seen, order[pos[hit]], 1.0)
+        lab = hit & (labs >= 0)
+        np.add.at(votes, (order[pos[lab]], labs[lab]), 1.0)
+        return votes, seen
 
     def publish(self, track_ids: np.ndarray, current: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Published labels (-1 none) and confidences for this frame's points.
 
         ``current`` is this frame's search result; it breaks ties (a half vote) so a fresh
         decision wins over an equal count of old ones. Confidence = votes for the published
-        label / frames in the window.
+        label / frames of the window in which the track was seen.
         """
-        votes = self.tally(track_ids)
+        votes, seen = self._count(track_ids)
         cur = np.asarray(current)
         has = cur >= 0
         votes[np.flatnonzero(has), cur[has]] += 0.5
@@ -58,5 +70,6 @@ class VoteBook:
         r, c = linear_sum_assignment(-votes)
         ok = votes[r, c] > 0
         labels[r[ok]] = c[ok]
-        conf[r[ok]] = np.minimum((votes[r[ok], c[ok]] - 0.5 * (cur[r[ok]] == c[ok])) / len(self.frames), 1.0)
+        conf[r[ok]] = np.minimum((votes[r[ok], c[ok]] - 0.5 * (cur[r[ok]] == c[ok])) / np.maximum(seen[r[ok]], 1.0),
+                                 1.0)
         return labels, conf

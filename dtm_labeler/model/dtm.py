@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .body import BodyModel, BroadMotion, EdgeTerms, slot_distances
-from .features import (MISSING, N_PATTERNS, STATE_DIM, feature_map_for, observation_state,
+from .features import (FEATURE_DIM, MISSING, N_PATTERNS, STATE_DIM, TRIPLE_DIM, feature_map_for, observation_state,
                        observed_map, pattern_codes, pattern_id)
 from .mixture import GaussianMixture
 from .structure import Structure
@@ -197,7 +197,7 @@ class BatchedTerms:
         self.kj = max([p.joint.K for p in live], default=1)
         self.kp = max([p.parents.K for p in live if len(p.splits) > 1], default=0)
         R = self.kj * self.mj + self.kp * self.mp
-        self.W = np.zeros((T, 18, R))
+        self.W = np.zeros((T, TRIPLE_DIM, R))
         self.c = np.zeros((T, R))
         self.cj = np.full((T, self.kj), -np.inf)
         self.cp = np.full((T, max(self.kp, 1)), -np.inf)
@@ -267,8 +267,8 @@ class TriangulatedModel:
         if len(self.mixtures) != self.structure.n_triangles:
             raise ValueError(f"{len(self.mixtures)} mixtures for {self.structure.n_triangles} triangles")
         for t, m in enumerate(self.mixtures):
-            if m.dim != 15:
-                raise ValueError(f"triangle {t}: mixture dimension {m.dim}, expected 15 (eq. 12)")
+            if m.dim != FEATURE_DIM:
+                raise ValueError(f"triangle {t}: mixture dimension {m.dim}, expected {FEATURE_DIM} (eq. 12)")
         for name, pr in (("heading", self.heading_pairs), ("mirror", self.mirror_pairs)):
             if pr.size and (pr.min() < 0 or pr.max() >= len(self.labels)):
                 raise ValueError(f"{name} pair index out of range")
@@ -330,7 +330,7 @@ class TriangulatedModel:
             for pid in range(N_PATTERNS):
                 term.pattern(pid)
         _ = self.batched_full, self.distance_bounds
-        self.batched_full(np.zeros((1, 18)), np.zeros(1, dtype=np.int64))     # compile (or load) the kernel
+        self.batched_full(np.zeros((1, TRIPLE_DIM)), np.zeros(1, dtype=np.int64))     # compile (or load) the kernel
         return self
 
     @property
@@ -356,7 +356,7 @@ class TriangulatedModel:
                     mu, cov = np.vstack([mu, g.means]), np.concatenate([cov, g.covariances])
                 maps = {}
                 for (i, j), r in rows.items():
-                    A = np.zeros((3, 15))
+                    A = np.zeros((3, FEATURE_DIM))
                     A[np.arange(3), r] = 1.0
                     maps[(i, j)] = A
                 maps[(2, 1)] = maps[(2, 0)] - maps[(1, 0)]

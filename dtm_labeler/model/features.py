@@ -47,7 +47,8 @@ from typing import Sequence
 import numpy as np
 
 STATE_DIM = 6
-FEATURE_DIM = 15
+FEATURE_DIM = 15                    # eq. 12: nine velocities + six relative positions
+TRIPLE_DIM = 3 * STATE_DIM          # a triangle's three stacked point states
 MISSING, POSITION_ONLY, FULL = 0, 1, 2
 N_PATTERNS = 27
 

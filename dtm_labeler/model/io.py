@@ -88,13 +88,22 @@ def load_model(path: str | os.PathLike) -> TriangulatedModel:
     path = Path(path)
     if not path.is_file():
         raise ModelFileError(f"{path}: no such model file")
+    return _load(path, str(path))
+
+
+def model_from_bytes(data: bytes, where: str = "model") -> TriangulatedModel:
+    """A model from the bytes of a model file (:func:`model_to_bytes`)."""
+    return _load(io.BytesIO(data), where)
+
+
+def _load(source, where: str) -> TriangulatedModel:
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with np.load(source, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
     except (zipfile.BadZipFile, zlib.error, NotImplementedError, ValueError, OSError, EOFError) as e:
         # zlib.error: damaged deflate data; NotImplementedError: damaged compression-method field
-        raise ModelFileError(f"{path}: not a dtm_labeler model file ({e})") from None
-    return model_from_arrays(arrays, str(path))
+        raise ModelFileError(f"{where}: not a dtm_labeler model file ({e})") from None
+    return model_from_arrays(arrays, where)
 
 
 def model_from_arrays(arrays: dict, where: str = "model") -> TriangulatedModel:

@@ -254,11 +254,6 @@ class GaussianMixture:
         k = self.n_components
         return k - 1 + k * params_per_component(self.dim)
 
-    @property
-    def precision_cholesky(self) -> np.ndarray:
-        """``(K, d, d)`` lower-triangular ``W_k = chol(Sigma_k)^-1`` (read-only)."""
-        return self._prec_chol
-
     def __repr__(self) -> str:
         return (f"GaussianMixture(n_components={self.n_components}, dim={self.dim}, "
                 f"weights={np.array2string(self.weights, precision=3)})")

@@ -51,7 +51,7 @@ def mixture_terms(s, tri, W, c, cj, cp, nj, np_, mj, mp):  # pragma: no cover - 
             z[col] = -c[t, col]
         for col in range(lo_p, hi_p):
             z[col] = -c[t, col]
-        for j in range(18):
+        for j in range(s.shape[1]):
             v = s[r, j]
             if v != 0.0:
                 for col in range(hi_j):

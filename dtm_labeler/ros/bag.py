@@ -253,10 +253,6 @@ class Scorer:
     def ghost_rejection(self) -> float:
         return self.ghosts_rejected / self.ghosts if self.ghosts else float("nan")
 
-    @property
-    def unmatched_outputs(self) -> int:
-        return len(self._out)
-
 
 # --------------------------------------------------------------------------------- writing
 
@@ -372,16 +368,6 @@ def read_messages(path: str | Path, topics: Iterable[str] | None = None) -> Iter
         r.close()
 
 
-def read_ground_truth(path: str | Path) -> dict[int, tuple[np.ndarray, list[str]]]:
-    """``{stamp_ns: (xyz, labels)}`` of a bag's ``/markers/ground_truth`` (empty if it has none)."""
-    r = _reader(path)
-    has = any(c.topic == TOPIC_GROUND_TRUTH for c in r.connections)
-    r.close()
-    if not has:
-        return {}
-    return {stamp_ns_of(m): markers_to_arrays(m) for _, _, m in read_messages(path, [TOPIC_GROUND_TRUTH])}
-
-
 # -------------------------------------------------------------------------------- labeling
 
 def _percentiles(v) -> dict:
@@ -392,6 +378,24 @@ def _percentiles(v) -> dict:
                 mean=float(v.mean()))
 
 
+def _names_of(labels: np.ndarray, names: Sequence[str]) -> list:
+    return [names[i] if i >= 0 else "" for i in labels]
+
+
+def _open_labeled_writer(out_path, force: bool, storage: str, conns, ts):
+    """A rosbags writer for ``label_bag``: the input's connections copied, plus the outputs."""
+    from rosbags.rosbag2 import Writer
+    out = _prepare_out(out_path, force)
+    writer = Writer(out, version=9, storage_plugin=_storage_plugin(storage))
+    writer.open()
+    qos = [_reliable_qos()]
+    copy = {c.id: writer.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data, rihs01=c.digest,
+                                        offered_qos_profiles=qos) for c in conns}
+    c_lab = writer.add_connection(TOPIC_LABELED, LMA, typestore=ts, offered_qos_profiles=qos)
+    c_cloud = writer.add_connection(TOPIC_LABELED_CLOUD, PC2, typestore=ts, offered_qos_profiles=qos)
+    return writer, copy, c_lab, c_cloud
+
+
 def label_bag(model, in_path: str | Path, out_path: str | Path | None, settings=None, storage: str | None = None,
               topic: str = TOPIC_UNLABELED, force: bool = False,
               progress: Callable[[int, int], None] | None = None) -> dict:
@@ -399,20 +403,12 @@ def label_bag(model, in_path: str | Path, out_path: str | Path | None, settings=
     write the input topics plus ``/markers/labeled`` and ``/markers/labeled_cloud`` to
     ``out_path`` (None: write nothing) and score against ``/markers/ground_truth`` when present.
     Returns a summary dict (accuracy, ghost_rejection, latency_ms {p50, p99, max, mean}, fps, ...)."""
-    from rosbags.rosbag2 import Writer
-
     from ..labeling.stream import StreamLabeler
-    from .pointcloud import read_points_xyz
+    from .pointcloud import complete_ids, read_points_xyz
 
-    ts = typestore()
-    labeler = StreamLabeler(model, settings)
-    names = list(model.labels)
-    scorer = Scorer(known=set(names))
-    topic = topic_name(topic)
-    r = _reader(in_path)
-    writer = None
-    lat, resets = [], 0
-    n_frames = 0
+    ts, labeler, names = typestore(), StreamLabeler(model, settings), list(model.labels)
+    scorer, topic, r = Scorer(known=set(names)), topic_name(topic), _reader(in_path)
+    writer, lat, resets, n_frames = None, [], 0, 0
     try:
         storage = storage or bag_storage(in_path)
         conns = list(r.connections)
@@ -420,14 +416,7 @@ def label_bag(model, in_path: str | Path, out_path: str | Path | None, settings=
             raise BagError(f"{in_path}: no topic {topic} (have {', '.join(c.topic for c in conns)})")
         total = sum(c.msgcount for c in conns if c.topic == topic)
         if out_path is not None:
-            out = _prepare_out(out_path, force)
-            writer = Writer(out, version=9, storage_plugin=_storage_plugin(storage))
-            writer.open()
-            qos = [_reliable_qos()]
-            copy = {c.id: writer.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data, rihs01=c.digest,
-                                                offered_qos_profiles=qos) for c in conns}
-            c_lab = writer.add_connection(TOPIC_LABELED, LMA, typestore=ts, offered_qos_profiles=qos)
-            c_cloud = writer.add_connection(TOPIC_LABELED_CLOUD, PC2, typestore=ts, offered_qos_profiles=qos)
+            writer, copy, c_lab, c_cloud = _open_labeled_writer(out_path, force, storage, conns, ts)
         t_start = time.perf_counter()
         for c, t, raw in r.messages():
             if writer is not None:
@@ -441,12 +430,11 @@ def label_bag(model, in_path: str | Path, out_path: str | Path | None, settings=
             msg = ts.deserialize_cdr(raw, c.msgtype)
             xyz, ids = read_points_xyz(msg)
             stamp = stamp_ns_of(msg)
-            res = labeler.process(xyz, stamp * 1e-9, ids=ids)
+            res = labeler.process(xyz, stamp * 1e-9, ids=complete_ids(ids))
             lat.append(res.latency_ms)
             resets += bool(res.reset)
             lab = np.asarray(res.labels)
-            scorer.add_output(stamp, xyz.astype(np.float32).astype(np.float64),
-                              [names[i] if i >= 0 else "" for i in lab])
+            scorer.add_output(stamp, xyz.astype(np.float32).astype(np.float64), _names_of(lab, names))
             if writer is not None:
                 frame_id = msg.header.frame_id
                 out_msg = marker_array_message(stamp, frame_id, n_frames, xyz, lab, names, res.track_ids,

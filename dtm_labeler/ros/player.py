@@ -120,66 +120,13 @@ def play(bag: str | Path | None = None, rate: float = 1.0, loop: bool = False, t
         if clock:
             from rosgraph_msgs.msg import Clock
             clock_pub = node.create_publisher(Clock, "/clock", 10)
-            clock_msg = Clock()
 
-        # wait for subscribers
-        t_wait = time.monotonic()
-        if wait_for and wait_timeout > 0:
-            log(f"waiting for subscribers on {', '.join(wait_for)}")
-            while not stop.is_set():
-                if all(pubs[t].get_subscription_count() > 0 for t in wait_for):
-                    break
-                if time.monotonic() - t_wait > wait_timeout:
-                    log(f"no subscriber after {wait_timeout:.0f} s; playing anyway")
-                    break
-                time.sleep(0.01)
-        stats.waited_s = time.monotonic() - t_wait
+        stats.waited_s = _wait_for_subscribers(pubs, wait_for, wait_timeout, stop, log)
         stats.matched = {t: p.get_subscription_count() for t, p in pubs.items()}
         if start_delay > 0:
             stop.wait(start_delay)
-
-        t_rec = np.array([m.t_ns for m in msgs], dtype=np.int64)
-        t0 = int(t_rec[0])
-        span_ns = int(t_rec[-1] - t0)
-        steps = np.diff(np.unique(t_rec))
-        period_ns = int(np.median(steps)) if steps.size else 0
-        lateness = []
-        wall0 = time.time()
-        perf0 = time.perf_counter()
-        if on_start is not None:
-            on_start(wall0)
-        first_send = last_send = None
-        offset_ns = 0                     # recorded-time offset of this loop pass
-        while not stop.is_set():
-            for m in msgs:
-                rel_ns = m.t_ns - t0 + offset_ns
-                target = perf0 + rel_ns / rate * 1e-9
-                while True:
-                    d = target - time.perf_counter()
-                    if d <= 0 or stop.is_set():
-                        break
-                    time.sleep(min(d, 0.05))
-                if stop.is_set():
-                    break
-                data = m.data
-                stamp = int(round((wall0 + rel_ns / rate * 1e-9) * 1e9)) if restamp else m.t_ns + offset_ns
-                if restamp and m.topic in header_topics:
-                    data = restamp_cdr(data, stamp)
-                if clock_pub is not None:
-                    clock_msg.clock.sec, clock_msg.clock.nanosec = divmod(stamp, 1_000_000_000)
-                    clock_pub.publish(clock_msg)
-                pubs[m.topic].publish(data)
-                now = time.perf_counter()
-                lateness.append(now - target)
-                first_send = now if first_send is None else first_send
-                last_send = now
-                stats.sent[m.topic] += 1
-            else:
-                stats.loops += 1
-                if loop:
-                    offset_ns += span_ns + period_ns
-                    continue
-            break
+        lateness, first_send, last_send = _send(msgs, pubs, clock_pub, header_topics, stats, stop, rate=rate,
+                                                loop=loop, restamp=restamp, on_start=on_start)
         stats.stopped = stop.is_set()
         for p in pubs.values():
             p.wait_for_all_acked(Duration(seconds=2.0))
@@ -195,10 +142,74 @@ def play(bag: str | Path | None = None, rate: float = 1.0, loop: bool = False, t
     return stats
 
 
+def _wait_for_subscribers(pubs: dict, wait_for: Sequence[str], timeout: float, stop: threading.Event,
+                          log: Callable[[str], None]) -> float:
+    """Wait until every topic of ``wait_for`` has a subscriber (or ``timeout``); seconds waited."""
+    t_wait = time.monotonic()
+    if wait_for and timeout > 0:
+        log(f"waiting for subscribers on {', '.join(wait_for)}")
+        while not stop.is_set():
+            if all(pubs[t].get_subscription_count() > 0 for t in wait_for):
+                break
+            if time.monotonic() - t_wait > timeout:
+                log(f"no subscriber after {timeout:.0f} s; playing anyway")
+                break
+            time.sleep(0.01)
+    return time.monotonic() - t_wait
+
+
+def _send(msgs: Sequence[RawMessage], pubs: dict, clock_pub, header_topics: set, stats: PlayStats,
+          stop: threading.Event, *, rate: float, loop: bool, restamp: bool,
+          on_start: Callable[[float], None] | None) -> tuple:
+    """Publish ``msgs`` on their timeline (looping when asked); (lateness list, first, last send)."""
+    clock_msg = None
+    if clock_pub is not None:
+        from rosgraph_msgs.msg import Clock
+        clock_msg = Clock()
+    t_rec = np.array([m.t_ns for m in msgs], dtype=np.int64)
+    t0 = int(t_rec[0])
+    span_ns = int(t_rec[-1] - t0)
+    steps = np.diff(np.unique(t_rec))
+    period_ns = int(np.median(steps)) if steps.size else 0
+    lateness = []
+    wall0, perf0 = time.time(), time.perf_counter()
+    if on_start is not None:
+        on_start(wall0)
+    first_send = last_send = None
+    offset_ns = 0                     # recorded-time offset of this loop pass
+    while not stop.is_set():
+        for m in msgs:
+            rel_ns = m.t_ns - t0 + offset_ns
+            target = perf0 + rel_ns / rate * 1e-9
+            while (d := target - time.perf_counter()) > 0 and not stop.is_set():
+                time.sleep(min(d, 0.05))
+            if stop.is_set():
+                break
+            stamp = int(round((wall0 + rel_ns / rate * 1e-9) * 1e9)) if restamp else m.t_ns + offset_ns
+            data = restamp_cdr(m.data, stamp) if restamp and m.topic in header_topics else m.data
+            if clock_msg is not None:
+                clock_msg.clock.sec, clock_msg.clock.nanosec = divmod(stamp, 1_000_000_000)
+                clock_pub.publish(clock_msg)
+            pubs[m.topic].publish(data)
+            now = time.perf_counter()
+            lateness.append(now - target)
+            first_send = now if first_send is None else first_send
+            last_send = now
+            stats.sent[m.topic] += 1
+        else:
+            stats.loops += 1
+            if loop:
+                offset_ns += span_ns + period_ns
+                continue
+        break
+    return lateness, first_send, last_send
+
+
 # ----------------------------------------------------------------------------------- monitor
 
 def _diag_values(status) -> dict:
-    return {kv.key: kv.value for kv in status.values}
+    """The status's key/values, plus its message under ``_message``."""
+    return {**{kv.key: kv.value for kv in status.values}, "_message": status.message}
 
 
 class ReplayMonitor:

@@ -10,8 +10,13 @@ rclpy ``sensor_msgs.msg.PointCloud2`` messages (imported on first use).
 Layout handled on decode: any field order and offsets, padding inside a point (``point_step``
 larger than the fields) and at the end of each row (``row_step > width * point_step``, the last
 row may omit its padding), ``height > 1`` (organised clouds come back flattened row-major),
-big-endian data (``is_bigendian``), and fields with ``count > 1`` (a sub-array column of shape
-``(count,)``; ``x``/``y``/``z``/``id`` themselves must have ``count == 1``).
+big-endian data (``is_bigendian``), fields with ``count > 1`` (a sub-array column of shape
+``(count,)``; ``x``/``y``/``z``/``id`` themselves must have ``count == 1``), PCL's ``_`` padding
+fields and fields with ``count == 0`` (both skipped: they hold nothing), and ``row_step == 0``
+(read as ``width * point_step``, as several drivers leave it). :func:`read_points_xyz` builds
+its dtype from ``x``, ``y``, ``z`` and ``id`` only, so a field it does not need cannot make a
+cloud unreadable. Track ids: any integer type, or a float type holding integral values; -1
+(and NaN, and 0xFFFFFFFF in a UINT32 field) mean "no id for this point".
 
 Non-finite values are NOT filtered here: NaN/Inf coordinates (the usual "no return" marker of
 organised clouds) are returned as they are, and ``make_*`` set ``is_dense`` from them. Reporting
@@ -38,6 +43,9 @@ __all__ = [
     "make_xyz_cloud",
     "make_labeled_cloud",
     "DATATYPES",
+    "NO_ID",
+    "complete_ids",
+    "looks_like_millimetres",
 ]
 
 # sensor_msgs/PointField datatype constants -> numpy dtype (native byte order here; the message's
@@ -57,6 +65,10 @@ _FLOAT_TYPES = (FLOAT32, FLOAT64)
 _INT_TYPES = (INT8, UINT8, INT16, UINT16, INT32, UINT32)
 _NATIVE_BIGENDIAN = sys.byteorder == "big"
 _UINT32_MAX = np.iinfo(np.uint32).max
+#: ``ids`` value of a point without a track id (read_points_xyz).
+NO_ID = -1
+#: PCL's name for padding fields (several may share it).
+PADDING = "_"
 
 
 class PointCloudError(ValueError):
@@ -74,11 +86,13 @@ def _dtype_for(fields: Tuple[Tuple[str, int, int, int], ...], point_step: int,
     order = ">" if bigendian else "<"
     names, formats, offsets = [], [], []
     for name, offset, datatype, count in fields:
+        if name == PADDING or count == 0:
+            continue                      # PCL padding / an empty field: holds no value
         if datatype not in DATATYPES:
             raise PointCloudError(
                 f"field {name!r} has unknown PointField datatype {datatype} (expected 1..8)")
-        if count < 1:
-            raise PointCloudError(f"field {name!r} has count {count} (must be >= 1)")
+        if count < 0:
+            raise PointCloudError(f"field {name!r} has count {count} (must be >= 0)")
         base = DATATYPES[datatype].newbyteorder(order)
         size = base.itemsize * count
         if offset < 0 or offset + size > point_step:
@@ -99,8 +113,9 @@ def _dtype_for(fields: Tuple[Tuple[str, int, int, int], ...], point_step: int,
         raise PointCloudError(f"cannot build a dtype for fields {fields}: {exc}") from exc
 
 
-def _layout_key(msg: Any) -> Tuple[Tuple[str, int, int, int], ...]:
-    return tuple((str(f.name), int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields)
+def _layout_key(msg: Any, only: Optional[Tuple[str, ...]] = None) -> Tuple[Tuple[str, int, int, int], ...]:
+    return tuple((str(f.name), int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields
+                 if only is None or f.name in only)
 
 
 def _as_bytes(data: Any) -> np.ndarray:
@@ -113,7 +128,7 @@ def _as_bytes(data: Any) -> np.ndarray:
         return np.asarray(data, dtype=np.uint8)
 
 
-def cloud_to_structured(msg: Any) -> np.ndarray:
+def cloud_to_structured(msg: Any, fields: Optional[Tuple[str, ...]] = None, _key=None) -> np.ndarray:
     """Return the points of a PointCloud2 as a 1-D numpy structured array.
 
     One record per point, ``height * width`` records in row-major order; one column per
@@ -132,7 +147,10 @@ def cloud_to_structured(msg: Any) -> np.ndarray:
     """
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
-    dtype = _dtype_for(_layout_key(msg), point_step, bool(msg.is_bigendian))
+    if row_step == 0:
+        row_step = width * point_step      # left unset by several drivers
+    key = _key if _key is not None else _layout_key(msg, fields)
+    dtype = _dtype_for(key, point_step, bool(msg.is_bigendian))
     buf = _as_bytes(msg.data)
     n = height * width
     full = row_step * height
@@ -168,53 +186,92 @@ def _find_field(msg: Any, name: str):
 
 
 def read_points_xyz(msg: Any) -> Tuple[np.ndarray, Optional[np.ndarray]]:
-    """Read x, y, z (and the optional integer ``id`` field) of a PointCloud2.
+    """Read x, y, z (and the optional ``id`` field) of a PointCloud2.
 
     Returns:
         ``(xyz, ids)``: ``xyz`` float64 of shape ``(n, 3)`` with ``n = height * width``
         (``(0, 3)`` for an empty cloud), NaN/Inf kept as they are (the caller reports and drops
-        them); ``ids`` uint32 of shape ``(n,)`` from a field named ``id`` of any integer
-        PointField type, or ``None`` when the cloud has no ``id`` field.
+        them); ``ids`` int64 of shape ``(n,)`` from a field named ``id`` (any integer type, or a
+        float type holding integral values), :data:`NO_ID` (-1) where a point has no id (-1,
+        NaN, or 0xFFFFFFFF in a UINT32 field), or ``None`` when the cloud has no ``id`` field.
 
     Raises:
         PointCloudError: ``x``, ``y`` or ``z`` missing, not FLOAT32/FLOAT64, or with count != 1;
-            an ``id`` field that is not an integer type, has count != 1 or holds negative values;
-            or any layout error of :func:`cloud_to_structured`.
+            an ``id`` field with count != 1, negative values other than -1, or non-integral
+            float values; or a layout error of :func:`cloud_to_structured` in those fields.
     """
-    names = [f.name for f in msg.fields]
+    key = _layout_key(msg)                  # one pass over the fields (rclpy attributes are slow)
+    by_name = {f[0]: f for f in key}
     for axis in ("x", "y", "z"):
-        f = _find_field(msg, axis)
+        f = by_name.get(axis)
         if f is None:
             raise PointCloudError(
-                f"PointCloud2 has no {axis!r} field (fields: {names}); "
+                f"PointCloud2 has no {axis!r} field (fields: {[g[0] for g in key]}); "
                 f"need float32/float64 x, y, z")
-        if f.datatype not in _FLOAT_TYPES:
+        if f[2] not in _FLOAT_TYPES:
             raise PointCloudError(
-                f"field {axis!r} has datatype {_dtname(f.datatype)}; x, y, z must be FLOAT32 or "
+                f"field {axis!r} has datatype {_dtname(f[2])}; x, y, z must be FLOAT32 or "
                 f"FLOAT64")
-        if f.count != 1:
-            raise PointCloudError(f"field {axis!r} has count {f.count}; x, y, z need count 1")
-    fid = _find_field(msg, "id")
+        if f[3] != 1:
+            raise PointCloudError(f"field {axis!r} has count {f[3]}; x, y, z need count 1")
+    fid = by_name.get("id")
+    if fid is not None and fid[3] == 0:
+        fid = None                          # an empty id field: no ids
     if fid is not None:
-        if fid.datatype not in _INT_TYPES:
+        if fid[2] not in _INT_TYPES + _FLOAT_TYPES:
             raise PointCloudError(
-                f"field 'id' has datatype {_dtname(fid.datatype)}; track ids must be an integer "
-                f"type (UINT32 preferred)")
-        if fid.count != 1:
-            raise PointCloudError(f"field 'id' has count {fid.count}; track ids need count 1")
-    arr = cloud_to_structured(msg)
+                f"field 'id' has datatype {_dtname(fid[2])}; track ids must be an integer "
+                f"type (UINT32 preferred) or integral floats")
+        if fid[3] != 1:
+            raise PointCloudError(f"field 'id' has count {fid[3]}; track ids need count 1")
+    wanted = ("x", "y", "z", "id") if fid is not None else ("x", "y", "z")
+    arr = cloud_to_structured(msg, _key=tuple(f for f in key if f[0] in wanted))
     xyz = np.empty((arr.shape[0], 3), dtype=np.float64)
     xyz[:, 0] = arr["x"]
     xyz[:, 1] = arr["y"]
     xyz[:, 2] = arr["z"]
-    ids = None
-    if fid is not None:
-        raw = arr["id"]
-        if raw.dtype.kind == "i" and raw.size and raw.min() < 0:
-            raise PointCloudError(
-                f"field 'id' holds negative values (min {int(raw.min())}); track ids must be >= 0")
-        ids = raw.astype(np.uint32)
-    return xyz, ids
+    return xyz, (None if fid is None else _track_ids(arr["id"], fid[2]))
+
+
+def _track_ids(raw: np.ndarray, datatype: int) -> np.ndarray:
+    """The ``id`` column as int64 track ids, :data:`NO_ID` where a point has none."""
+    if datatype in _FLOAT_TYPES:
+        v = raw.astype(np.float64)
+        none = ~np.isfinite(v) | (v == -1.0)
+        w = np.where(none, 0.0, v)
+        if np.any(w != np.round(w)) or (w.size and (w.min() < 0 or w.max() > _UINT32_MAX)):
+            bad = v[~none & ((w != np.round(w)) | (w < 0) | (w > _UINT32_MAX))][:3]
+            raise PointCloudError(f"field 'id' holds values that are not track ids (e.g. {bad.tolist()}); "
+                                  f"float ids must be integral, >= 0, or -1/NaN for none")
+        return np.where(none, NO_ID, w).astype(np.int64)
+    ids = raw.astype(np.int64)
+    if datatype == UINT32:
+        if ids.size and ids.max() == _UINT32_MAX:
+            ids[ids == _UINT32_MAX] = NO_ID
+    elif ids.size and ids.min() < NO_ID:
+        raise PointCloudError(
+            f"field 'id' holds negative values (min {int(ids.min())}); track ids must be >= 0 "
+            f"(-1 = no id)")
+    return ids
+
+
+def complete_ids(ids: Optional[np.ndarray]) -> Optional[np.ndarray]:
+    """``ids`` when every point has one, else None: the labeler's tracker takes a frame's ids
+    for all of its points or associates them all by position (it cannot mix the two)."""
+    if ids is None or not ids.size or ids.min() > NO_ID:
+        return ids
+    return None
+
+
+def looks_like_millimetres(xyz: np.ndarray, max_extent_m: float = 50.0) -> bool:
+    """True when a marker cloud is far too large to be in metres: its finite points span more
+    than ``max_extent_m`` along an axis (a capture volume is a few metres; the same body in
+    millimetres spans ~2000 units). A single point far from the origin does not count."""
+    a = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    a = a[np.isfinite(a).all(1)]
+    if a.shape[0] < 3:
+        return False
+    return bool((a.max(0) - a.min(0)).max() > max_extent_m)
 
 
 # ----------------------------------------------------------------------------------- encoding

@@ -10,6 +10,9 @@ frame_id), namespaces under ``ns`` (default ``dtm_labeler``):
   between labelled points;
 * ``<ns>/names``     id = label index, TEXT_VIEW_FACING: the label name above its point.
 
+Every marker carries ``lifetime_s`` (0 = forever): with a lifetime, RViz drops the markers of a
+node that stopped publishing instead of showing its last frame for ever.
+
 The set of markers is the same every frame: empty lists and labels not seen this frame are
 sent as DELETE, so RViz never shows stale names without any per-topic state here. A DELETEALL
 (first in the array) is added when ``delete_all`` is set -- the node does so on a model change
@@ -106,8 +109,10 @@ class MarkerArrayBuilder:
     """
 
     def __init__(self, label_names: Sequence[str], edges: Optional[Iterable[Tuple[int, int]]] = None, *,
-                 scale: float = 0.05, ns: str = "dtm_labeler", colors: Optional[np.ndarray] = None):
+                 scale: float = 0.05, ns: str = "dtm_labeler", colors: Optional[np.ndarray] = None,
+                 lifetime_s: float = 0.0):
         from visualization_msgs.msg import Marker
+        self.lifetime_s = float(lifetime_s)
         self.names = [str(x) for x in label_names]
         M = len(self.names)
         self.edges = sorted((int(a), int(b)) for a, b in (edges or ()) if 0 <= a < M and 0 <= b < M)
@@ -129,6 +134,9 @@ class MarkerArrayBuilder:
             m.color = _color(self.colors[lab])
             self._texts.append(m)
         self._label_colors = [_color(c) for c in self.colors]
+        sec = int(self.lifetime_s)
+        for m in [self._labelled, self._unlabelled, self._skeleton, *self._texts]:
+            m.lifetime.sec, m.lifetime.nanosec = sec, int(round((self.lifetime_s - sec) * 1e9))
         self._points: list = []
         self._colors: list = []
 
@@ -146,36 +154,23 @@ class MarkerArrayBuilder:
             q.z = z
         return out
 
-    def build(self, header: Any, xyz: Any, labels: Any, confidence: Any, delete_all: bool = False):
-        from visualization_msgs.msg import Marker, MarkerArray
-        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-        labels = np.asarray(labels, dtype=np.int64).reshape(-1)
-        conf = np.asarray(confidence, dtype=np.float64).reshape(-1)
-        M = len(self.names)
-        if labels.shape[0] != xyz.shape[0] or conf.shape[0] != xyz.shape[0]:
-            raise ValueError(f"labels {labels.shape} and confidence {conf.shape} must match xyz {xyz.shape}")
-        finite = np.isfinite(xyz).all(1)
-        valid = finite & (labels >= 0) & (labels < M)
-
-        # one point per label: the most confident one carrying it
-        point_of = np.full(M, -1, dtype=np.int64)
+    def _point_per_label(self, labels: np.ndarray, conf: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        """(M,) the most confident point carrying each label, -1 for none."""
+        point_of = np.full(len(self.names), -1, dtype=np.int64)
         idx = np.flatnonzero(valid)
         if idx.size:
             order = idx[np.lexsort((-conf[idx], labels[idx]))]
             first = np.ones(order.size, dtype=bool)
             first[1:] = labels[order[1:]] != labels[order[:-1]]
             point_of[labels[order[first]]] = order[first]
+        return point_of
 
-        markers = []
-        if delete_all:
-            self._delete_all.header = header if header is not None else self._delete_all.header
-            markers.append(self._delete_all)
-        used = 0
-        # labelled spheres
+    def _labelled_spheres(self, xyz: np.ndarray, labels: np.ndarray, conf: np.ndarray, idx: np.ndarray):
+        """The SPHERE_LIST of labelled points (colour per label, alpha by confidence)."""
+        from visualization_msgs.msg import Marker
         m = self._labelled
         m.action = Marker.ADD if idx.size else Marker.DELETE
-        m.points = self._fill(xyz[idx], used)
-        used += idx.size
+        m.points = self._fill(xyz[idx], 0)
         while len(self._colors) < idx.size:
             self._colors.append(_color((1.0, 1.0, 1.0, 1.0)))
         cols = self.colors[labels[idx]].copy()
@@ -188,7 +183,27 @@ class MarkerArrayBuilder:
         m.colors = self._colors[:idx.size]
         if idx.size:
             m.color = self._label_colors[labels[idx[0]]]
-        markers.append(m)
+        return m
+
+    def build(self, header: Any, xyz: Any, labels: Any, confidence: Any, delete_all: bool = False):
+        from visualization_msgs.msg import Marker, MarkerArray
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        labels = np.asarray(labels, dtype=np.int64).reshape(-1)
+        conf = np.asarray(confidence, dtype=np.float64).reshape(-1)
+        M = len(self.names)
+        if labels.shape[0] != xyz.shape[0] or conf.shape[0] != xyz.shape[0]:
+            raise ValueError(f"labels {labels.shape} and confidence {conf.shape} must match xyz {xyz.shape}")
+        finite = np.isfinite(xyz).all(1)
+        valid = finite & (labels >= 0) & (labels < M)
+
+        point_of = self._point_per_label(labels, conf, valid)
+        idx = np.flatnonzero(valid)
+        markers = []
+        if delete_all:
+            self._delete_all.header = header if header is not None else self._delete_all.header
+            markers.append(self._delete_all)
+        markers.append(self._labelled_spheres(xyz, labels, conf, idx))
+        used = idx.size
         # unlabelled spheres
         un = np.flatnonzero(finite & ~valid)
         m = self._unlabelled

@@ -1,8 +1,10 @@
-"""Problem-independent GA pieces shared by structure search and label search.
+"""Problem-independent GA pieces used by the one GA loop (:mod:`.evolve`).
 
-Small pure functions over arrays (the pymoo/DEAP shape): selection, elitism, termination and
-the paper's fitness transformation. Problem-specific sampling, crossover, mutation and
-repair live next to their encodings (:mod:`structure_ops`, :mod:`label_ops`).
+Small pure functions over arrays (the pymoo/DEAP shape): geometric rank selection, elitism
+and the termination rule. Problem-specific sampling, crossover, mutation and repair live
+next to their encodings (:mod:`.structure_ops`, :mod:`.label_ops`). The paper's fitness
+transformation (eq. 21) is strictly increasing, so rank selection on the log-likelihood
+selects the same parents and it is never computed.
 """
 from __future__ import annotations
 
@@ -10,20 +12,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-
-
-def transformed_fitness(log_lik: np.ndarray, k: float = 1.0, c: float = 0.0) -> np.ndarray:
-    """Eq. 21: ``f' = k / (c - f)`` for a log-likelihood ``f < c``.
-
-    Strictly increasing in ``f`` on ``f < c``, so every rank-based selection below gives the
-    same result on ``f`` and on ``f'``; we select on ranks and report ``f'`` only for the
-    paper's fitness-vs-generation plots. ``c`` must exceed every ``f`` (the paper's ``c >= 0``
-    assumes ``f < 0``; with continuous densities ``f`` may be positive, so pick ``c`` above).
-    """
-    log_lik = np.asarray(log_lik, dtype=np.float64)
-    if np.any(log_lik[np.isfinite(log_lik)] >= c):
-        raise ValueError("eq. 21 needs c greater than every log-likelihood")
-    return k / (c - log_lik)
 
 
 def geometric_rank_probabilities(n: int, q: float = 0.08) -> np.ndarray:

@@ -20,13 +20,15 @@ import math
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
+from typing import Sequence
 
 import numpy as np
 
 from .problem import FrameProblem
 from . import label_ops as ops
 from .dtm_dp import max_product, regions_of, relabel_regions
-from .ga import Termination, elite_indices, rank_select
+from .evolve import Island, Mating, evolve
+from .ga import Termination
 
 
 @dataclass
@@ -37,6 +39,9 @@ class SearchOutcome:
     evaluations: int = 0
     history: list[float] = field(default_factory=list)
     stop_reason: str = ""
+    model: int = 0                  # which problem (model) the assignment is scored under
+    per_model: dict = field(default_factory=dict)       # model -> (best assignment, fitness) of its island
+    island_sizes: list[int] = field(default_factory=list)
 
 
 @dataclass
@@ -183,7 +188,8 @@ def guided_sample(problem: FrameProblem, P: int, rng: np.random.Generator,
 
 
 def targeted_moves(ind: np.ndarray, n: int, mirror_pairs: np.ndarray, free_points: np.ndarray,
-                   close_pairs: np.ndarray | None = None, allowed: np.ndarray | None = None) -> np.ndarray:
+                   close_pairs: np.ndarray | None = None, allowed: np.ndarray | None = None,
+                   release: np.ndarray | None = None) -> np.ndarray:
     """The few moves a carried-over labeling most often needs: the whole mirror image, each
     left/right pair swapped, labels on nearby points swapped (``close_pairs``: where tracks
     cross) and every label (missing or not) moved onto each free point -- only where
@@ -209,15 +215,21 @@ def targeted_moves(ind: np.ndarray, n: int, mirror_pairs: np.ndarray, free_point
         mv = np.repeat(ind[None], lab.size, 0)
         mv[np.arange(lab.size), lab] = pt
         out.append(mv)
+    if release is not None and len(release):
+        rel = np.repeat(ind[None], len(release), 0)
+        rel[np.arange(len(release)), release] = n
+        out.append(rel)
     return np.concatenate(out)
 
 
 def polish(problem: FrameProblem, ind: np.ndarray, fit: float | None, rounds: int,
-           deadline: float | None = None, neighbours=None) -> tuple[np.ndarray, float, int]:
+           deadline: float | None = None, neighbours=None, last: dict | None = None) -> tuple[np.ndarray, float, int]:
     """Steepest ascent (at most ``rounds`` moves) over ``neighbours(ind)``; by default the
     full one-move :func:`label_ops.neighbourhood` within the distance bounds. ``fit`` None:
     the start is scored in the same batch as its first neighbourhood (one term-cache fill
-    for both: what a new frame's carried labeling needs)."""
+    for both: what a new frame's carried labeling needs). ``last``, if given, receives the
+    final neighbourhood and its fitnesses when the ascent stopped at a local optimum
+    (``ind``, ``cand``, ``fitness``): what the confidence of that optimum is read from."""
     if neighbours is None:
         def neighbours(x):
             return ops.neighbourhood(x, problem.n, pairs=problem.mirror_pairs, allowed=problem.allowed(x))
@@ -235,6 +247,8 @@ def polish(problem: FrameProblem, ind: np.ndarray, fit: float | None, rounds: in
         evals += len(cand)
         i = int(np.argmax(f))
         if f[i] <= fit + 1e-9:
+            if last is not None:
+                last.update(ind=ind, cand=cand, fitness=f)
             break
         ind, fit = cand[i], float(f[i])
     if fit is None:
@@ -243,64 +257,88 @@ def polish(problem: FrameProblem, ind: np.ndarray, fit: float | None, rounds: in
     return ind, fit, evals
 
 
-class _GABase(LabelSearch):
+class GASearch(LabelSearch):
+    """The label GA: :func:`.evolve.evolve` over one island per model, then (CBGA) a polish
+    of the best and of its mirror image and ``region_sweeps`` exact region sweeps.
+
+    Subclasses say how a population is sampled (:meth:`_sample`), how children are made
+    (:meth:`_mating`) and whether invalid individuals exist (:meth:`_valid`). One model
+    (:meth:`search`) is one island; a bank of models (:meth:`search_models`, Ukita) is one
+    island per model with a per-generation ``hook`` (migration)."""
+
+    finish = True
+
     def __init__(self, settings: GASettings | None = None):
         self.settings = settings or GASettings()
 
-    def _operators(self, problem, rng):
-        raise NotImplementedError
-
-    def _initial(self, problem, P, rng):
+    def _sample(self, problem: FrameProblem, P: int, rng: np.random.Generator) -> np.ndarray:
         return ops.sample(P, problem.M, problem.n, rng)
 
-    def search(self, problem, rng, seeds=None):
-        s = self.settings
+    def _mating(self, problem: FrameProblem) -> Mating:
+        raise NotImplementedError
+
+    def _valid(self, problem: FrameProblem):
+        return None
+
+    def initial_population(self, problem: FrameProblem, P: int, rng: np.random.Generator,
+                           seeds: np.ndarray | None = None) -> np.ndarray:
+        """``P`` individuals: without seeds, :meth:`_sample`; with seeds (warm start), the
+        seeds, mutants of the first seed and a share ``fresh_fraction`` of fresh samples."""
         M, n = problem.M, problem.n
+        if seeds is None or not len(seeds):
+            return self._sample(problem, P, rng)
+        seeds = ops.repair(np.asarray(seeds, dtype=np.int64).reshape(-1, M), n, rng)
+        k = min(len(seeds), P)
+        fresh = int((P - k) * self.settings.fresh_fraction)
+        return np.concatenate([seeds[:k], ops.mutate(np.repeat(seeds[:1], P - k - fresh, 0), n, rng, 1.0),
+                               self._sample(problem, fresh, rng) if fresh else np.zeros((0, M), np.int64)])
+
+    def search(self, problem, rng, seeds=None):
+        return self.search_models([problem], [self.settings.population], rng, seeds)
+
+    def search_models(self, problems: Sequence[FrameProblem], sizes: Sequence[int], rng: np.random.Generator,
+                      seeds: np.ndarray | None = None, hook=None) -> SearchOutcome:
+        """One GA over one island per problem (model), ``sizes[i]`` individuals each; the
+        outcome is the best individual over all islands (``model`` says under which),
+        finished on its own problem; ``per_model`` holds every island's best."""
+        s = self.settings
         deadline = None if s.time_budget_s is None else time.perf_counter() + s.time_budget_s
-        if seeds is not None and len(seeds):
-            # warm start: the seeds, mutants of the first seed, and a share of fresh samples
-            seeds = ops.repair(np.asarray(seeds, dtype=np.int64).reshape(-1, M), n, rng)
-            k = min(len(seeds), s.population)
-            fresh = int((s.population - k) * s.fresh_fraction)
-            pop = np.concatenate([seeds[:k], ops.mutate(np.repeat(seeds[:1], s.population - k - fresh, 0), n, rng, 1.0),
-                                  self._initial(problem, fresh, rng) if fresh else np.zeros((0, M), np.int64)])
-        else:
-            pop = self._initial(problem, s.population, rng)
-        cross, mutate, valid = self._operators(problem, rng)
-        fit = self._fitness(problem, pop, valid)
-        history = [float(fit.max())]
-        evals = len(pop)
-        term = Termination(max_generations=s.max_generations, stagnation=s.stagnation,
-                           time_budget=s.time_budget_s).start()
-        gen = 0
-        while not term.done(gen, history[-1]):
-            gen += 1
-            n_kids = s.population - s.n_elite
-            elite = pop[elite_indices(fit, s.n_elite)]
-            par = rank_select(fit, 2 * n_kids, rng, s.selection_q)
-            pa, pb = pop[par[:n_kids]], pop[par[n_kids:]]
-            do_x = rng.random(n_kids) < s.p_crossover
-            kids = np.where(do_x[:, None], cross(pa, pb), pa)
-            kids = mutate(kids)
-            pop = np.concatenate([elite, kids])
-            fit = self._fitness(problem, pop, valid)
-            evals += n_kids
-            history.append(float(fit.max()))
-        best = int(np.argmax(fit))
-        ind, f = pop[best].copy(), float(fit[best])
-        if self._polish and s.polish:
-            # polish the best and its mirror image: a flipped body is a deep local optimum
-            starts = [ind] + ([ops.mirror(ind[None], problem.mirror_pairs)[0]] if len(problem.mirror_pairs) else [])
-            for start in starts:
-                f0 = float(problem.fitness(start[None])[0])
-                cand, fc, e = polish(problem, start, f0, s.polish_rounds, deadline)
-                evals += e + 1
-                if fc > f:
-                    ind, f = cand, fc
-            ind, f, e = self._sweep_regions(problem, ind, f, deadline)
+        islands = [Island(self.initial_population(p, int(size), rng, seeds), self._evaluator(p), self._mating(p))
+                   for p, size in zip(problems, sizes)]
+        evo = evolve(islands, rng, Termination(max_generations=s.max_generations, stagnation=s.stagnation,
+                                               time_budget=s.time_budget_s),
+                     n_elite=s.n_elite, selection_q=s.selection_q, hook=hook)
+        per_model = {m: isl.best() for m, isl in enumerate(islands) if len(isl.pop)}
+        m = max(per_model, key=lambda q: per_model[q][1])
+        ind, f = per_model[m]
+        evals, history = evo.evaluations, evo.history
+        if self.finish and s.polish:
+            ind, f, e = self._finish(problems[m], ind, f, deadline)
             evals += e
             history.append(f)
-        return SearchOutcome(ind, f, gen, evals, history, term.reason)
+            per_model[m] = (ind, f)
+        return SearchOutcome(ind, f, evo.generations, evals, history, evo.stop_reason, model=m,
+                             per_model=per_model, island_sizes=[len(i.pop) for i in islands])
+
+    def _evaluator(self, problem: FrameProblem):
+        valid = self._valid(problem)
+        if valid is None:
+            return problem.fitness
+        return lambda pop: np.where(valid(pop), problem.fitness(pop), -np.inf)
+
+    def _finish(self, problem: FrameProblem, ind: np.ndarray, f: float, deadline) -> tuple[np.ndarray, float, int]:
+        """Polish the best and its mirror image (a flipped body is a deep local optimum),
+        then the region sweeps."""
+        evals = 0
+        starts = [ind] + ([ops.mirror(ind[None], problem.mirror_pairs)[0]] if len(problem.mirror_pairs) else [])
+        for start in starts:
+            f0 = float(problem.fitness(start[None])[0])
+            cand, fc, e = polish(problem, start, f0, self.settings.polish_rounds, deadline)
+            evals += e + 1
+            if fc > f:
+                ind, f = cand, fc
+        ind, f, e = self._sweep_regions(problem, ind, f, deadline)
+        return ind, f, evals + e
 
     def _sweep_regions(self, problem, ind, f, deadline):
         """``region_sweeps`` passes of :func:`relabel_regions` over every label's region,
@@ -324,13 +362,6 @@ class _GABase(LabelSearch):
                 break
         return ind, f, evals
 
-    @staticmethod
-    def _fitness(problem, pop, valid):
-        f = problem.fitness(pop)
-        if valid is not None:
-            f = np.where(valid(pop), f, -np.inf)
-        return f
-
 
 def ruin_and_recreate(problem: FrameProblem, pop: np.ndarray, rng: np.random.Generator,
                       rate: float, temperature: float = 3.0) -> np.ndarray:
@@ -348,33 +379,41 @@ def ruin_and_recreate(problem: FrameProblem, pop: np.ndarray, rng: np.random.Gen
     return out
 
 
-class CBGASearch(_GABase):
-    name = "cbga"
-    _polish = True
+class CBGASearch(GASearch):
+    """Constraint-based GA (section IV.A): model-guided initialisation, crossover along the
+    structure order with repair, constraint-based mutation plus ruin-and-recreate."""
 
-    def _initial(self, problem, P, rng):
+    name = "cbga"
+
+    def _sample(self, problem, P, rng):
         # a ladder of temperatures: exact ancestral samples plus hotter, more diverse ones
         return guided_sample(problem, P, rng, self.settings.temperatures[np.arange(P) % len(self.settings.temperatures)])
 
-    def _operators(self, problem, rng):
+    def _mating(self, problem):
+        s, n = self.settings, problem.n
         order = np.array(problem.model.structure.to_string()[:3] +
                          [t[0] for t in problem.model.structure.triangles[1:]])
-        n = problem.n
-        return (lambda a, b: ops.crossover(a, b, order, n, rng),
-                lambda p: ruin_and_recreate(problem, ops.mutate(p, n, rng, self.settings.p_mutation,
-                                                                pairs=problem.mirror_pairs), rng, self.settings.p_recreate),
-                None)
+        return Mating(lambda a, b, rng: ops.crossover(a, b, order, n, rng),
+                      lambda p, rng: ruin_and_recreate(problem, ops.mutate(p, n, rng, s.p_mutation,
+                                                                           pairs=problem.mirror_pairs),
+                                                       rng, s.p_recreate),
+                      s.p_crossover)
 
 
-class SimpleGASearch(_GABase):
+class SimpleGASearch(GASearch):
+    """The simple GA baseline: plain operators, invalid children get the death penalty."""
+
     name = "sga"
-    _polish = False
+    finish = False
 
-    def _operators(self, problem, rng):
-        n, M = problem.n, problem.M
-        return (lambda a, b: ops.crossover_plain(a, b, rng),
-                lambda p: ops.mutate_plain(p, n, rng, self.settings.p_mutation / max(M, 1) * 2, swap=True),
-                lambda p: ops.is_valid(p, n))
+    def _mating(self, problem):
+        s, n, M = self.settings, problem.n, problem.M
+        return Mating(lambda a, b, rng: ops.crossover_plain(a, b, rng),
+                      lambda p, rng: ops.mutate_plain(p, n, rng, s.p_mutation / max(M, 1) * 2, swap=True),
+                      s.p_crossover)
+
+    def _valid(self, problem):
+        return lambda pop: ops.is_valid(pop, problem.n)
 
 
 class GreedySearch(LabelSearch):
@@ -443,4 +482,4 @@ def make_search(name: str, settings: GASettings | None = None) -> LabelSearch:
     if name not in SEARCHES:
         raise ValueError(f"unknown search method {name!r}; choose from {', '.join(SEARCHES)}")
     cls = SEARCHES[name]
-    return cls(settings) if issubclass(cls, _GABase) else cls()
+    return cls(settings) if issubclass(cls, GASearch) else cls()

@@ -29,7 +29,8 @@ import numpy as np
 from ..model.features import FEATURE_MATRIX, FULL, MISSING, STATE_DIM, observed_map
 from ..model.structure import Structure, is_valid
 from . import structure_ops as ops
-from .ga import Termination, elite_indices, rank_select
+from .evolve import Island, evolve
+from .ga import Termination
 
 LOG_2PI = float(np.log(2 * np.pi))
 
@@ -119,11 +120,10 @@ def cbga(scores: TripleScores, n_vertices: int, *, population: int = 60, generat
          progress: Callable[[int, float], None] | None = None) -> SearchResult:
     """Constraint-based GA over structures (section IV.A): every individual stays valid."""
     rng = np.random.default_rng(seed)
-    return _evolve(
-        scores, rng, ops.sample(population, n_vertices, rng, root_pairs),
-        lambda a, b: ops.crossover(a, b, n_vertices, rng, root_pairs) if rng.random() < p_crossover else a.copy(),
-        lambda x: ops.mutate(x, n_vertices, rng, p_mutation, root_pairs),
-        n_vertices, generations, n_elite, stagnation, progress, root_pairs)
+    return _search(scores, n_vertices, rng, ops.sample(population, n_vertices, rng, root_pairs),
+                   lambda a, b: ops.crossover(a, b, n_vertices, rng, root_pairs),
+                   lambda x: ops.mutate(x, n_vertices, rng, p_mutation, root_pairs),
+                   p_crossover, generations, n_elite, stagnation, progress, root_pairs)
 
 
 def refine(scores: TripleScores, res: SearchResult, n_vertices: int, rng: np.random.Generator,
@@ -150,40 +150,38 @@ def simple_ga(scores: TripleScores, n_vertices: int, *, population: int = 60, ge
               progress: Callable[[int, float], None] | None = None) -> SearchResult:
     """Baseline: the same GA with plain operators; invalid offspring get the death penalty."""
     rng = np.random.default_rng(seed)
-    return _evolve(
-        scores, rng, ops.sample(population, n_vertices, rng, root_pairs),
-        lambda a, b: ops.crossover_plain(a, b, rng) if rng.random() < p_crossover else a.copy(),
-        lambda x: ops.mutate_plain(x, n_vertices, rng, p_mutation),
-        n_vertices, generations, n_elite, stagnation, progress, root_pairs)
+    return _search(scores, n_vertices, rng, ops.sample(population, n_vertices, rng, root_pairs),
+                   lambda a, b: ops.crossover_plain(a, b, rng),
+                   lambda x: ops.mutate_plain(x, n_vertices, rng, p_mutation),
+                   p_crossover, generations, n_elite, stagnation, progress, root_pairs)
 
 
-def _evolve(scores, rng, pop, cross, mutate, n_vertices, generations, n_elite, stagnation, progress, root_pairs):
-
+def _search(scores, n_vertices, rng, pop, cross, mutate, p_crossover, generations, n_elite, stagnation,
+            progress, root_pairs) -> SearchResult:
+    """:func:`.evolve.evolve` on one island of structure strings. The structure operators
+    act on one string at a time (``repair`` walks the triangles), so children are made pair
+    by pair (consecutive parents): crossover with probability ``p_crossover`` (else a copy of
+    the first parent), then mutation."""
     def fitness(p):
         f = scores.score(p)
         valid = np.array([is_valid(x, n_vertices) and ops.root_ok(x[0], root_pairs) for x in p])
         return np.where(valid, f, -np.inf)
 
-    fit = fitness(pop)
-    history = [float(fit.max())]
-    evals = len(pop)
-    term = Termination(max_generations=generations, stagnation=stagnation).start()
-    gen = 0
-    while not term.done(gen, history[-1]):
-        gen += 1
-        elite = pop[elite_indices(fit, n_elite)]
-        parents = rank_select(fit, 2 * (len(pop) - n_elite), rng)
-        kids = np.stack([mutate(cross(pop[parents[2 * i]], pop[parents[2 * i + 1]]))
-                         for i in range(len(pop) - n_elite)])
-        pop = np.concatenate([elite, kids])
-        fit = fitness(pop)
-        evals += len(kids)
-        history.append(float(fit.max()))
+    def offspring(pop, parents, _rng):
+        return np.stack([mutate(cross(pop[a], pop[b]) if rng.random() < p_crossover else pop[a].copy())
+                         for a, b in zip(parents[0::2], parents[1::2])])
+
+    def hook(islands, gen):
         if progress:
-            progress(gen, history[-1])
-    best = int(np.argmax(fit))
-    return SearchResult(Structure.from_string(pop[best], n_vertices), float(fit[best]), history,
-                        evals, gen, term.reason)
+            progress(gen, float(islands[0].fit.max()))
+        return 0
+
+    island = Island(pop, fitness, offspring)
+    evo = evolve([island], rng, Termination(max_generations=generations, stagnation=stagnation),
+                 n_elite=n_elite, selection_q=0.08, hook=hook)
+    best, f = island.best()
+    return SearchResult(Structure.from_string(best, n_vertices), f, evo.history, evo.evaluations,
+                        evo.generations, evo.stop_reason)
 
 
 def along_tree(scores: TripleScores, parents: np.ndarray, root_pairs: np.ndarray | None = None) -> SearchResult:

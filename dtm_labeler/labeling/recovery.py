@@ -1,0 +1,421 @@
+"""Recovery searches, run where they do not hold the stream up.
+
+When the fast path cannot vouch for a frame (no carried labeling, or one that fits worse
+than the model expects), the labeler needs a search: a warm-started GA and, if that still
+falls short, full GAs with restarts. Such a search costs 50 ms to 1 s -- six to a hundred
+frames of a 120 Hz stream. Where it runs is the :class:`Recovery` executor's business:
+
+* :class:`InlineRecovery` runs it at once, in the frame that asked (offline labeling:
+  deterministic, every frame gets the searched labeling; the paper's setting);
+* :class:`ProcessRecovery` hands it to a worker process that holds its own copy of the
+  labeler (same class, models and settings) and returns at once. The stream goes on with the
+  best labeling known (carried by the tracks, flagged as doubtful); the result joins a later
+  frame through the track ids of the frame it was asked for
+  (:meth:`~.tracked.TrackedLabeler._join`), and is taken only if the current frame's problem
+  scores it higher. A process, not a thread: a search is Python-heavy and would hold the GIL
+  the frame loop needs; on two cores the worker runs beside it.
+
+A request carries everything the search needs (the frame's point states and track ids,
+heading hint, seeds, the fitness levels the restart rule reads, the bank's shares), so the
+worker keeps nothing between requests but its models and settings. The worker is started
+with the labeler and connects over a local socket (authenticated with a random key passed on
+its stdin); until it is up, and if it ever dies, requests run inline.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field, replace
+from multiprocessing.connection import Client, Connection, Listener
+
+import numpy as np
+
+#: recovery kinds: a warm-started search (full GA when it falls short), a full search, audits: a
+#: region sweep of the current labeling or a full search from scratch while the labeling looks fine
+KINDS = ("recover", "full", "sweep", "audit")
+
+
+@dataclass
+class RecoveryRequest:
+    epoch: int                      # stream epoch (resets start a new one; old results are dropped)
+    frame: int                      # frame number it was asked in
+    states: np.ndarray              # (n, 6) the frame's point states
+    track_ids: np.ndarray           # (n,) their track ids
+    heading: float | None           # heading hint of the frame
+    seeds: np.ndarray | None        # (S, M) warm-start labelings (first = heading anchor)
+    searched: list[int]             # models searched
+    state: dict                     # labeler state the search reads (fitness levels, shares)
+    seed: int                       # random seed of the search
+    kind: str = "recover"
+
+
+@dataclass
+class RecoveryResult:
+    request: RecoveryRequest
+    candidates: dict                # model -> (assignment, fitness) over the request's points
+    full: bool
+    generations: int
+    evaluations: int
+    state: dict = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+class Recovery:
+    """Executor interface: ``submit`` a request, ``poll`` for the result (None while running)."""
+
+    inline = False
+    failed = ""
+    last_error = ""
+
+    @property
+    def busy(self) -> bool:
+        return False
+
+    @property
+    def background_ready(self) -> bool:
+        """A background worker is up to take requests (audits wait for it)."""
+        return False
+
+    def submit(self, request: RecoveryRequest) -> None:
+        raise NotImplementedError
+
+    def poll(self) -> RecoveryResult | None:
+        raise NotImplementedError
+
+    def configure(self, labeler) -> None:
+        """The labeler's models or settings changed: searches from now on use the new ones."""
+
+    def close(self) -> None:
+        """Free the executor's resources (idempotent)."""
+
+
+class InlineRecovery(Recovery):
+    """Runs every request at once on the labeler itself (same random stream)."""
+
+    inline = True
+
+    def __init__(self, labeler):
+        self.labeler = labeler
+        self._result: RecoveryResult | None = None
+
+    def submit(self, request: RecoveryRequest) -> None:
+        self._result = self.labeler.recover(request)
+
+    def poll(self) -> RecoveryResult | None:
+        out, self._result = self._result, None
+        return out
+
+
+class DeferredRecovery(Recovery):
+    """Background recovery made deterministic, for evaluation: the search runs at once in this
+    process (on its own random stream, as a worker would), its result is handed out
+    ``delay_frames`` polls later -- the frames a worker would take."""
+
+    def __init__(self, labeler, delay_frames: int = 12):
+        self.labeler, self.delay = labeler, int(delay_frames)
+        self._result: RecoveryResult | None = None
+        self._wait = 0
+
+    @property
+    def busy(self) -> bool:
+        return self._result is not None
+
+    @property
+    def background_ready(self) -> bool:
+        return True
+
+    def submit(self, request: RecoveryRequest) -> None:
+        state = self.labeler._search_state()
+        rng = self.labeler.rng
+        self._result = self.labeler.recover(request, rng=np.random.default_rng(request.seed))
+        self.labeler._set_search_state(state)
+        self.labeler.rng = rng
+        self._wait = self.delay
+
+    def poll(self) -> RecoveryResult | None:
+        if self._result is None:
+            return None
+        self._wait -= 1
+        if self._wait > 0:
+            return None
+        out, self._result = self._result, None
+        return out
+
+
+def worker_spec(labeler) -> dict:
+    """What a worker needs to rebuild ``labeler``: its class, models (model file bytes, never
+    pickled objects), action names and settings."""
+    from ..model.io import model_to_bytes
+    return {"cls": type(labeler).__name__, "names": list(labeler.engine.names),
+            "models": [model_to_bytes(m) for m in labeler.engine.base],
+            "settings": labeler.settings, "bank_settings": getattr(labeler, "bank_settings", None)}
+
+
+def build_worker_labeler(spec: dict):
+    """The labeler a worker searches with (inline recovery, no worker of its own)."""
+    from ..model.bank import ModelBank
+    from ..model.io import model_from_bytes
+    from .bank_labeler import BankLabeler
+    from .stream import StreamLabeler
+    from .tracked import Engine
+    settings = replace(spec["settings"], recovery="inline")     # a worker searches itself
+    models = [model_from_bytes(b, "recovery worker") for b in spec["models"]]
+    engine = Engine.prepare(models, settings.noise_mm, spec["names"])
+    if spec["cls"] == "BankLabeler":
+        bank = ModelBank(dict(zip(spec["names"], models)))
+        return BankLabeler(bank, settings, spec["bank_settings"], engine=engine)
+    return StreamLabeler(engine, settings)
+
+
+class WorkerProcess:
+    """A started worker process (``python -m dtm_labeler.labeling.recovery``) and, once it has
+    connected, the connection to it. Starting one costs 1-2 s of imports; :func:`keep_spare_worker`
+    keeps one started ahead, so that a labeler built later (a node's first model, a reload)
+    finds its worker already up."""
+
+    def __init__(self):
+        self.failed = ""
+        self.conn: Connection | None = None
+        self._lock = threading.Lock()
+        key = os.urandom(16)
+        self._listener = Listener(family="AF_UNIX", authkey=key)
+        env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
+        self.proc = subprocess.Popen([sys.executable, "-m", "dtm_labeler.labeling.recovery",
+                                      self._listener.address], stdin=subprocess.PIPE, env=env,
+                                     start_new_session=True)
+        self.proc.stdin.write(key.hex().encode() + b"\n")
+        self.proc.stdin.close()
+        self.on_connect = None
+        threading.Thread(target=self._accept, name="dtm_labeler_recovery_accept", daemon=True).start()
+
+    def _accept(self) -> None:
+        try:
+            conn = self._listener.accept()
+        except (OSError, EOFError) as e:
+            self.failed = self.failed or f"recovery worker did not connect: {e}"
+            return
+        with self._lock:
+            self.conn = conn
+            hook = self.on_connect
+        if hook is not None:
+            hook()
+
+    def alive(self) -> bool:
+        return not self.failed and self.proc.poll() is None
+
+    def close(self) -> None:
+        with self._lock:
+            conn, self.conn = self.conn, None
+            self.failed = self.failed or "closed"
+        if conn is not None:
+            try:
+                conn.send(("stop", None))
+            except (OSError, EOFError):
+                pass
+            conn.close()
+        if self.proc.poll() is None:
+            try:
+                self.proc.wait(1.0)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        try:
+            self._listener.close()
+        except OSError:
+            pass
+
+
+_spare: WorkerProcess | None = None
+_keep_spare = False
+_spare_lock = threading.Lock()
+
+
+def keep_spare_worker(keep: bool = True) -> None:
+    """Keep one worker process started ahead of need (a long-running node asks for this)."""
+    global _keep_spare, _spare
+    with _spare_lock:
+        _keep_spare = keep
+        if keep and (_spare is None or not _spare.alive()):
+            _spare = WorkerProcess()
+        elif not keep and _spare is not None:
+            _spare.close()
+            _spare = None
+
+
+def _take_worker() -> WorkerProcess:
+    global _spare
+    with _spare_lock:
+        w, _spare = _spare, None
+        if _keep_spare:
+            _spare = WorkerProcess()
+    return w if w is not None and w.alive() else WorkerProcess()
+
+
+class ProcessRecovery(Recovery):
+    """Recovery in a worker process. Until the worker has built its labeler (``ready``) and if
+    it ever fails, requests run inline, in the frame that asks."""
+
+    def __init__(self, labeler):
+        self.failed = ""
+        self._labeler = labeler                 # runs requests inline until the worker is up
+        self._sent = 0                          # requests sent
+        self._answered = 0                      # of them answered (results are read in order)
+        self.ready = False                      # the worker has built its labeler
+        self._inline: RecoveryResult | None = None
+        self._spec = worker_spec(labeler)
+        self._base = labeler.engine.base
+        self._spec_sent = False
+        self._worker = _take_worker()
+        self._worker.on_connect = self._ready
+        if self._worker.conn is not None:
+            self._ready()                       # the worker builds its labeler now, before any request
+
+    @property
+    def _conn(self) -> Connection | None:
+        return self._worker.conn
+
+    @property
+    def _proc(self):
+        return self._worker.proc
+
+    def _ready(self) -> Connection | None:
+        """The connection once the worker is up (with its current spec sent), else None."""
+        conn = self._worker.conn
+        if conn is None or self.failed or self._worker.failed:
+            return None
+        with self._worker._lock:
+            if not self._spec_sent:
+                try:
+                    conn.send(("setup", self._spec))
+                    self._spec_sent = True
+                except (OSError, EOFError) as e:
+                    self._fail(e)
+                    return None
+        return conn
+
+    def configure(self, labeler) -> None:
+        """Models changed: the worker rebuilds from the new spec; settings only: it takes them."""
+        self._labeler = labeler
+        base = labeler.engine.base
+        if len(base) != len(self._base) or any(a is not b for a, b in zip(base, self._base)):
+            self._base = base
+            self._spec, self._spec_sent = worker_spec(labeler), False
+        else:
+            self._spec = dict(self._spec, settings=labeler.settings,
+                              bank_settings=getattr(labeler, "bank_settings", None))
+            conn = self._ready() if self._spec_sent else None
+            if conn is not None:
+                try:
+                    conn.send(("settings", (labeler.settings, self._spec["bank_settings"])))
+                except (OSError, EOFError) as e:
+                    self._fail(e)
+
+    @property
+    def busy(self) -> bool:
+        return self._answered < self._sent
+
+    @property
+    def background_ready(self) -> bool:
+        return self.ready and not self.failed
+
+    def submit(self, request: RecoveryRequest) -> None:
+        conn = self._ready() if self.ready else None
+        if conn is None:                        # not up yet (or gone): search here and now
+            self._inline = self._labeler.recover(request)
+            return
+        try:
+            conn.send(("recover", request))
+            self._sent += 1
+        except (OSError, EOFError) as e:
+            self._fail(e)
+            self._inline = self._labeler.recover(request)
+
+    def poll(self) -> RecoveryResult | None:
+        if self._inline is not None:
+            out, self._inline = self._inline, None
+            return out
+        if self._conn is None or (self.ready and not self.busy):
+            return None
+        self._ready()
+        try:
+            while self._conn.poll():
+                kind, payload = self._conn.recv()
+                if kind == "ready":
+                    self.ready = True
+                elif kind == "error":             # that request failed; the worker goes on
+                    self._answered += 1
+                    self.last_error = str(payload)
+                elif kind == "result":
+                    self._answered += 1
+                    return payload
+        except (OSError, EOFError) as e:
+            self._fail(e)
+        return None
+
+    def _fail(self, why) -> None:
+        self.failed = f"recovery worker failed: {why}"
+        self._answered = self._sent
+
+    def close(self) -> None:
+        self.failed = self.failed or "closed"
+        self._worker.close()
+
+
+def serve(address: str, key: bytes) -> int:
+    """The worker: rebuild the labeler from ``setup``, run ``recover`` requests, stop on ``stop``
+    or when the labeler's process goes away (its end of the connection closes)."""
+    try:
+        conn = Client(address, family="AF_UNIX", authkey=key)
+    except OSError:                       # the labeler closed before this worker was up
+        return 0
+    labeler = None
+    try:
+        while True:
+            kind, payload = conn.recv()
+            if kind == "stop":
+                return 0
+            try:
+                reply = _handle(kind, payload, labeler)
+            except (OSError, EOFError):
+                raise
+            except Exception as e:        # report, keep serving: one bad request must not end the worker
+                conn.send(("error", f"{type(e).__name__}: {e}"))
+                continue
+            if kind == "setup":
+                labeler = reply
+                conn.send(("ready", None))
+            elif reply is not None:
+                conn.send(("result", reply))
+    except (OSError, EOFError):
+        return 0
+
+
+def _handle(kind: str, payload, labeler):
+    if kind == "setup":
+        return build_worker_labeler(payload)
+    if kind == "settings":
+        settings, bank_settings = payload
+        settings = replace(settings, recovery="inline")
+        if bank_settings is not None:
+            labeler.update_settings(settings, bank_settings)
+        else:
+            labeler.update_settings(settings)
+        return None
+    if kind == "recover":
+        t0 = time.perf_counter()
+        res = labeler.recover(payload, rng=np.random.default_rng(payload.seed))
+        res.seconds = time.perf_counter() - t0
+        return res
+    raise ValueError(f"unknown request {kind!r}")
+
+
+def main() -> int:
+    key = bytes.fromhex(sys.stdin.readline().strip())
+    return serve(sys.argv[1], key)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,107 @@
+"""The managed (lifecycle) variant of the dtm_labeler node.
+
+Run::
+
+    dtm-labeler-lifecycle-node --ros-args -p model_path:=/path/model.npz
+    ros2 run dtm_labeler labeler_lifecycle_node --ros-args -p model_path:=/path/model.npz
+    ros2 lifecycle set /dtm_labeler configure      # then activate / deactivate / cleanup
+
+Same topics, parameters and services as :mod:`dtm_labeler.ros.node`, by state:
+
+=================  ===========================================================================
+unconfigured       parameters only (settable; nothing loaded, nothing published)
+configure          loads the model (on the loader thread; the transition waits for it and fails,
+                   with the reason logged, when the file is refused or model_path is empty);
+                   creates the publishers (lifecycle ones), ``~/reset``, ``~/reload`` and the
+                   ``/diagnostics`` timer
+inactive           diagnostics say "inactive"; no subscription, nothing labelled
+activate           publishers enabled, input subscription created: labelling
+deactivate         input subscription destroyed (a frame still waiting is dropped as
+                   ``inactive``), publishers disabled
+cleanup            publishers, services and timer destroyed, the model freed
+=================  ===========================================================================
+"""
+from __future__ import annotations
+
+import sys
+import time
+from typing import List, Optional
+
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+
+from . import params as P
+from .core import LabelerCore
+from .node import run
+
+__all__ = ["LabelerLifecycleNode", "main"]
+
+#: the longest configure waits for the model (a 41-marker bank loads in about a second)
+CONFIGURE_TIMEOUT_S = 30.0
+
+
+class LabelerLifecycleNode(LifecycleNode):
+    """See the module doc; ``kwargs`` go to :class:`rclpy.lifecycle.LifecycleNode`."""
+
+    def __init__(self, node_name: str = P.NODE_NAME, **kwargs):
+        super().__init__(node_name, **kwargs)
+        self.core = LabelerCore(self, lifecycle=True)
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        core = self.core
+        if not core.load_model("configure") or not self._wait_loaded():
+            self.get_logger().error(f"configure failed: {core.model['error'] or 'the model did not load'}")
+            return TransitionCallbackReturn.FAILURE
+        core.open_outputs()
+        return super().on_configure(state)
+
+    def _wait_loaded(self) -> bool:
+        """Wait (off the labeling path: the executor is ours during a transition) until the
+        worker runs the loaded model; False when it was refused or the process is stopping."""
+        end = time.monotonic() + CONFIGURE_TIMEOUT_S
+        while time.monotonic() < end and self.context.ok():
+            status = self.core.model["status"]
+            if status == "loaded" and self.core.worker.engine is not None:
+                return True
+            if status in ("no model", "reload failed") and self.core.loader.idle():
+                return False
+            time.sleep(0.01)
+        return False
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        ret = super().on_activate(state)          # enables the lifecycle publishers first
+        self.core.open_input()
+        return ret
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.core.close_input()
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.core.close_outputs()
+        self.core.unload("cleaned up (lifecycle): configure loads the model again")
+        return super().on_cleanup(state)
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.core.close_input()
+        self.core.close_outputs()
+        self.core.unload("shut down (lifecycle)")
+        return super().on_shutdown(state)
+
+    def diagnostics(self):
+        return self.core.diagnostics()
+
+    def stop(self, timeout: float = 0.3) -> bool:
+        return self.core.shutdown(timeout)
+
+    def destroy_node(self):
+        self.stop()
+        return super().destroy_node()
+
+
+def main(args: Optional[List[str]] = None) -> int:
+    """Entry point of ``dtm-labeler-lifecycle-node`` / ``ros2 run dtm_labeler labeler_lifecycle_node``."""
+    return run(LabelerLifecycleNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

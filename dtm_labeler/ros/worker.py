@@ -1,0 +1,185 @@
+"""The node's worker thread: owns the labeler, labels the newest frame, never queues.
+
+* Frames arrive in a ONE-SLOT buffer (:meth:`LabelWorker.submit`, executor thread): a frame still
+  waiting there is replaced by the newer one and counted ``stale`` -- there is no other queue in
+  the node (DDS history is keep-last), so latency cannot build up: when labeling is slower than
+  the input, the node labels the newest frame and drops the ones in between. A reset a dropped
+  frame asked for (a gap, a loop) is carried over to the frame that replaces it. The dropped
+  frames are not lost to the tracker: the newest ``OBSERVED_SKIPS`` of them are observed
+  (:meth:`NodeLabeler.observe`, a tracker update) before the next labelled frame, so the
+  tracks -- and the labels they carry -- survive the skip and the next frame needs no new search.
+* Between two frames the worker swaps in what the loader prepared (:meth:`install`), applies the
+  newest settings (:meth:`settings`; older ones waiting are dropped) and runs a requested reset
+  (:meth:`request_reset`) -- all fast: the slow part (reading files, widening the model) was done
+  by the loader thread.
+* The worker is the only thread that touches the :class:`~.engine.NodeLabeler`. It calls
+  ``label(frame, engine)`` (the node's frame handler) and ``on_event(kind, detail)`` for what
+  the node reports: ``loaded`` ((LoadResult, new | replaced | swapped | same | unloaded)),
+  ``load_failed`` (LoadResult),
+  ``settings``, ``reset`` (reason), ``error`` (text). :meth:`stop` returns within its timeout even during a long search (the
+  thread is a daemon; the handler must not publish once :attr:`stopping` is set).
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from typing import Any, Callable, List, Optional
+
+from .engine import NodeLabeler
+from .loader import LoadResult
+
+__all__ = ["Frame", "LabelWorker", "OBSERVED_SKIPS"]
+
+#: skipped frames the tracker still follows before the next labelled frame
+OBSERVED_SKIPS = 16
+
+
+@dataclass
+class Frame:
+    """One decoded input frame on its way to the labeler."""
+
+    xyz: Any                     # (n, 3) float64
+    ids: Any                     # (n,) int64 for every point, or None (partial ids are dropped)
+    header: Any                  # the output header (frame_id filled in)
+    stamp: float                 # the labeler's time (stamps.StampGuard)
+    header_stamp: float          # the header's own stamp (visualisation throttle)
+    t_recv: float                # perf_counter() at callback entry
+    decode_ms: float
+    frame_number: Optional[int] = None
+    resets: List[str] = field(default_factory=list)     # reset the window first, for these reasons
+
+
+class LabelWorker:
+    def __init__(self, label: Callable[[Frame, Optional[NodeLabeler]], None],
+                 on_event: Callable[[str, Any], None], settings: Any, name: str = "dtm_labeler_worker"):
+        self._label = label
+        self.current_settings = settings      # what engines are built with (newest applied)
+        self._on_event = on_event
+        self._cond = threading.Condition()
+        self._slot: Optional[Frame] = None
+        self._skipped: List[Frame] = []       # frames replaced in the slot, for the tracker
+        self._result: Optional[LoadResult] = None
+        self._settings: Any = None
+        self._reset: List[str] = []
+        self._stop = False
+        self._paused = False
+        self.engine: Optional[NodeLabeler] = None
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop
+
+    def start(self) -> None:
+        if not self._thread.is_alive():
+            self._thread.start()
+
+    def stop(self, timeout: float = 0.3) -> bool:
+        """Stop; True when the thread ended within ``timeout``."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+        return not self._thread.is_alive()
+
+    # -- from other threads ------------------------------------------------------------------
+    def submit(self, frame: Frame) -> Optional[Frame]:
+        """Put ``frame`` in the slot; returns the frame it replaced (now stale), if any."""
+        with self._cond:
+            old, self._slot = self._slot, frame
+            if old is not None:
+                frame.resets = old.resets + frame.resets
+                self._skipped = (self._skipped + [old])[-OBSERVED_SKIPS:]
+            self._cond.notify()
+            return old
+
+    def install(self, result: LoadResult) -> None:
+        with self._cond:
+            self._result = result
+            self._cond.notify()
+
+    def settings(self, settings: Any) -> None:
+        with self._cond:
+            self._settings = settings
+            self._cond.notify()
+
+    def request_reset(self, reason: str) -> None:
+        with self._cond:
+            self._reset.append(reason)
+            self._cond.notify()
+
+    def discard(self) -> Optional[Frame]:
+        """Drop the waiting frame, if any (input closed); returns it."""
+        with self._cond:
+            old, self._slot, self._skipped = self._slot, None, []
+            return old
+
+    def drop_engine(self) -> None:
+        """Forget the engine and anything the loader delivered for it (lifecycle cleanup)."""
+        with self._cond:
+            old, self.engine, self._result = self.engine, None, None
+        if old is not None:
+            old.close()
+
+    # -- worker thread -------------------------------------------------------------------------
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while (self._slot is None and self._result is None and self._settings is None
+                       and not self._reset and not self._stop):
+                    self._cond.wait()
+                if self._stop:
+                    return
+                frame, self._slot = self._slot, None
+                skipped, self._skipped = self._skipped, []
+                result, self._result = self._result, None
+                settings, self._settings = self._settings, None
+                resets, self._reset = self._reset, []
+            self._between_frames(result, settings, resets)
+            if frame is not None and not self._stop:
+                self._observe(skipped if not (resets or frame.resets) else [])
+                self._label(frame, self.engine)
+
+    def _observe(self, skipped: List[Frame]) -> None:
+        if self.engine is None:
+            return
+        try:
+            for f in skipped:
+                self.engine.observe(f.xyz, f.stamp, f.ids)
+        except Exception as e:   # never let the worker die
+            self._on_event("error", f"{type(e).__name__}: {e}")
+
+    def _between_frames(self, result: Optional[LoadResult], settings: Any, resets: List[str]) -> None:
+        try:
+            if settings is not None:
+                self.current_settings = settings
+            if result is not None:
+                self._swap(result)
+            if settings is not None and self.engine is not None and self.engine.update_settings(settings):
+                self._on_event("settings", settings)
+            if resets and self.engine is not None:
+                self.engine.reset()
+                for reason in resets:
+                    self._on_event("reset", reason)
+        except Exception as e:   # never let the worker die
+            self._on_event("error", f"{type(e).__name__}: {e}")
+
+    def _swap(self, result: LoadResult) -> None:
+        if result.error:
+            self._on_event("load_failed", result)
+            return
+        p, old = result.prepared, self.engine
+        if p is None:
+            self.engine, change = None, "unloaded"
+        elif old is not None and old.prepared is p:
+            change = "same"                        # the same models: nothing to swap
+        elif old is not None and not result.request.reload and old.same_source(p):
+            old.swap_models(p)                     # another noise (or bank settings): tracks stay
+            change = "swapped"
+        else:
+            self.engine = NodeLabeler(p, self.current_settings)
+            change = "replaced" if old is not None else "new"
+        if old is not None and self.engine is not old:
+            old.close()
+        self._on_event("loaded", (result, change))

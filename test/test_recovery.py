@@ -1,0 +1,130 @@
+"""Bounded frames: recovery searches in the background, results joining later frames through
+the track ids, skipped frames observed by the tracker, and confidences that mean something."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from dtm_labeler.evaluation.metrics import MetricsAccumulator
+from dtm_labeler.labeling.config import LabelerSettings
+from dtm_labeler.labeling.recovery import DeferredRecovery, ProcessRecovery
+from dtm_labeler.labeling.stream import StreamLabeler
+from dtm_labeler.labeling.tracker import Tracker, TrackerSettings
+from dtm_labeler.motion.synthetic import synthesize
+from dtm_labeler.training.train import TrainConfig, train_model
+
+CFG = TrainConfig(mixture="fixed", k_fixed=2, structure="given")
+
+
+@pytest.fixture(scope="module")
+def model():
+    clips = [synthesize(duration=3.0, seed=s, heading=h, noise_mm=2) for s, h in [(0, 0.0), (1, 1.0), (2, 2.5)]]
+    return train_model(clips, CFG)[0]
+
+
+@pytest.fixture(scope="module")
+def walker():
+    return synthesize(duration=1.5, seed=7, heading=-2.0, noise_mm=2, start_xy=(1.0, 2.0))
+
+
+def shuffled(clip, k, rng, ghosts=1):
+    pts = clip.positions[k]
+    g = pts.mean(0) + rng.uniform(-0.8, 0.8, size=(ghosts, 3))
+    xyz = np.vstack([pts, g])
+    truth = np.r_[np.arange(14), np.full(ghosts, -1)]
+    perm = rng.permutation(len(xyz))
+    return xyz[perm], truth[perm]
+
+
+def test_deferred_recovery_publishes_doubtful_frames_then_joins(model, walker):
+    """In the background mode a frame that needs a search is answered at once -- nothing
+    labelled at the start, flagged doubtful -- and the search's labeling joins ``delay``
+    frames later through the track ids, after which the stream is labelled right."""
+    lab = StreamLabeler(model, LabelerSettings(recovery="background", audit_period_s=0))
+    lab.recovery.close()
+    lab.recovery = DeferredRecovery(lab, delay_frames=6)
+    rng = np.random.default_rng(0)
+    doubt, recovered, acc = [], [], []
+    for k in range(40):
+        xyz, truth = shuffled(walker, k, rng)
+        r = lab.process(xyz, k / walker.rate)
+        doubt.append(r.doubtful)
+        recovered.append(r.recovered)
+        acc.append(float(np.mean(r.labels[truth >= 0] == truth[truth >= 0])))
+        if r.doubtful:
+            assert (r.confidence <= 0.5 + 1e-9).all()          # doubtful frames are not published as certain
+    first = recovered.index(True)
+    assert 5 <= first <= 9                                     # asked in frame 1 (velocities), 6 frames later
+    assert all(doubt[1:first]) and not any(r for r in recovered[first + 1:first + 3])
+    assert all(a == 0 for a in acc[:first])                    # nothing known, nothing labelled
+    assert np.mean(acc[first:]) >= 0.97
+
+
+def test_process_recovery_worker_joins_and_stops(model, walker):
+    """The real worker process: the first frames go on while it searches, its result joins, and
+    close() ends it."""
+    lab = StreamLabeler(model, LabelerSettings(recovery="background", audit_period_s=0.2))
+    rec = lab.recovery
+    assert isinstance(rec, ProcessRecovery)
+    deadline = time.monotonic() + 60
+    while not rec.ready and time.monotonic() < deadline:     # the worker imports numpy, builds its models
+        rec.poll()
+        time.sleep(0.05)
+    assert rec.ready, rec.failed
+    rng = np.random.default_rng(1)
+    got, acc = False, []
+    for k in range(160):
+        xyz, truth = shuffled(walker, k, rng)
+        r = lab.process(xyz, k / walker.rate)
+        got |= r.recovered
+        if got:
+            acc.append(float(np.mean(r.labels[truth >= 0] == truth[truth >= 0])))
+        time.sleep(1 / 240)
+    assert got and not rec.failed
+    assert np.mean(acc) >= 0.95
+    lab.close()
+    assert rec._proc.wait(5) == 0
+
+
+def test_observed_frames_keep_the_tracks(model, walker):
+    """Frames the consumer skips are observed by the tracker: after a skip of 12 frames the
+    carried labeling goes on without a search; without observing, the gates widen with the
+    skipped time (tracks also survive, as a late frame would)."""
+    rng = np.random.default_rng(2)
+    lab = StreamLabeler(model, LabelerSettings(audit_period_s=0))
+    for k in range(10):
+        xyz, _ = shuffled(walker, k, rng)
+        lab.process(xyz, k / walker.rate)
+    for k in range(10, 22):
+        xyz, _ = shuffled(walker, k, rng)
+        lab.observe(xyz, k / walker.rate)
+    xyz, truth = shuffled(walker, 22, rng)
+    r = lab.process(xyz, 22 / walker.rate)
+    assert not r.full_search and r.generations == 0
+    assert np.mean(r.labels[truth >= 0] == truth[truth >= 0]) == 1.0
+
+
+def test_tracker_gate_grows_with_skipped_time_only():
+    """A late update (frames skipped) widens every gate by the acceleration and new-track
+    speed bounds; an occluded marker's coasting track keeps its ordinary gate."""
+    tr = Tracker(TrackerSettings(gate_m=0.05, gate_speed_factor=0.0, accel_mps2=50.0, new_track_speed_mps=2.0))
+    p = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0]])
+    for k in range(5):
+        tr.update(p + [0.01 * k, 0, 0], k / 100)
+    normal = tr.gate(5 / 100)
+    np.testing.assert_allclose(normal, 0.05, atol=1e-9)
+    late = tr.gate(15 / 100)                                   # 10 frames late
+    assert (late > 0.05 + 0.5 * 50.0 * 0.09 ** 2 - 1e-6).all()
+    u = tr.update(p + [0.15, 0, 0], 15 / 100)                  # moved 10 cm: still the same tracks
+    assert not u.new.any()
+
+
+def test_confidence_reliability_is_measured():
+    acc = MetricsAccumulator(["a", "b"], 100.0)
+    acc.add(np.array([0, 1]), np.array([0, 1]), confidence=np.array([0.95, 0.95]))
+    acc.add(np.array([0, 1]), np.array([1, 0]), confidence=np.array([0.15, 0.15]))
+    m = acc.metrics()
+    assert m.calibration_error == pytest.approx(0.5 * 0.05 + 0.5 * 0.15)
+    assert [r[2] for r in m.reliability] == [2, 2]

@@ -1,0 +1,135 @@
+"""Every LabelerSettings field changes what both labelers do (one model and a bank).
+
+The per-frame pipeline is written once (:class:`~dtm_labeler.labeling.tracked.TrackedLabeler`),
+so a setting cannot be honoured by one labeler and ignored by the other (the bank once ignored
+``noise_mm``, budgets, restarts, seeding and region sweeps). For every field a changed value
+must change the trace of a short, hard stream (ghosts, gaps, noise, a noise burst, a time
+gap): labels, fitness, evaluations, generations, full searches or resets of some frame. The
+base settings have a small full GA so that the test stays quick.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from dtm_labeler.labeling.bank_labeler import BankLabeler, BankSettings
+from dtm_labeler.labeling.config import LabelerSettings
+from dtm_labeler.labeling.recovery import DeferredRecovery
+from dtm_labeler.labeling.stream import StreamLabeler
+from dtm_labeler.labeling.tracker import TrackerSettings
+from dtm_labeler.model.bank import ModelBank
+from dtm_labeler.motion.synthetic import synthesize
+from dtm_labeler.search.label_search import GASettings
+from dtm_labeler.search.problem import Background
+from dtm_labeler.training.train import TrainConfig, train_model
+
+CFG = TrainConfig(mixture="fixed", k_fixed=2, structure="given")
+FRAMES = 40
+HOLE = 20                            # 0.03 s between frames 19 and 20
+BURST = (30, 31)                     # a frame with 2 cm of extra noise: the carried labeling falls short
+BASE = LabelerSettings(full=GASettings(population=16, max_generations=6, stagnation=3, polish_rounds=4,
+                                       region_sweeps=1))
+
+#: a changed value per field, each chosen to matter on the stream below
+CHANGES = {
+    "method": "sga",
+    "mode": "single",
+    "window": 1,
+    "full": GASettings(population=12, max_generations=3, stagnation=2, region_sweeps=0),
+    "warm": GASettings(population=6, max_generations=2, stagnation=1, polish=False, fresh_fraction=0.5,
+                       region_sweeps=0),
+    "background": Background(volume_m3=0.5, max_speed_mps=1.0, detection_probability=0.5),
+    "tracker": TrackerSettings(gate_m=0.004, gate_speed_factor=0.0, max_misses=0),
+    "max_points": 12,
+    "refit_drop": 1e6,
+    "restarts": 0,
+    "accept_drop": 1e6,
+    "fast_rounds": 0,
+    "swap_radius_m": 2.0,
+    "release_moves": True,
+    "recovery": "background",
+    "audit_period_s": 0.05,
+    "confidence_temperature": 0.3,
+    "region_checks": 0,
+    "region_size": 2,
+    "region_every": 1,
+    "max_gap_s": 0.02,
+    "noise_mm": 30.0,
+    "heading_snap_deg": 0.0,
+    "seed": 7,
+}
+
+
+@pytest.fixture(scope="module")
+def models():
+    walk = train_model([synthesize(duration=2.0, seed=s, heading=h, noise_mm=2) for s, h in [(0, 0.0), (1, 1.5)]],
+                       CFG)[0]
+    fast = train_model([synthesize(duration=2.0, seed=s, heading=h, noise_mm=2, speed=1.9)
+                        for s, h in [(2, 0.5), (3, 2.5)]], CFG)[0]
+    return walk, ModelBank({"walk": walk, "fast": fast})
+
+
+@pytest.fixture(scope="module")
+def stream():
+    """A walker with 3 ghosts, one point hidden for 4 frames at a time, 4 mm noise, a frame with
+    2 cm noise, points shuffled, and a 0.03 s hole in the stamps."""
+    clip = synthesize(duration=FRAMES / 120 + 0.2, seed=9, heading=-1.0, noise_mm=4, start_xy=(0.5, 0.5))
+    rng = np.random.default_rng(3)
+    frames, t = [], 0.0
+    for k in range(FRAMES):
+        pts = clip.positions[k].copy()
+        pts[(k // 4) % 14] = np.nan                                 # a marker hidden for 4 frames
+        if BURST[0] <= k < BURST[1]:
+            pts = pts + rng.normal(0.0, 0.02, size=pts.shape)
+        ghosts = pts[~np.isnan(pts).any(1)].mean(0) + rng.uniform(-0.6, 0.6, size=(3, 3))
+        xyz = np.vstack([pts, ghosts])[rng.permutation(17)]
+        t += 0.03 if k == HOLE else 1 / 120
+        frames.append((xyz, t))
+    return frames
+
+
+def trace(labeler, stream, base: list | None = None) -> list:
+    """Per frame what the labeler did; with ``base``, stops at the first frame that differs."""
+    out = []
+    with labeler:
+        for xyz, t in stream:
+            r = labeler.process(xyz, t)
+            out.append((r.labels.tolist(), np.round(r.confidence, 6).tolist(), round(float(r.log_likelihood), 6), r.evaluations, r.generations,
+                        r.full_search, r.reset))
+            if base is not None and out[-1] != base[len(out) - 1]:
+                break
+    return out
+
+
+#: fields that act only while searches run in the background: compared with background recovery
+#: made deterministic (DeferredRecovery)
+BACKGROUND_ONLY = {"audit_period_s"}
+
+
+def make(kind, models, settings, background=False):
+    walk, bank = models
+    lab = StreamLabeler(walk, settings) if kind == "stream" else BankLabeler(bank, settings, BankSettings(min_share=2))
+    if background:
+        lab.recovery.close()
+        lab.recovery = DeferredRecovery(lab, delay_frames=3)
+    return lab
+
+
+def test_every_field_has_a_change():
+    assert set(CHANGES) == {f.name for f in dataclasses.fields(LabelerSettings)}
+
+
+@pytest.mark.parametrize("kind", ["stream", "bank"])
+def test_every_setting_changes_both_labelers(kind, models, stream):
+    base = trace(make(kind, models, BASE), stream)
+    assert trace(make(kind, models, BASE), stream) == base          # deterministic
+    ignored = [name for name, value in CHANGES.items() if name not in BACKGROUND_ONLY and
+               trace(make(kind, models, dataclasses.replace(BASE, **{name: value})), stream, base) == base]
+    bg = dataclasses.replace(BASE, recovery="background")
+    for name in BACKGROUND_ONLY:
+        base_bg = trace(make(kind, models, bg, True), stream)
+        if trace(make(kind, models, dataclasses.replace(bg, **{name: CHANGES[name]}), True), stream, base_bg) == base_bg:
+            ignored.append(name)
+    assert not ignored, f"{kind} labeler ignores {ignored}"
