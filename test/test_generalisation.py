@@ -18,7 +18,7 @@ def cells(data_dir):
     lambada after a 0.25 s calibration window, today's model and the body model."""
     plan = gen.Plan(cases=("D2_halves",), stream_frames=24, single_frames=1, calibration_s=0.25)
     train = gen.load_source(data_dir, "D2@0:0.14", "body14")
-    test = gen.load_source(data_dir, "D2@0.5:0.53", "body14")
+    test = gen.load_source(data_dir, "D2@0.5:0.55", "body14")
     out, info = {}, {}
     for variant in ("today", "body"):
         cfg = TrainConfig(mixture="fixed", k_fixed=2, structure="given", seed=0,
@@ -48,14 +48,14 @@ def test_report_section_and_merge(cells, tmp_path):
     res = {"generalisation": {"plan": gen.plan_dict(plan), "results": {"D2_halves": out},
                               "cases": {"D2_halves": {"group": gen.GROUPS[0], "title": "lambada halves", "note": "",
                                                       "points": "body14", "train": [{"spec": "D2@0:0.14"}],
-                                                      "test": {"spec": "D2@0.5:0.53"}, "models": info}}}}
+                                                      "test": {"spec": "D2@0.5:0.55"}, "models": info}}}}
     eplan = vars(make_plan(argparse.Namespace(quick=True, frames_per_test=None, seed=0)))
-    meta = {"plan": eplan, "date": "today", "command": "dtm-eval", "wall_s": 1.0, "jobs": 1,
+    meta = {"plan": eplan, "date": "today", "command": "dtm-eval", "wall_s": 1.0, "jobs": 1, "data_dir": "data",
             "machine": {"cpus": 2}, "sections": ["generalisation"]}
     paths = write_report(tmp_path, res, meta)
     text = paths["report"].read_text()
     assert "## Generalisation" in text and "**same person, other take**" in text
-    assert "D2@0:0.14 → D2@0.5:0.53" in text and "fig_generalisation.png" in paths["figures"]
+    assert "D2@0:0.14 → D2@0.5:0.55" in text and "fig_generalisation.png" in paths["figures"]
     assert (tmp_path / "fig_generalisation.png").stat().st_size > 1000
     # --merge keeps the sections of the saved results that this run did not redo
     saved = json.loads((tmp_path / "results.json").read_text())
