@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from .experiments import SUMMARY_KEYS, label_single, spread_frames
+from .metrics import is_search_error
 from .pipeline import label_clip_run, model_clip
 from ..labeling.stream import LabelerSettings
 from ..model.body import SEGMENT, slot_distances
@@ -249,7 +250,7 @@ def diagnose(model: TriangulatedModel, clip: MotionClip, records, max_frames: in
         if np.array_equal(chosen, true):
             continue
         wrong += 1
-        if r.search_error:
+        if is_search_error(r.truth_fitness, r.log_likelihood):
             search_err += 1
             continue
         model_err += 1

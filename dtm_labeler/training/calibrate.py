@@ -9,7 +9,9 @@ lengths replace the generic ones. :func:`calibrate` does that for a model with b
 * each **segment** pair (bone, marker cluster) gets the subject's length -- the median
   distance over the calibration frames where both points are seen -- as a single value
   (``lo = hi``), no between-person spread, and a within-person spread of the larger of the
-  model's and 1.5 x the frames' own (robust, MAD-based) scatter;
+  model's and 1.5 x the frames' own (robust, MAD-based) scatter; a segment whose labelled
+  length scatters by more than ``max_spread_m`` keeps its generic range (its labels were not
+  one segment);
 * the **reach** limits are scaled by the subject's size: the median ratio of the calibrated
   segment lengths to the generic ones (clipped to [0.75, 1.33]);
 * the motion mixtures are kept (the motion is not the person's).
@@ -20,9 +22,11 @@ points) or unlabelled: :func:`self_label` labels them with the model itself (str
 labeler: tracks, votes) and keeps the confirmed labels -- points whose vote confidence is at
 least ``min_confidence`` -- and :func:`self_calibrate` alternates labelling and calibrating
 (``rounds`` times), so a calibrated model relabels the frames it learned from. Self-labelling
-assumes a sparse background (``volume_m3``): a point that fits the generic body poorly (a
-marker placed 10 cm from where the training subjects had it) is labelled rather than left
-out, so its segment can be measured; the medians over frames absorb the few wrong labels.
+assumes a sparse background (``volume_m3``) and, in its first round, a generic body open to
+other proportions (``open_between_rel``): a point that fits the generic body poorly (a forearm
+25 % longer than the training people's, a marker placed 10 cm from where they had it) is
+labelled rather than left out, so its segment can be measured; the medians over frames absorb
+the few wrong labels, and the second round labels with the calibrated body.
 
 Library entry points for a node service: :func:`calibrate` (labelled frames, e.g. what the
 node published with high confidence) and :func:`self_calibrate` (raw clouds).
@@ -46,11 +50,14 @@ from ..search.problem import Background
 @dataclass(frozen=True)
 class CalibrationSettings:
     min_frames: int = 10             # a pair seen together in fewer frames keeps its generic range
+    max_spread_m: float = 0.02       # a segment whose length scatters more (robust sd) keeps its generic
+                                     # range: its labels are not one segment (an arm labelled wrist-for-elbow)
     within_factor: float = 1.5
     scale_clip: tuple = (0.75, 1.33)
-    min_confidence: float = 0.8      # self-labelling: votes a label needs to count as confirmed
+    min_confidence: float = 0.3      # self-labelling: confidence a label needs to count as confirmed
     volume_m3: float = 1000.0        # self-labelling: clutter density (larger: a point that fits the generic
                                      # body poorly is still labelled; the medians are robust to a few wrong ones)
+    open_between_rel: float = 0.3    # self-labelling, first round: between-person spread of the generic body
     rounds: int = 2                  # self-calibration: label, calibrate, label again, ...
 
 
@@ -81,7 +88,7 @@ def calibrated_body(body: BodyModel, positions: np.ndarray, settings: Calibratio
     with np.errstate(all="ignore"):
         med = np.nanmedian(np.where(np.isfinite(d), d, np.nan), axis=0)
         mad = 1.4826 * np.nanmedian(np.abs(d - med), axis=0)
-    seg = (body.kind == SEGMENT) & (seen >= s.min_frames)
+    seg = (body.kind == SEGMENT) & (seen >= s.min_frames) & (np.nan_to_num(mad, nan=np.inf) <= s.max_spread_m)
     if not seg.any():
         raise CalibrationError(f"no segment seen in at least {s.min_frames} calibration frames "
                                f"({positions.shape[0]} frames given)")
@@ -116,7 +123,7 @@ def calibrate(model: TriangulatedModel, source: MotionClip | np.ndarray,
 
 
 def self_label(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.ndarray, rate: float,
-               settings: LabelerSettings | None = None, min_confidence: float = 0.8) -> np.ndarray:
+               settings: LabelerSettings | None = None, min_confidence: float = 0.3) -> np.ndarray:
     """Label unlabelled clouds (one (n, 3) array per frame, or (F, N, 3)) with ``model`` in
     stream mode and return the confirmed labels as (F, M, 3) positions (NaN where a label
     was not given with at least ``min_confidence``)."""
@@ -141,6 +148,10 @@ def self_calibrate(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.n
     current = model
     P = None
     labeler = labeler or LabelerSettings(background=Background(volume_m3=s.volume_m3))
+    if model.body is not None:               # first round: a body open to other people's proportions
+        b = model.body
+        wide = np.maximum(b.between_sd, s.open_between_rel * 0.5 * (b.lo + b.hi))
+        current = model.replace(body=replace(b, between_sd=wide))
     for _ in range(max(1, s.rounds)):
         P = self_label(current, clouds, rate, labeler, s.min_confidence)
         current = calibrate(model, P, s)
