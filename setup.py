@@ -26,6 +26,7 @@ setup(
             "dtm-train = dtm_labeler.cli.train:main",
             "dtm-label = dtm_labeler.cli.label:main",
             "dtm-eval = dtm_labeler.cli.evaluate:main",
+            "dtm-calibrate = dtm_labeler.cli.calibrate:main",
             "dtm-bag = dtm_labeler.cli.bag:main",
             "dtm-demo = dtm_labeler.cli.demo:main",
             "dtm-labeler-node = dtm_labeler.ros.node:main",

@@ -332,7 +332,7 @@ def write_md(res: dict, meta: dict) -> str:
               f"({u['input_channels']} channels: trajectories cut into ~1.5 s pieces spread over channels), then "
               "`dtm-label MODEL unnamed.c3d --out labelled.c3d` (console script).", "",
               f"- true samples in the channel of their name: **{pct(u['named_right'])} %** of {u['samples']}",
-              f"- weakest: " + ", ".join(f"{k} {100 * v:.1f} %" for k, v in u["weakest"].items()),
+              "- weakest: " + ", ".join(f"{k} {100 * v:.1f} %" for k, v in u["weakest"].items()),
               f"- labelled C3D (ezc3d): {u['n_labels']} POINT:LABELS ({', '.join(u['labels'])}), UNITS "
               f"{u['units']}, RATE {u['rate']:g}, first frame {u['first_frame']}; JSON accuracy "
               f"{u['json_accuracy']} (no names in the input: not scored), {u['unlabelled_points']} unnamed "

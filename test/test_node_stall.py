@@ -71,7 +71,7 @@ def test_parameter_storm_coalesces(streaming):
     t0 = time.monotonic()
     for i in range(100):
         assert cl.set(noise_mm=float(1 + i % 10))[0].successful
-    t1 = time.monotonic()
+
     d = cl.wait_diag(lambda d: d["noise_mm"] == "10.0", 10, "the last noise_mm")
     cl.wait_diag(lambda d: int(d["models_prepared"]) > int(d0["models_prepared"]), 30, "the rebuilt model")
     t2 = time.monotonic()

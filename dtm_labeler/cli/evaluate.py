@@ -12,6 +12,8 @@ Writes ``DIR/report.md`` (Markdown, with the paper's numbers beside ours), PNG f
   generations  Fig. 10: best fitness per generation, CBGA vs SGA label search
   cross        train on some subjects, test on another subject
   markers      41-marker C3D and 28-marker CSV recordings at all markers
+  generalisation  other takes, other motions, other people: today's model vs body terms vs
+               body terms + calibration (dtm_labeler.evaluation.generalisation)
 """
 from __future__ import annotations
 
@@ -30,7 +32,8 @@ from tqdm import tqdm
 from ..evaluation.archive import JobRunner, call_task
 from .common import CliError, HelpFormatter, run_main
 
-SECTIONS = ("tables12", "structure", "table3", "occlusion", "noise", "voting", "generations", "cross", "markers")
+SECTIONS = ("tables12", "structure", "table3", "occlusion", "noise", "voting", "generations", "cross", "markers",
+            "generalisation")
 REPO = Path(__file__).resolve().parents[2]
 
 EPILOG = """examples:
@@ -39,6 +42,7 @@ EPILOG = """examples:
   dtm-eval --only tables12,structure        just the model tests
   dtm-eval --frames-per-test 30 --jobs 2    more test frames per cell
   dtm-eval --only bank                      action-model bank on switching sequences (results/eval/bank)
+  dtm-eval --only generalisation            other takes / motions / people, with and without calibration
 """
 
 MARKER_FILES = (
@@ -158,6 +162,39 @@ def _cell_task(**kw):
     return run_cell(dict(kw))
 
 
+def _gen_train_task(clips, config):
+    from ..evaluation.generalisation import train_case_model
+    return train_case_model(clips, config)
+
+
+def _gen_cell_task(**kw):
+    from ..evaluation.generalisation import run_variant
+    return run_variant(**kw)
+
+
+def _generalisation(plan: Plan, data_dir: Path, runner: Runner) -> dict:
+    """The generalisation section: train every case's models, then label (see the module)."""
+    from ..evaluation import generalisation as gen
+    gplan = gen.quick_plan(plan.seed) if plan.quick else gen.Plan(seed=plan.seed)
+    try:
+        tasks = gen.model_tasks(data_dir, gplan)
+    except (OSError, ValueError, KeyError) as e:
+        raise CliError(f"generalisation: {e}") from None
+    keys = list(tasks)
+    trained = runner.map([(" ".join(map(str, k[0])) + f" {k[2]}", _gen_train_task, tasks[k]) for k in keys],
+                         "generalisation: training")
+    models = {k: t[0] for k, t in zip(keys, trained)}
+    cells = gen.cell_tasks(data_dir, gplan, models)
+    order = sorted(range(len(cells)), key=lambda i: not cells[i][2]["markers"])      # 41-marker cells first
+    outs = runner.map([(f"{cells[i][0]} {cells[i][1]}", _gen_cell_task, cells[i][2]) for i in order],
+                      "generalisation: labeling")
+    res: dict = {}
+    for i, o in zip(order, outs):
+        res.setdefault(cells[i][0], {})[cells[i][1]] = o
+    return {"plan": gen.plan_dict(gplan), "cases": gen.case_info(data_dir, gplan, {k: t[1] for k, t in zip(keys, trained)}),
+            "results": res}
+
+
 # -- data -------------------------------------------------------------------------------------------
 def _default_data_dir() -> Path:
     env = os.environ.get("DTM_DATA_DIR")
@@ -214,6 +251,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also run the action-model bank comparison (Ukita 4.1-4.4: pooled model, hard switching, "
                         "bank without / with synthesized transitions on switching sequences) into OUT/bank/; "
                         "--only bank runs just that")
+    p.add_argument("--merge", action="store_true",
+                   help="keep the sections of the results.json already in --out that this run does not redo "
+                        "(e.g. --only generalisation --merge adds that section to a full report)")
     p.add_argument("--rebuild", action="store_true",
                    help="only rewrite report.md and the figures from the results.json already in --out")
     return p
@@ -267,6 +307,9 @@ def _main(argv=None) -> int:
         runner.close()
     wall = time.perf_counter() - t_start
     argv_txt = " ".join(["dtm-eval"] + (list(argv) if argv is not None else sys.argv[1:]))
+    if args.merge:
+        results, merged = _merge_saved(out_dir, results, sections)
+        sections = merged
     meta = {"command": argv_txt, "sections": sections, "data_dir": str(data_dir), "wall_s": wall,
             "plan": {k: v for k, v in vars(plan).items()}, "jobs": args.jobs, "dask": args.dask,
             "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},
@@ -275,6 +318,22 @@ def _main(argv=None) -> int:
     paths = write_report(out_dir, results, meta)
     print(f"wrote {paths['report']} ({len(paths['figures'])} figures, results.json) in {wall / 60:.1f} min")
     return 0
+
+
+def _merge_saved(out_dir: Path, results: dict, sections: list) -> tuple[dict, list]:
+    """``results`` over the saved results.json of ``out_dir`` (its other sections kept)."""
+    try:
+        saved = json.loads((out_dir / "results.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        raise CliError(f"--merge: cannot read {out_dir / 'results.json'}: {e}") from None
+    old = saved.get("results", {})
+    merged = dict(old)
+    merged.update(results)
+    for key in ("sequences", "models"):
+        if key in old and key in results:
+            merged[key] = {**old[key], **results[key]}
+    kept = [s for s in saved.get("meta", {}).get("sections", []) if s not in sections]
+    return merged, [s for s in SECTIONS if s in set(kept) | set(sections)]
 
 
 def _tables12(seqs, models, plan, quiet) -> dict:
@@ -497,6 +556,8 @@ def run_sections(sections, plan: Plan, data_dir: Path, runner: Runner, quiet: bo
         results["cross"]["augmentation"] = {"default": {k: getattr(body14, k) for k in (
             "augment_copies", "scale_jitter", "proportion_jitter", "tempo_jitter", "yaw_jitter_deg")},
             "without": NO_BODY_AUG}
+    if "generalisation" in sections:
+        results["generalisation"] = _generalisation(plan, data_dir, runner)
     if "markers" in sections:
         results.setdefault("markers", {})["files"] = {
             k: {"title": m["title"], "path": m["rel"], "points": m["clip"].n_points, "rate": m["clip"].rate,

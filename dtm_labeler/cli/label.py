@@ -87,6 +87,12 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--dask", default=None, metavar="ADDRESS",
                    help="run the takes on a dask.distributed cluster: a scheduler address (tcp://host:8786) or "
                         "'local' (a LocalCluster of --jobs workers started for this run)")
+    p.add_argument("--calibrate", default=None, metavar="A:B",
+                   help="calibrate the model's body terms to each take on its frames A:B (as dtm-calibrate) and "
+                        "label and score only the frames after B")
+    p.add_argument("--calibrate-labels", choices=("model", "capture"), default="model",
+                   help="labels of the calibration frames: the model's own, confirmed by its votes (the take's "
+                        "labels are not used), or the take's (an operator-labelled calibration)")
     p.add_argument("--json", action="store_true", help="print one JSON object with the scores")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -223,7 +229,8 @@ def _jobs(args, settings, takes) -> list[LabelJob]:
     return [LabelJob(index=i, source=str(f), settings=settings, frames=args.frames, occlude=args.occlude,
                      clutter=args.clutter, noise_mm=args.noise_mm, gap_frames=args.gap_frames, seed=settings.seed + i,
                      use_ids=args.track_ids, keep_unlabelled=not args.drop_unlabelled,
-                     ignore_names=args.ignore_names, out=out, keep_records=args.out_points is not None, load=load)
+                     ignore_names=args.ignore_names, out=out, keep_records=args.out_points is not None, load=load,
+                     calibrate=args.calibrate, calibrate_labels=args.calibrate_labels)
             for i, (f, out) in enumerate(takes)]
 
 
@@ -310,9 +317,9 @@ def _report(args, settings, out: dict, runs: list, input_keys: list[str]) -> boo
 
 
 def _bank_main(args, settings, bank_settings) -> int:
-    if args.out or args.jobs != 1 or args.dask:
+    if args.out or args.jobs != 1 or args.dask or args.calibrate:
         raise CliError("--bank labels takes one after the other and writes no labelled capture "
-                       "(--out, --jobs, --dask are for a single model)")
+                       "(--out, --jobs, --dask, --calibrate are for a single model)")
     try:
         bank = load_bank(args.bank)
     except (BankFileError, OSError) as e:

@@ -32,6 +32,7 @@ EPILOG = """examples:
   dtm-train walk.bvh --frames 0:90% --structure greedy --mixture fixed --k-fixed 3 --out m.npz
   dtm-train capture.c3d --points all --out markers41.npz
   dtm-train walk.bvh --scale-jitter 0 --proportion-jitter 0 --tempo-jitter 0 --out m.npz   # no body augmentation
+  dtm-train ../shared/data/markers_c3d/cmu_85_0*.c3d --points all --structure body --out generic41.npz
 model bank (one model per action, Ukita L1-L3; the other actions' files are not touched):
   dtm-train walk.bvh --action walk --bank bank/
   dtm-train run.bvh --action run --bank bank/            # + synthesized walk<->run paths
@@ -56,7 +57,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--k-max", type=int, default=8)
     p.add_argument("--k-fixed", type=int, default=3)
     p.add_argument("--structure", choices=STRUCTURE_METHODS, default="cbga",
-                   help="cbga (constraint-based GA), greedy (Song et al.), sga (simple GA), given (hand-made, body14)")
+                   help="cbga (constraint-based GA), greedy (Song et al.), sga (simple GA), given (hand-made, body14), "
+                        "body (greedy along the most rigid tree: every point joins the segment it hangs from, so "
+                        "every bone carries its body term; at 41 markers a hidden hub marker costs more than with cbga)")
     p.add_argument("--position-floor", type=float, default=0.02, metavar="M",
                    help="covariance floor for relative positions (std, metres)")
     p.add_argument("--velocity-floor", type=float, default=0.2, metavar="MPS",
@@ -79,6 +82,14 @@ def build_parser() -> argparse.ArgumentParser:
                         "slower (every velocity times the factor, positions kept)")
     a.add_argument("--yaw-jitter", type=float, default=_DEFAULTS.yaw_jitter_deg, metavar="DEG",
                    help="uniform heading error in +-DEG per copied frame (tolerance to heading noise)")
+    g = p.add_argument_group("body model (motions the training never showed; dtm-calibrate sets a person's body)")
+    g.add_argument("--body-terms", action=argparse.BooleanOptionalAction, default=True,
+                   help="motion-independent terms on the structure's edges: segment lengths (bones, marker "
+                        "clusters) and reach limits")
+    g.add_argument("--broad-component", action=argparse.BooleanOptionalAction, default=True,
+                   help="one broad component per triangle mixture, its weight fitted on held-out frames, so a "
+                        "pose the training never showed is not vetoed (--no-body-terms --no-broad-component: "
+                        "the format-1 model)")
     p.add_argument("--seed", type=int, default=0)
     b = p.add_argument_group("model bank (one model per action, Ukita sections 4.1-4.4)")
     b.add_argument("--action", default=None, metavar="NAME",
@@ -109,7 +120,8 @@ def _main(argv=None) -> int:
                          structure=args.structure, seed=args.seed, position_floor_m=args.position_floor,
                          velocity_floor_mps=args.velocity_floor, augment_copies=args.augment_copies,
                          scale_jitter=args.scale_jitter, proportion_jitter=args.proportion_jitter,
-                         tempo_jitter=args.tempo_jitter, yaw_jitter_deg=args.yaw_jitter)
+                         tempo_jitter=args.tempo_jitter, yaw_jitter_deg=args.yaw_jitter,
+                         body_terms=args.body_terms, broad_component=args.broad_component)
     try:
         config.check()
     except ValueError as e:

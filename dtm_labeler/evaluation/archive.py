@@ -38,6 +38,7 @@ from ..model.io import model_from_arrays
 from ..motion.clip import frame_range
 from ..motion.load import load_clip
 from ..motion.unlabelled import model_input
+from ..training.calibrate import CalibrationError, calibrate_from_clip
 from .labelled_capture import CaptureFormat, from_records
 from .metrics import MetricsAccumulator
 from .pipeline import label_clip_run
@@ -64,6 +65,8 @@ class LabelJob:
     out: str | None = None             # labelled capture to write (.c3d / .csv)
     keep_records: bool = False         # return every frame (per-point CSV)
     load: dict = field(default_factory=dict)   # load_clip keywords: up_axis, unit_scale, asf_path
+    calibrate: str | None = None       # frames A:B of the take to calibrate the body terms on; label after B
+    calibrate_labels: str = "model"    # labels of those frames: "model" (self-labelled) or "capture"
 
 
 @dataclass
@@ -84,6 +87,7 @@ class TakeResult:
     wall_s: float = 0.0
     rate: float = 0.0
     worker: str = ""                   # host:pid of the process that labelled the take
+    calibration: dict | None = None    # the subject calibration used (``--calibrate``)
 
     @property
     def metrics(self):
@@ -104,6 +108,8 @@ class TakeResult:
             d["out"] = self.out
         if self.note:
             d["note"] = self.note
+        if self.calibration is not None:
+            d["calibration"] = self.calibration
         if self.error:
             d["error"] = self.error
         return d
@@ -131,6 +137,9 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
         clip = load_clip(job.source, **job.load)
         a, b = frame_range(job.frames, clip.n_frames)
         clip = clip.slice(a, b)
+        if job.calibrate:
+            model, clip, res.calibration, skip = calibrated(model, clip, job.calibrate, job.calibrate_labels, a)
+            a += skip
         mi = model_input(clip, model.labels, job.keep_unlabelled, job.ignore_names)
         run = label_clip_run(model, mi.clip, job.settings, occlude=job.occlude, clutter=job.clutter,
                              noise_mm=job.noise_mm, seed=job.seed, progress=progress, use_ids=job.use_ids,
@@ -147,10 +156,21 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
         res.up_axis = f"{clip.meta.get('up_axis', 'Z')} ({clip.meta.get('up_axis_source', 'format')})"
         res.accumulator, res.rate = run.accumulator, clip.rate
         res.records = run.records if job.keep_records else []
-    except (ValueError, KeyError, OSError) as e:
+    except (ValueError, KeyError, OSError, CalibrationError) as e:
         res.error = str(e).strip("'\"")
     res.wall_s = time.perf_counter() - t0
     return res
+
+
+def calibrated(model, clip, frames: str, labels: str, first: int = 0):
+    """``(model calibrated on frames A:B of clip, the frames after B, calibration summary, B)``
+    (:func:`~dtm_labeler.training.calibrate.calibrate_from_clip`); ``first``: the take's frame
+    number of ``clip``'s first frame (for the summary)."""
+    a, b = frame_range(frames, clip.n_frames)
+    if b >= clip.n_frames:
+        raise CalibrationError(f"--calibrate {frames} leaves no frames to label")
+    cal, summary = calibrate_from_clip(model, clip.slice(a, b), labels)
+    return cal, clip.slice(b, None), dict(summary, frames=[first + a, first + b]), b
 
 
 class JobRunner:

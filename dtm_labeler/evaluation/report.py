@@ -471,6 +471,81 @@ def _markers(res: dict, out: Path) -> list[str]:
                 f"{k} {res[k]['clean']['frames']}" for k in files if res.get(k, {}).get("clean")) + ".", ""]
 
 
+GEN_COLORS = {"today": "tab:gray", "body": "tab:blue", "body + calibration": "tab:green"}
+
+
+def _gen_acc(cell: dict | None, mode: str) -> str:
+    if not cell or mode not in cell:
+        return "n/a" if not cell or "subject_calibration_error" not in cell else "calibration failed"
+    return pct(cell[mode]["accuracy"], 2)
+
+
+def _generalisation(res: dict, out: Path, figures: list) -> list[str]:
+    from .generalisation import GROUPS, VARIANTS
+    cases, results, plan = res["cases"], res["results"], res["plan"]
+    lines = ["## Generalisation: other takes, other motions, other people", "",
+             "Models trained on some recordings label another one (labels stripped, points shuffled). **today** = "
+             "the motion mixtures alone (as before the body model: a format-1 model); **body** = the same "
+             "training with the motion-independent body terms (segment lengths, reach limits on the DTM's edges) "
+             "and the broad motion component (`dtm-train`'s default); **body + calibration** = that model "
+             f"calibrated on the first ≤ {plan['calibration_s']:g} s of the test recording (at most a third of "
+             "it), labelled by the model itself and kept where the votes confirm it (no true label used). All "
+             "variants are scored on the same frames after the calibration window: stream mode on the first "
+             f"{plan['stream_frames']} of them ({plan['marker_stream_frames']} at 41 markers), single mode on "
+             f"{plan['single_frames']} ({plan['marker_single_frames']}) frames spread over them. Model errors = "
+             "frames whose search result is wrong although the true labeling scores lower (the model prefers the "
+             "wrong one); the rest of the wrong frames are search errors.", ""]
+    header = ["case", "trained on → tested on"] + [f"{v} {m}" for v in VARIANTS for m in ("stream", "single")] + \
+        ["model / search errors (today → body)"]
+    for group in GROUPS:
+        rows = []
+        for key, info in cases.items():
+            if info["group"] != group:
+                continue
+            r = results.get(key, {})
+            diag = [r.get(v, {}).get("diagnosis") for v in ("today", "body")]
+            err = " → ".join("n/a" if not d else f"{d['model_errors']} / {d['search_errors']}" for d in diag)
+            train = ", ".join(t["spec"] for t in info["train"])
+            rows.append([info["title"] + (f" ({info['note']})" if info["note"] else ""),
+                         f"{train} → {info['test']['spec']}"]
+                        + [_gen_acc(r.get(v), m) for v in VARIANTS for m in ("stream", "single")] + [err])
+        if rows:
+            lines += [f"**{group}**", "", md_table(header, rows), ""]
+    worst = []
+    for key, info in cases.items():
+        d = results.get(key, {}).get("today", {}).get("diagnosis")
+        if d and d["worst_triangles"]:
+            w = d["worst_triangles"][0]
+            worst.append(f"{info['title']}: ({', '.join(w['triangle'])}) {w['truth_minus_chosen']:.1f} nats")
+    if worst:
+        lines += ["Where today's truth loses (mean fitness of the true minus the chosen labeling over the model's "
+                  "error frames, worst triangle): " + "; ".join(worst) + ".", ""]
+    lat = [results[k]["body"]["stream"]["latency_ms"] for k in cases if results.get(k, {}).get("body", {}).get("stream")]
+    lat0 = [results[k]["today"]["stream"]["latency_ms"] for k in cases
+            if results.get(k, {}).get("today", {}).get("stream")]
+    if lat and lat0:
+        lines += [f"Stream latency (median over cases of the per-run p50 / p99): today "
+                  f"{np.median([x['p50'] for x in lat0]):.1f} / {np.median([x['p99'] for x in lat0]):.1f} ms, body "
+                  f"{np.median([x['p50'] for x in lat]):.1f} / {np.median([x['p99'] for x in lat]):.1f} ms.", ""]
+    keys = [k for k in cases if k in results]
+    if keys:
+        plt = _plt()
+        fig, axes = plt.subplots(2, 1, figsize=(max(8.0, 0.9 * len(keys) + 2), 7), sharex=True)
+        x = np.arange(len(keys))
+        for ax, mode in zip(axes, ("stream", "single")):
+            for i, v in enumerate(VARIANTS):
+                acc = [100 * (results[k].get(v, {}).get(mode) or {}).get("accuracy", np.nan) for k in keys]
+                ax.bar(x + (i - 1) * 0.27, acc, 0.27, color=GEN_COLORS[v], label=v)
+            ax.set_ylabel(f"{mode} accuracy (%)")
+            ax.set_ylim(0, 101)
+            ax.axhline(97, color="k", lw=0.6, ls=":")
+            ax.grid(axis="y", alpha=0.3)
+        axes[0].legend(loc="lower left", fontsize=8)
+        axes[1].set_xticks(x, keys, rotation=35, ha="right", fontsize=8)
+        axes[0].set_title("Generalisation: today vs body terms vs body terms + calibration")
+        name = _save(fig, out / "fig_generalisation.png", figures)
+        lines += [f"![generalisation]({name})", ""]
+    return lines
 def _stream_cells(results: dict, path: tuple = ()):
     """(path, cell) of every stream-mode cell with reliability bins, anywhere in ``results``."""
     if isinstance(results, dict):
@@ -552,6 +627,8 @@ def write_report(out_dir: Path, results: dict, meta: dict) -> dict:
         lines += _cross(results["cross"], out_dir)
     if "markers" in results and "files" in results["markers"]:
         lines += _markers(results["markers"], out_dir)
+    if "generalisation" in results and "cases" in results["generalisation"]:
+        lines += _generalisation(results["generalisation"], out_dir, figures)
     lines += _confidence(results, out_dir, figures)
     if meta.get("notes"):
         lines += ["## Notes", ""] + [f"* {n}" for n in meta["notes"]] + [""]

@@ -13,7 +13,10 @@ kernel the labeler uses -- and keeps a low quantile per triangle (the *floor*). 
 data is needed, and the floor moves with the model's widening by the declared measurement
 noise. :func:`label_misfit` gives, per label, how far the fully observed triangles it belongs
 to fall below their floors (nats; 0 = every triangle within what a right labeling shows).
-Marginalised triangles (a vertex missing or without a velocity) are not judged: their terms
+With body terms (:mod:`~dtm_labeler.model.body`) a triangle's term in the frame problem also
+holds the body factor of the edges it introduces; that factor is 0 within the edges' reach
+(where every sample of a right labeling lies), so the floors are the mixtures' and a label
+whose edges leave their reach shows the body factor as misfit. Marginalised triangles (a vertex missing or without a velocity) are not judged: their terms
 have other dimensions, and the points that make them are the appearing ones the event checks
 already look at.
 

@@ -32,7 +32,6 @@ build it on another thread and hand it over with :meth:`TrackedLabeler.update_se
 """
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass
 from typing import Sequence

@@ -14,6 +14,11 @@ seen for the first time keeps its position and loses its velocity. As in the pap
 exact when the missing vertex is a leaf (eq. 30) and the paper's approximation otherwise
 (eq. 31: ``P(E|C)`` from the triangle marginalised over ``D``).
 
+Body terms (:mod:`.body`, issue 13). A model may carry a :class:`~.body.BodyModel`: a factor
+on the edges each triangle introduces (bone lengths, marker clusters on one segment, reach
+limits), added to the triangle's term by :meth:`TriangulatedModel.edge_terms`. Models
+without one (format version 1 files) score exactly as before.
+
 Dimensions. A conditional term covers the 6 (or 3) dimensions of ``A_t``; a vertex whose
 parents are all unobserved (and the first triangle) additionally has an absolute position
 that no triangle models. :class:`TriangleTerms` reports such *roots* so the labeler can
@@ -25,6 +30,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import numpy as np
 
+from .body import BodyModel, BroadMotion, EdgeTerms, slot_distances
 from .features import (FEATURE_DIM, MISSING, N_PATTERNS, STATE_DIM, TRIPLE_DIM, feature_map_for, observation_state,
                        observed_map, pattern_codes, pattern_id)
 from .mixture import GaussianMixture
@@ -223,6 +229,19 @@ class BatchedTerms:
                              self.W, self.c, self.cj, self.cp, self.nj, self.np_, self.mj, self.mp)
 
 
+class MixedBatchedTerms:
+    """Batched terms of the two-part conditional ``(1 - w) P_motion + w P_broad`` (see
+    :mod:`.body`): one kernel call for the motion mixtures, one for the broad Gaussians, and
+    a log-add-exp per row. ``root`` as the motion part's."""
+
+    def __init__(self, motion: BatchedTerms, broad: BatchedTerms, mix: BroadMotion):
+        self.motion, self.broad, self.mix = motion, broad, mix
+        self.root = motion.root
+
+    def __call__(self, s: np.ndarray, tri: np.ndarray) -> np.ndarray:
+        return self.mix.combine(tri, self.motion(s, tri), self.broad(s, tri))
+
+
 @dataclass
 class TriangulatedModel:
     """Labels, structure, one mixture per triangle (eq. 12 features), settings, provenance."""
@@ -234,6 +253,8 @@ class TriangulatedModel:
     mirror_pairs: np.ndarray | None = None      # all left/right pairs (default: heading_pairs)
     settings: dict = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
+    body: BodyModel | None = None               # motion-independent edge terms (None: none)
+    broad: BroadMotion | None = None            # broad part of every triangle's conditional (None: none)
 
     def __post_init__(self) -> None:
         self.labels = tuple(self.labels)
@@ -253,6 +274,30 @@ class TriangulatedModel:
                 raise ValueError(f"{name} pair index out of range")
         self.terms = [TriangleTerms(m, first=(t == 0)) for t, m in enumerate(self.mixtures)]
         self.triangles = self.structure.array
+        if self.body is not None and self.body.n_labels != len(self.labels):
+            raise ValueError(f"body terms for {self.body.n_labels} labels, model has {len(self.labels)}")
+        edges = EdgeTerms(self.body, self.triangles) if self.body is not None else None
+        self.body_edges = edges if edges is not None and edges.active else None
+        if self.broad is not None and len(self.broad.gaussians) != len(self.mixtures):
+            raise ValueError(f"{len(self.broad.gaussians)} broad components for {len(self.mixtures)} triangles")
+        self.broad_terms = None if self.broad is None else \
+            [TriangleTerms(g, first=(t == 0)) for t, g in enumerate(self.broad.gaussians)]
+
+    def edge_terms(self, tri: np.ndarray, d: np.ndarray, observed: np.ndarray) -> np.ndarray:
+        """Body factor (:mod:`.body`) of triangles ``tri`` (n,) given the distances ``d`` (n, 3)
+        of their edge slots (A,B), (A,C), (B,C) and whether both ends are seen (n, 3); zeros
+        for a model without body terms."""
+        if self.body_edges is None:
+            return np.zeros(np.shape(tri))
+        return self.body_edges(tri, d, observed)
+
+    def replace(self, **changes) -> "TriangulatedModel":
+        """A copy with some fields replaced (mixtures, body, settings, provenance ...)."""
+        kw = dict(labels=self.labels, structure=self.structure, mixtures=self.mixtures,
+                  heading_pairs=self.heading_pairs, mirror_pairs=self.mirror_pairs, settings=dict(self.settings),
+                  provenance=dict(self.provenance), body=self.body, broad=self.broad)
+        kw.update(changes)
+        return TriangulatedModel(**kw)
 
     @property
     def n_labels(self) -> int:
@@ -274,13 +319,14 @@ class TriangulatedModel:
         floor = np.r_[np.full(9, vel ** 2), np.full(6, pos ** 2)]
         mixtures = [GaussianMixture(np.asarray(m.weights), np.asarray(m.means),
                                     np.asarray(m.covariances) + np.diag(floor)) for m in self.mixtures]
-        return TriangulatedModel(self.labels, self.structure, mixtures, self.heading_pairs, self.mirror_pairs,
-                                 dict(self.settings), dict(self.provenance, measurement_noise_m=position_sd_m))
+        return self.replace(mixtures=mixtures, provenance=dict(self.provenance, measurement_noise_m=position_sd_m),
+                            body=None if self.body is None else self.body.with_noise(position_sd_m),
+                            broad=None if self.broad is None else self.broad.with_floor(floor))
 
     def warm_up(self) -> "TriangulatedModel":
         """Build every observation pattern's densities, the batched terms and the distance
         bounds now (model load / hot reload) instead of on the first frame that needs them."""
-        for term in self.terms:
+        for term in self.terms + (self.broad_terms or []):
             for pid in range(N_PATTERNS):
                 term.pattern(pid)
         _ = self.batched_full, self.distance_bounds
@@ -291,8 +337,10 @@ class TriangulatedModel:
     def distance_bounds(self) -> np.ndarray:
         """(M, M) largest plausible distance (m) between labels that share a triangle, inf
         otherwise: per component, |mean| + 5 sd (largest eigenvalue) of their relative
-        position under the triangle's mixture; the max over components and triangles.
-        A search constraint: candidates farther apart are never evaluated."""
+        position under the triangle's mixture and broad Gaussian; the max over components
+        and triangles -- and, for an edge with a body term, at most its allowed range plus
+        6 sd (the broad part alone would allow far more). A search constraint: candidates
+        farther apart are never evaluated."""
         if getattr(self, "_bounds", None) is None:
             M = self.n_labels
             D = np.full((M, M), np.inf)
@@ -303,6 +351,9 @@ class TriangulatedModel:
             for t, tri in enumerate(self.triangles):
                 mix = self.mixtures[t]
                 mu, cov = np.asarray(mix.means), np.asarray(mix.covariances)
+                if self.broad is not None:
+                    g = self.broad.gaussians[t]
+                    mu, cov = np.vstack([mu, g.means]), np.concatenate([cov, g.covariances])
                 maps = {}
                 for (i, j), r in rows.items():
                     A = np.zeros((3, FEATURE_DIM))
@@ -317,35 +368,51 @@ class TriangulatedModel:
                     best[u, v] = best[v, u] = max(best[u, v], b)
                     seen[u, v] = seen[v, u] = True
             D[seen] = best[seen]
+            if self.body_edges is not None:
+                D = np.minimum(D, self.body_edges.bounds(self.triangles, M))
             self._bounds = D
         return self._bounds
 
+    def _batched_for(self, pid: int) -> "BatchedTerms | MixedBatchedTerms":
+        motion = BatchedTerms(self.terms, pid)
+        if self.broad is None:
+            return motion
+        return MixedBatchedTerms(motion, BatchedTerms(self.broad_terms, pid), self.broad)
+
     @property
-    def batched_full(self) -> BatchedTerms:
-        """:class:`BatchedTerms` of the fully observed pattern (the hot path)."""
+    def batched_full(self) -> "BatchedTerms | MixedBatchedTerms":
+        """Batched terms of the fully observed pattern (the hot path)."""
         if getattr(self, "_batched_full", None) is None:
-            self._batched_full = BatchedTerms(self.terms, FULL_PATTERN)
+            self._batched_full = self._batched_for(FULL_PATTERN)
         return self._batched_full
 
-    def batched(self, pid: int) -> BatchedTerms:
-        """:class:`BatchedTerms` of observation pattern ``pid`` (built on first use)."""
+    def batched(self, pid: int) -> "BatchedTerms | MixedBatchedTerms":
+        """Batched terms of observation pattern ``pid`` (built on first use): :class:`BatchedTerms`,
+        or :class:`MixedBatchedTerms` for a model with broad components."""
         if pid == FULL_PATTERN:
             return self.batched_full
         cache = self.__dict__.setdefault("_batched_patterns", {})
         if pid not in cache:
-            cache[pid] = BatchedTerms(self.terms, pid)
+            cache[pid] = self._batched_for(pid)
         return cache[pid]
 
     def triangle_terms(self, t: int, s: np.ndarray, codes: np.ndarray,
                        finite: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Term of triangle ``t`` for (n, 18) triple states and (n, 3) observation codes."""
-        return self.terms[t].evaluate(s, pattern_id(codes), finite)
+        """Term of triangle ``t`` for (n, 18) triple states and (n, 3) observation codes (the
+        two-part conditional of :mod:`.body` when the model has broad components)."""
+        pids = pattern_id(codes)
+        val, roots = self.terms[t].evaluate(s, pids, finite)
+        if self.broad is None:
+            return val, roots
+        broad, _ = self.broad_terms[t].evaluate(s, pids, finite)
+        return self.broad.combine(np.full(val.shape, t), val, broad), roots
 
     def frame_log_likelihood(self, states: np.ndarray, background_position: float = 0.0) -> np.ndarray:
         """log P(X|G) of labelled, canonicalised frames: (F, n_labels, 6) -> (F,).
 
         Missing points (NaN) are marginalised; every root adds ``background_position``
         (the log density of an unmodelled absolute position; 0 gives the pure model term).
+        Body terms (if any) included.
         """
         states = np.asarray(states, dtype=np.float64)
         codes = observation_state(states)
@@ -354,6 +421,10 @@ class TriangulatedModel:
             s = states[:, tri, :].reshape(states.shape[0], 3 * STATE_DIM)
             val, roots = self.triangle_terms(t, s, codes[:, tri])
             total += val + roots * background_position
+        if self.body_edges is not None:
+            d, ok = slot_distances(states[..., :3], self.triangles)
+            F, T = d.shape[:2]
+            total += self.body_edges(np.tile(np.arange(T), F), d.reshape(F * T, 3), ok.reshape(F * T, 3)).reshape(F, T).sum(1)
         return total
 
     def components_per_triangle(self) -> list[int]:

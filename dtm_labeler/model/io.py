@@ -7,9 +7,19 @@ Layout (all entries plain numeric arrays; loaded with ``allow_pickle=False``)::
     tri<t>_weights    (K,)    float64
     tri<t>_means      (K,15)  float64
     tri<t>_covariances(K,15,15) float64
+    body_pairs        (P,2)   int64     body terms (version 2, when the header's "body" is set;
+    body_kind         (P,)    int64     see dtm_labeler.model.body): label pairs, segment /
+    body_lo, body_hi  (P,)    float64   reach, allowed distance range (m), within- and
+    body_within_sd,   (P,)    float64   between-person spread (m)
+    body_between_sd
+    broad_weights     (T,)    float64   broad part of each triangle's conditional (version 2, when
+    broad<t>_mean     (15,)   float64   the header's "broad" is true; see dtm_labeler.model.body)
+    broad<t>_covariance (15,15) float64
 
-A file that is not a model, has another format version, or whose arrays disagree with the
-header raises :class:`ModelFileError` naming the file and the problem.
+Versions: 2 adds the body terms and the broad components (issue 13). Version 1 files still load, as models without body terms
+(they score exactly as they did; ``provenance["format_version_read"]`` says 1). A file that is
+not a model, has an unknown format version, or whose arrays disagree with the header raises
+:class:`ModelFileError` naming the file and the problem.
 """
 from __future__ import annotations
 
@@ -22,12 +32,14 @@ from pathlib import Path
 
 import numpy as np
 
+from .body import BodyModel, BroadMotion
 from .dtm import TriangulatedModel
 from .mixture import GaussianMixture
 from .structure import Structure
 
 FORMAT_NAME = "dtm_labeler.model"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 
 
 class ModelFileError(ValueError):
@@ -44,12 +56,19 @@ def model_to_bytes(model: TriangulatedModel) -> bytes:
         "mirror_pairs": model.mirror_pairs.tolist(),
         "components": model.components_per_triangle(),
         "settings": model.settings,
-        "provenance": model.provenance,
+        "provenance": {k: v for k, v in model.provenance.items() if k != "format_version_read"},
+        "body": None if model.body is None else {"pairs": int(model.body.pairs.shape[0]),
+                                                 "calibration": model.body.calibration},
+        "broad": model.broad is not None,
     }
     arrays = {"header": np.frombuffer(json.dumps(header, indent=1).encode(), dtype=np.uint8)}
     for t, mix in enumerate(model.mixtures):
         for key, arr in mix.to_arrays().items():
             arrays[f"tri{t}_{key}"] = np.asarray(arr, dtype=np.float64)
+    if model.body is not None:
+        arrays.update(model.body.to_arrays())
+    if model.broad is not None:
+        arrays.update(model.broad.to_arrays())
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
     return buf.getvalue()
@@ -97,9 +116,10 @@ def model_from_arrays(arrays: dict, where: str = "model") -> TriangulatedModel:
     if not isinstance(header, dict) or header.get("format") != FORMAT_NAME:
         raise ModelFileError(f"{where}: header does not name format {FORMAT_NAME!r}")
     version = header.get("format_version")
-    if version != FORMAT_VERSION:
+    if version not in READABLE_VERSIONS:
         raise ModelFileError(f"{where}: format version {version} is not supported "
-                             f"(this build reads version {FORMAT_VERSION}); retrain with dtm-train")
+                             f"(this build reads versions {', '.join(map(str, READABLE_VERSIONS))}); "
+                             "retrain with dtm-train")
     try:
         labels = [str(x) for x in header["labels"]]
         structure = Structure(tuple(tuple(t) for t in header["structure"]), len(labels))
@@ -109,12 +129,22 @@ def model_from_arrays(arrays: dict, where: str = "model") -> TriangulatedModel:
             if not keys:
                 raise ModelFileError(f"{where}: no mixture stored for triangle {t}")
             mixtures.append(GaussianMixture.from_arrays({k[len(f'tri{t}_'):]: arrays[k] for k in keys}))
-        return TriangulatedModel(labels=tuple(labels), structure=structure, mixtures=mixtures,
+        body_info = header.get("body") if version >= 2 else None
+        body = None
+        if body_info is not None:
+            if not isinstance(body_info, dict):
+                raise ModelFileError(f"{where}: header entry 'body' must be an object or null")
+            body = BodyModel.from_arrays(arrays, len(labels), body_info.get("calibration"))
+        broad = BroadMotion.from_arrays(arrays, structure.n_triangles) if version >= 2 and header.get("broad") else None
+        provenance = dict(header.get("provenance", {}))
+        if version != FORMAT_VERSION:
+            provenance["format_version_read"] = version
+        return TriangulatedModel(labels=tuple(labels), structure=structure, mixtures=mixtures, body=body, broad=broad,
                                  heading_pairs=np.asarray(header.get("heading_pairs", []), dtype=np.int64),
                                  mirror_pairs=(np.asarray(header["mirror_pairs"], dtype=np.int64)
                                                if "mirror_pairs" in header else None),
                                  settings=dict(header.get("settings", {})),
-                                 provenance=dict(header.get("provenance", {})))
+                                 provenance=provenance)
     except ModelFileError:
         raise
     except (KeyError, TypeError, ValueError) as e:

@@ -4,6 +4,7 @@ For an assignment ``a`` (label -> point index, or ``n`` for missing) of the fram
 with states ``x`` (position, velocity; velocity NaN for a point seen for the first time):
 
     f(a) = sum_t term_t(x[a[A_t]], x[a[B_t]], x[a[C_t]])          DTM, marginalised (eq. 30-31)
+                                                                    + body factor of t's edges
          + sum_{roots} log b_pos                                    unmodelled absolute positions
          + sum_{points not labelled} log b(x_p)                     clutter (background density)
          + (#labelled) log p_detect + (#missing) log(1 - p_detect)
@@ -165,6 +166,9 @@ class FrameProblem:
             sel = np.flatnonzero(pids == pid) if pids.min() != pids.max() else slice(None)
             terms = self.model.batched(int(pid))
             out[sel] = terms(s[sel], t[sel]) + terms.root[t[sel]] * self.background.log_position
+        if self.model.body_edges is not None:     # body factor of the edges triangle t introduces
+            a, b = trip[:, [0, 0, 1]], trip[:, [1, 2, 2]]
+            out += self.model.edge_terms(t, self.dist[a, b], (a < self.n) & (b < self.n))
         self.evaluations += keys.size
         return out
 

@@ -9,6 +9,14 @@ scored with a maximum-likelihood Gaussian per triple (the entropy form of eq. 5,
 ``C(n,3)`` triples from the joint covariance of the point states, so one candidate
 structure costs a table lookup and the GA can afford thousands of evaluations. The per-
 triangle mixtures are fitted afterwards for the chosen structure only.
+
+Structure prior (issue 13). Eq. 2-3 take equal priors ``P(G)``. With body terms (see
+:mod:`dtm_labeler.model.body`) a structure can only use a segment -- a bone, a marker cluster
+on one segment -- if that pair is one of its edges, so :meth:`TripleScores.with_edge_prior`
+puts a prior on the edges: ``log P(G) = F sum_{edges e of G} beta_e`` (``F`` training
+frames; every edge counted once, by the triangle that introduces it), which favours
+structures that carry the body's segments over ones that join points only a recorded
+motion happened to move together.
 """
 from __future__ import annotations
 
@@ -36,6 +44,7 @@ class TripleScores:
     pair: np.ndarray         # (n, n), symmetric
     n_frames: int
     usable: np.ndarray | None = None   # (n, n, n) bool: triples a structure may use (None: all)
+    edge_prior: np.ndarray | None = None    # (n, n) log prior per edge and frame (beta_e), symmetric
 
     @classmethod
     def from_states(cls, states: np.ndarray, reg_covar: float = 1e-6) -> "TripleScores":
@@ -75,13 +84,26 @@ class TripleScores:
         pair[pairs[:, 1], pairs[:, 0]] = ll2
         return cls(triple, pair, F, usable)
 
+    def with_edge_prior(self, beta: np.ndarray) -> "TripleScores":
+        """These scores with the structure prior ``beta`` (n, n): nats per training frame for
+        every edge a structure has (module doc)."""
+        return TripleScores(self.triple, self.pair, self.n_frames, self.usable, np.asarray(beta, dtype=np.float64))
+
+    def edge_gain(self, a, b) -> np.ndarray | float:
+        """Prior of the edges ``(a, b)`` over all training frames (0 without a prior)."""
+        return 0.0 if self.edge_prior is None else self.n_frames * self.edge_prior[a, b]
+
     def score(self, population: np.ndarray) -> np.ndarray:
-        """Fitness of (P, T, 3) strings (invalid strings are scored too; callers penalise)."""
+        """Fitness of (P, T, 3) strings (invalid strings are scored too; callers penalise):
+        the log-likelihood of eq. 18-20 plus the edge prior of every introduced edge."""
         pop = np.asarray(population, dtype=np.int64)
         a, b, c = pop[..., 0], pop[..., 1], pop[..., 2]
         with np.errstate(invalid="ignore"):
             terms = self.triple[a, b, c]
             terms[:, 1:] -= self.pair[b[:, 1:], c[:, 1:]]
+            if self.edge_prior is not None:
+                terms += self.edge_gain(a, b) + self.edge_gain(a, c)
+                terms[:, 0] += self.edge_gain(b[:, 0], c[:, 0])
         return np.where(np.isnan(terms), -np.inf, terms).sum(-1)     # an unusable triple: -inf - -inf
 
     def unusable_in(self, structure: Structure) -> list[tuple[int, int, int]]:
@@ -184,6 +206,67 @@ def _search(scores, n_vertices, rng, pop, cross, mutate, p_crossover, generation
                         evo.generations, evo.stop_reason)
 
 
+def along_tree(scores: TripleScores, parents: np.ndarray, root_pairs: np.ndarray | None = None) -> SearchResult:
+    """Song et al.'s greedy construction grown along the body (issue 13): every new vertex
+    ``A_t`` joins the graph through its neighbour ``P`` in the most rigid tree (``parents``:
+    bones, marker clusters; :func:`dtm_labeler.training.train.rigid_tree`) and one partner
+    ``C`` that already shares an edge with ``P``, the pair ``(A_t, C)`` chosen by the largest
+    conditional log-likelihood ``triple[A, P, C] - pair[P, C]`` (plus the edge prior) over
+    the whole frontier. So ``(A_t, P)`` -- a segment -- is always an edge and carries its body
+    term, and each triangle relates a point to the body part it hangs from rather than to
+    points a training motion happened to move together. The first triangle is the best
+    left/right root pair (``root_pairs``; else the best tree link) with its best third vertex
+    adjacent in the tree to either."""
+    n = len(parents)
+    pair = scores.pair
+    adj = np.zeros((n, n), dtype=bool)
+    child = np.flatnonzero(parents >= 0)
+    adj[child, parents[child]] = adj[parents[child], child] = True
+    if root_pairs is not None and len(root_pairs):
+        rp = np.asarray(root_pairs)
+        b, c = (int(x) for x in rp[np.argmax(pair[rp[:, 0], rp[:, 1]])])
+    else:
+        b, c = (int(x) for x in np.unravel_index(np.argmax(np.where(adj, pair, -np.inf)), pair.shape))
+    third = np.flatnonzero((adj[b] | adj[c]) & (np.arange(n) != b) & (np.arange(n) != c))
+    if third.size == 0:
+        third = np.setdiff1d(np.arange(n), [b, c])
+    gain = scores.triple[third, b, c] - pair[b, c] + scores.edge_gain(third, b) + scores.edge_gain(third, c)
+    a = int(third[np.argmax(gain)])
+    tris, used = [(a, b, c)], {a, b, c}
+    nbr = {v: set() for v in range(n)}
+    for u, v in ((a, b), (a, c), (b, c)):
+        nbr[u].add(v)
+        nbr[v].add(u)
+    evals = third.size
+    while len(used) < n:
+        best = (-np.inf, None)
+        for A in range(n):
+            if A in used:
+                continue
+            for P in np.flatnonzero(adj[A]):
+                P = int(P)
+                if P not in used:
+                    continue
+                Cs = np.array(sorted(nbr[P]))
+                g = scores.triple[A, P, Cs] - pair[P, Cs] + scores.edge_gain(A, P) + scores.edge_gain(A, Cs)
+                evals += Cs.size
+                i = int(np.argmax(g))
+                if g[i] > best[0]:
+                    best = (float(g[i]), (A, P, int(Cs[i])))
+        if best[1] is None:                      # a point not connected by the tree: plain greedy step
+            A = min(set(range(n)) - used)
+            P, C = max(((u, v) for u in used for v in nbr[u] if u < v), key=lambda e: scores.triple[A, e[0], e[1]])
+            best = (0.0, (A, P, C))
+        A, P, C = best[1]
+        tris.append((A, P, C))
+        used.add(A)
+        for u in (P, C):
+            nbr[A].add(u)
+            nbr[u].add(A)
+    st = Structure(tuple(tris), n)
+    return SearchResult(st, float(scores.score(st.array[None])[0]), [], evals, 0, "complete")
+
+
 def greedy(scores: TripleScores, n_vertices: int, root_pairs: np.ndarray | None = None) -> SearchResult:
     """Song et al.'s greedy construction: start from the best pair (the best left/right
     pair when ``root_pairs`` is given), then repeatedly attach the (vertex, existing edge)
@@ -195,7 +278,8 @@ def greedy(scores: TripleScores, n_vertices: int, root_pairs: np.ndarray | None 
         rp = np.asarray(root_pairs)
         allowed[rp[:, 0], rp[:, 1]] = True
     b, c = np.unravel_index(np.argmax(np.where(allowed, pair, -np.inf)), pair.shape)
-    gain = scores.triple[:, b, c] - pair[b, c]
+    gain = scores.triple[:, b, c] - pair[b, c] + scores.edge_gain(np.arange(n_vertices), b) \
+        + scores.edge_gain(np.arange(n_vertices), c)
     gain[[b, c]] = -np.inf
     a = int(np.argmax(gain))
     tris = [(a, int(b), int(c))]
@@ -206,7 +290,7 @@ def greedy(scores: TripleScores, n_vertices: int, root_pairs: np.ndarray | None 
         best = (-np.inf, None)
         unused = np.array(sorted(set(range(n_vertices)) - used))
         for (p, q) in edges:
-            g = scores.triple[unused, p, q] - pair[p, q]
+            g = scores.triple[unused, p, q] - pair[p, q] + scores.edge_gain(unused, p) + scores.edge_gain(unused, q)
             evals += len(unused)
             i = int(np.argmax(g))
             if g[i] > best[0]:

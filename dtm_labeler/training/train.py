@@ -46,12 +46,15 @@ from ..model.features import FULL, canonicalise, lateral_yaw, observation_state,
 from ..motion.naming import common_names
 from ..motion.pointsets import BODY14, left_right_pairs
 from ..model.mixture import GaussianMixture
+from ..model.mixture_em import make_estimator
 from .gaps import (MIN_TRIPLE_FRAMES, coverage_report, fill_yaw, fit_triangle, loglik_per_label, structure_scores,
                    unattachable, usable_structure)
 from ..model.structure import BODY14_GIVEN, Structure
 from ..search import structure_search as ss
+from .body_fit import (BodySettings, broad_components, edge_prior, fit_body, pair_statistics,
+                       validation_rows)
 
-STRUCTURE_METHODS = ("cbga", "greedy", "given", "sga")
+STRUCTURE_METHODS = ("cbga", "greedy", "given", "sga", "body")
 MIXTURE_KINDS = ("mdl", "fixed", "single")
 # body augmentation of models over the 14 body points (relative sds), chosen by cross-subject
 # measurement (README "Other subjects"); other point sets get 0 unless asked for
@@ -82,6 +85,11 @@ class TrainConfig:
     proportion_jitter: float | None = None  # relative sd of each segment's length factor
     tempo_jitter: float | None = None       # relative sd of the velocity factor (same poses, faster / slower)
     given_structure: Sequence[Sequence[str]] | None = None
+    # issue 13 (model/body.py, training/body_fit.py): motion-independent edge terms and one broad
+    # component per mixture fitted on held-out frames; False reproduces the format-1 models
+    body_terms: bool = True
+    broad_component: bool = True
+    body: BodySettings = field(default_factory=BodySettings)
 
     def check(self) -> None:
         if self.mixture not in MIXTURE_KINDS:
@@ -100,6 +108,7 @@ class TrainConfig:
             value = getattr(self, name)
             if value is not None and not 0.0 <= value <= 0.5:
                 raise ValueError(f"{name.replace('_', '-')} must be in [0, 0.5] (a relative standard deviation)")
+        self.body.check()
 
     def resolved(self, labels: Sequence[str]) -> "TrainConfig":
         """This config with every unset (None) body jitter filled in for a model over ``labels``:
@@ -372,6 +381,13 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
     if lost:
         raise ValueError(f"{', '.join(lost)}: never seen together with two other points in {MIN_TRIPLE_FRAMES} "
                          "frames; the structure cannot hold them (leave them out with --points or add takes)")
+    body, prior = None, scores       # body terms; structure search scores with the edge prior
+    if config.body_terms:
+        stats = pair_statistics([canonical_states(c, pairs)[..., :3] for c in clips], config.body.max_frames)
+        body = fit_body(stats, parents if parents is not None else rigid_tree(clips), config.body,
+                        joint_centres=set(labels) <= set(BODY14))
+        if scores is not None and config.body.segment_edge_prior > 0:
+            prior = scores.with_edge_prior(edge_prior(stats, config.body))
     if config.structure == "given":
         given = config.given_structure or (BODY14_GIVEN if set(labels) == {x for t in BODY14_GIVEN for x in t}
                                            else None)
@@ -385,18 +401,22 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         kw = dict(population=config.structure_population, generations=config.structure_generations,
                   seed=config.seed, root_pairs=pairs if len(pairs) else None)
         if config.structure == "greedy":
-            structure = ss.greedy(scores, n, kw["root_pairs"]).structure
+            structure = ss.greedy(prior, n, kw["root_pairs"]).structure
+        elif config.structure == "body":
+            structure = ss.along_tree(prior, parents if parents is not None else rigid_tree(clips),
+                                      kw["root_pairs"]).structure
         elif config.structure == "cbga":
-            res = ss.cbga(scores, n, **kw)
-            structure = ss.refine(scores, res, n, np.random.default_rng(config.seed), kw["root_pairs"]).structure
+            res = ss.cbga(prior, n, **kw)
+            structure = ss.refine(prior, res, n, np.random.default_rng(config.seed), kw["root_pairs"]).structure
         else:
-            structure = ss.simple_ga(scores, n, **kw).structure
+            structure = ss.simple_ga(prior, n, **kw).structure
         structure = usable_structure(scores, structure, n, kw["root_pairs"], labels)
     struct_ll = scores.per_frame(structure) if scores is not None else float("nan")
     step("structure", 1, 1)
 
     # -- mixtures per triangle ------------------------------------------------------------
     rng = np.random.default_rng(config.seed)
+
     mixtures, lengths = [], []
     for t, tri in enumerate(structure.triangles):
         step("mixtures", t, structure.n_triangles)
@@ -404,13 +424,32 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         mixtures.append(floor_covariances(fit.mixture, config.position_floor_m, config.velocity_floor_mps))
         lengths.append(float(fit.message_length))
     step("mixtures", structure.n_triangles, structure.n_triangles)
+    broad, broad_info = None, None
+    if config.broad_component:
+        def fit_features(X: np.ndarray, t: int) -> GaussianMixture:      # triangle t's floored mixture on rows X
+            if X.shape[0] > config.max_frames_per_triangle:
+                X = X[np.sort(rng.choice(X.shape[0], config.max_frames_per_triangle, replace=False))]
+            fit = make_estimator(config.mixture, k_fixed=config.k_fixed, k_min=config.k_min, k_max=config.k_max,
+                                 reg_covar=config.reg_covar, removal=config.mdl_removal,
+                                 random_state=config.seed + t).fit(X)
+            return floor_covariances(fit.mixture, config.position_floor_m, config.velocity_floor_mps)
+
+        train_codes = observation_state(train_states)
+        held, held_rows = validation_rows([c.n_frames for c in clips], train_states.shape[0] // states.shape[0] - 1,
+                                          config.body.validation_fraction)
+        recorded = np.arange(train_states.shape[0]) < states.shape[0]
+        floor = np.r_[np.full(9, config.velocity_floor_mps ** 2), np.full(6, config.position_floor_m ** 2)]
+        broad, broad_info = broad_components(structure, train_states, train_codes, held_rows, recorded,
+                                             fit_features, floor, config.body,
+                                             lambda i, k: step("broad components", i, k))
 
     model = TriangulatedModel(
         labels=tuple(labels), structure=structure, mixtures=mixtures, heading_pairs=pairs,
-        mirror_pairs=all_pairs,
+        mirror_pairs=all_pairs, body=body, broad=broad,
         settings={"heading_bins": config.heading_bins, "feature": "eq12, yaw-canonical (lateral pairs)",
                   "velocity": "backward difference, m/s",
-                  "augmentation": augmentation_summary(config, states.shape[0], train_states.shape[0])},
+                  "augmentation": augmentation_summary(config, states.shape[0], train_states.shape[0]),
+                  "broad_component": broad_info},
         provenance={"trained": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                     "dtm_labeler": __version__, "config": {k: v for k, v in asdict(config).items()
                                                            if k != "given_structure"},

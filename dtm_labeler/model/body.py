@@ -1,0 +1,276 @@
+"""Motion-independent body terms on the DTM's edges, and the broad motion component.
+
+Why. The per-triangle motion mixtures (eq. 6-7, 12) describe the poses and speeds a few
+recordings showed. On a motion they never showed, the true labeling falls in their tails and
+a wrong one -- legs exchanged below the hips, an arm chain shifted by one marker, a wrist
+left out as clutter -- may fit them better. What does not change between motions is the
+body: the distance between two points on one rigid segment (a bone, a marker cluster on one
+segment) is the same for one person whatever they do, and no two points are farther apart
+than the chain of segments between them allows.
+
+The model (extending eq. 5, 14 and 18-20). Each triangle ``t`` of the DTM keeps its motion
+term ``log P(A_t | B_t, C_t)`` and gains a body factor over the edges it *introduces*: in a
+decomposable triangulated model every edge enters exactly once -- the first triangle's three
+edges, then the two edges ``(A_t, B_t)``, ``(A_t, C_t)`` of each new vertex -- so the body
+factors are attached without counting an edge twice, and the fitness keeps the DTM's form
+
+    log P(X | G) = sum_t [ log P(A_t | B_t, C_t) + sum_{(u,v) introduced by t} b_uv(|x_u - x_v|) ]
+
+with, per edge, a dead-zone quadratic in the distance ``d``:
+
+    b_uv(d) = -1/2 (max(0, lo_uv - d, d - hi_uv) / sd_uv)^2
+
+* a **segment** pair (rigid: its distance hardly varies within any training recording) has
+  ``[lo, hi]`` = the range of its length over the training people (one value for a calibrated
+  person) and ``sd`` = the within-person spread, widened for people outside the training set;
+* any other pair has a **reach limit**: ``lo = 0``, ``hi`` = the longest chain of segments
+  between the two points (path lengths along the most rigid tree), so only anatomically
+  impossible distances cost anything.
+
+``b`` is 0 wherever the body allows the distance, so it only ever subtracts: a factor on the
+clique (a product of experts with the motion term), not a density of its own, and labelings
+with different numbers of labelled points keep comparing over the same dimensions
+(:mod:`dtm_labeler.search.problem`). It depends on distances only: no heading, no velocity.
+
+Missing markers (eq. 30-31): an edge with an unobserved end point has no term (factor 1). This
+is exact where the motion density of the missing point lies inside the distances the body
+allows (``exp(b) = 1`` there, so integrating the point out leaves the motion marginal of
+eq. 30-31 unchanged) and an upper bound otherwise -- the same approximation as eq. 31. The 27
+observation patterns, the CBGA, the max-product DP of the region checks and the conditionals
+keep working unchanged.
+
+The broad motion component. The mixtures must not veto an unseen pose. Each triangle's
+conditional becomes a two-part mixture (extending eq. 5 / 13)
+
+    P(A_t | B_t, C_t) = (1 - w_t) P_motion(A_t | B_t, C_t) + w_t P_broad(A_t | B_t, C_t)
+
+(the joint of the first triangle likewise), with ``P_broad`` the conditional of one Gaussian
+``N(mu_t, s^2 Sigma_t + diag(floor))`` around the moment-matched Gaussian of the triangle's
+training features (:class:`BroadMotion`). Mixing the *conditionals* rather than adding a
+component to the joint mixture matters: in a joint mixture, parents that fit the training
+motion well make the posterior put all weight on the sharp components, under which a new
+position of ``A`` is impossible. Here a pose the training never showed costs at most about
+``-log w_t - log P_broad`` nats per triangle, a wrong bone length ``z^2 / 2`` more for each edge
+it breaks. ``w_t`` and ``s`` are fitted by EM on held-out frames
+(:mod:`dtm_labeler.training.body_fit`). Both parts are marginalised the same way (eq. 30-31:
+a missing ``A`` gives ``log((1 - w) + w) = 0``), and both go through the same compiled kernel.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .mixture import GaussianMixture
+
+SEGMENT, REACH = 0, 1
+KIND_NAMES = ("segment", "reach")
+
+
+@dataclass
+class BodyModel:
+    """Per label pair ``(u, v)``, ``u < v``: kind, allowed distance range and spread.
+
+    ``lo``/``hi`` (m): distances in ``[lo, hi]`` cost nothing; ``within_sd`` (m): spread for one
+    person (skin motion, joint-centre error); ``between_sd`` (m): the extra spread for a person
+    the range was not measured on (0 once calibrated). ``calibration``: provenance of the
+    subject calibration (empty for a generic body).
+    """
+
+    n_labels: int
+    pairs: np.ndarray                  # (P, 2) int, u < v
+    kind: np.ndarray                   # (P,) SEGMENT / REACH
+    lo: np.ndarray                     # (P,)
+    hi: np.ndarray                     # (P,)
+    within_sd: np.ndarray              # (P,)
+    between_sd: np.ndarray             # (P,)
+    calibration: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.pairs = np.asarray(self.pairs, dtype=np.int64).reshape(-1, 2)
+        P = self.pairs.shape[0]
+        self.kind = np.asarray(self.kind, dtype=np.int64).reshape(P)
+        for name in ("lo", "hi", "within_sd", "between_sd"):
+            arr = np.asarray(getattr(self, name), dtype=np.float64).reshape(P)
+            if not np.isfinite(arr).all() or (arr < 0).any():
+                raise ValueError(f"body {name} must be finite and >= 0")
+            setattr(self, name, arr)
+        if P and (self.pairs.min() < 0 or self.pairs.max() >= self.n_labels
+                  or (self.pairs[:, 0] >= self.pairs[:, 1]).any()):
+            raise ValueError("body pairs must be label index pairs (u, v) with u < v")
+        if (self.hi < self.lo).any():
+            raise ValueError("body ranges need lo <= hi")
+        if ((self.kind != SEGMENT) & (self.kind != REACH)).any():
+            raise ValueError("body pair kinds must be 0 (segment) or 1 (reach)")
+        if not (self.sd > 0).all():
+            raise ValueError("body spreads must be positive")
+
+    @property
+    def sd(self) -> np.ndarray:
+        """Total spread per pair: within- and between-person spread combined."""
+        return np.hypot(self.within_sd, self.between_sd)
+
+    @property
+    def segments(self) -> np.ndarray:
+        """(S, 2) the rigid pairs."""
+        return self.pairs[self.kind == SEGMENT]
+
+    def matrix(self, values: np.ndarray, fill: float = np.nan) -> np.ndarray:
+        """(M, M) symmetric matrix of a per-pair quantity (``fill`` elsewhere)."""
+        out = np.full((self.n_labels, self.n_labels), fill)
+        out[self.pairs[:, 0], self.pairs[:, 1]] = values
+        out[self.pairs[:, 1], self.pairs[:, 0]] = values
+        return out
+
+    def pair_index(self) -> np.ndarray:
+        """(M, M) row of each pair in :attr:`pairs`, -1 where none."""
+        idx = np.full((self.n_labels, self.n_labels), -1, dtype=np.int64)
+        r = np.arange(self.pairs.shape[0])
+        idx[self.pairs[:, 0], self.pairs[:, 1]] = r
+        idx[self.pairs[:, 1], self.pairs[:, 0]] = r
+        return idx
+
+    def with_noise(self, position_sd_m: float) -> "BodyModel":
+        """Widened by i.i.d. measurement noise of ``position_sd_m`` per coordinate (the
+        distance between two noisy points scatters by about sqrt(2) sd)."""
+        if position_sd_m <= 0:
+            return self
+        return replace(self, within_sd=np.hypot(self.within_sd, np.sqrt(2.0) * position_sd_m))
+
+    # -- model file ------------------------------------------------------------------
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        return {"body_pairs": self.pairs.astype(np.int64), "body_kind": self.kind.astype(np.int64),
+                "body_lo": self.lo, "body_hi": self.hi, "body_within_sd": self.within_sd,
+                "body_between_sd": self.between_sd}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict, n_labels: int, calibration: dict | None = None) -> "BodyModel":
+        try:
+            kw = {k: np.asarray(arrays["body_" + k]) for k in ("pairs", "kind", "lo", "hi", "within_sd",
+                                                                 "between_sd")}
+        except KeyError as e:
+            raise ValueError(f"body terms lack {e.args[0]!r}") from None
+        for k, a in kw.items():
+            if a.dtype == object or not np.issubdtype(a.dtype, np.number):
+                raise ValueError(f"body_{k} must be a numeric array")
+        return cls(n_labels=n_labels, calibration=dict(calibration or {}), **kw)
+
+
+class EdgeTerms:
+    """The body factors of a structure, laid out per triangle for vectorised evaluation.
+
+    Triangle ``t = (A, B, C)`` has edge slots ``(A, B)``, ``(A, C)``, ``(B, C)``; the slots of
+    edges it does not introduce (``(B, C)`` for ``t > 0``) and of pairs without a term have
+    ``inv_sd = 0`` and contribute nothing.
+    """
+
+    SLOTS = ((0, 1), (0, 2), (1, 2))
+
+    def __init__(self, body: BodyModel, triangles: np.ndarray):
+        tri = np.asarray(triangles, dtype=np.int64)
+        T = tri.shape[0]
+        self.lo = np.zeros((T, 3))
+        self.hi = np.zeros((T, 3))
+        self.inv_sd = np.zeros((T, 3))
+        idx = body.pair_index()
+        sd = body.sd
+        for s, (i, j) in enumerate(self.SLOTS):
+            rows = idx[tri[:, i], tri[:, j]]
+            live = rows >= 0
+            if s == 2:
+                live[1:] = False                      # (B_t, C_t) was introduced by an earlier triangle
+            self.lo[live, s] = body.lo[rows[live]]
+            self.hi[live, s] = body.hi[rows[live]]
+            self.inv_sd[live, s] = 1.0 / sd[rows[live]]
+        self.active = bool((self.inv_sd > 0).any())
+
+    def __call__(self, tri: np.ndarray, d: np.ndarray, observed: np.ndarray) -> np.ndarray:
+        """Body factor of triangles ``tri`` (n,) for slot distances ``d`` (n, 3) whose two end
+        points are observed where ``observed`` (n, 3) is true."""
+        lo, hi, w = self.lo[tri], self.hi[tri], self.inv_sd[tri]
+        x = np.maximum(np.maximum(lo - d, d - hi), 0.0) * w
+        return -0.5 * np.where(observed, x * x, 0.0).sum(axis=1)
+
+    def bounds(self, triangles: np.ndarray, n_labels: int, n_sd: float = 6.0) -> np.ndarray:
+        """(M, M) largest distance the body terms leave plausible (``hi + n_sd sd``) for the
+        edges that carry one, inf elsewhere."""
+        out = np.full((n_labels, n_labels), np.inf)
+        tri = np.asarray(triangles, dtype=np.int64)
+        for s, (i, j) in enumerate(self.SLOTS):
+            live = self.inv_sd[:, s] > 0
+            u, v = tri[live, i], tri[live, j]
+            b = self.hi[live, s] + n_sd / self.inv_sd[live, s]
+            out[u, v] = np.minimum(out[u, v], b)
+            out[v, u] = np.minimum(out[v, u], b)
+        return out
+
+
+def slot_distances(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distances (F, T, 3) of every triangle's edge slots in (F, N, 3) labelled positions and
+    whether both end points are seen (F, T, 3)."""
+    tri = np.asarray(triangles, dtype=np.int64)
+    d = np.empty(positions.shape[:1] + (tri.shape[0], 3))
+    for s, (i, j) in enumerate(EdgeTerms.SLOTS):
+        d[..., s] = np.linalg.norm(positions[:, tri[:, i]] - positions[:, tri[:, j]], axis=-1)
+    ok = np.isfinite(d)
+    return np.where(ok, d, 0.0), ok
+
+
+def broad_covariance(cov: np.ndarray, scale: float, floor: np.ndarray) -> np.ndarray:
+    """``scale^2 cov + diag(floor)``: the moment-matched covariance widened, and at least
+    ``floor`` (variances) in every feature dimension -- a motion that never moved a point in
+    some direction (an arm swinging in the sagittal plane only) must not make moving it that
+    way impossible."""
+    return scale ** 2 * np.asarray(cov) + np.diag(np.asarray(floor, dtype=np.float64))
+
+
+@dataclass
+class BroadMotion:
+    """Per triangle ``t``: the weight ``w_t`` of the broad conditional and its Gaussian (one
+    component over the eq. 12 feature); see the module doc."""
+
+    weights: np.ndarray                 # (T,) in (0, 1)
+    gaussians: list                     # T single-component GaussianMixture (dim 15)
+
+    def __post_init__(self) -> None:
+        self.weights = np.asarray(self.weights, dtype=np.float64).reshape(-1)
+        if len(self.gaussians) != self.weights.size:
+            raise ValueError(f"{len(self.gaussians)} broad Gaussians for {self.weights.size} weights")
+        if not ((self.weights > 0) & (self.weights < 1)).all():
+            raise ValueError("broad weights must lie in (0, 1)")
+        for g in self.gaussians:
+            if g.n_components != 1 or g.dim != 15:
+                raise ValueError("a broad component is one 15-D Gaussian")
+        self.log_w = np.log(self.weights)
+        self.log_1mw = np.log1p(-self.weights)
+
+    def combine(self, tri: np.ndarray, motion: np.ndarray, broad: np.ndarray) -> np.ndarray:
+        """``log((1 - w) exp(motion) + w exp(broad))`` per row of triangles ``tri``."""
+        return np.logaddexp(self.log_1mw[tri] + motion, self.log_w[tri] + broad)
+
+    def with_floor(self, floor: np.ndarray) -> "BroadMotion":
+        """Every Gaussian's covariance plus ``diag(floor)`` (measurement noise)."""
+        return BroadMotion(self.weights, [GaussianMixture(g.weights, g.means, np.asarray(g.covariances)
+                                                          + np.diag(floor)) for g in self.gaussians])
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        out = {"broad_weights": self.weights}
+        for t, g in enumerate(self.gaussians):
+            out[f"broad{t}_mean"] = np.asarray(g.means[0])
+            out[f"broad{t}_covariance"] = np.asarray(g.covariances[0])
+        return out
+
+    @classmethod
+    def from_arrays(cls, arrays: dict, n_triangles: int) -> "BroadMotion":
+        try:
+            w = np.asarray(arrays["broad_weights"], dtype=np.float64)
+            gs = [GaussianMixture(np.ones(1), np.asarray(arrays[f"broad{t}_mean"], dtype=np.float64)[None],
+                                  np.asarray(arrays[f"broad{t}_covariance"], dtype=np.float64)[None])
+                  for t in range(n_triangles)]
+        except KeyError as e:
+            raise ValueError(f"broad components lack {e.args[0]!r}") from None
+        return cls(w, gs)
+
+
+__all__ = ["BodyModel", "BroadMotion", "EdgeTerms", "SEGMENT", "REACH", "KIND_NAMES", "slot_distances",
+           "broad_covariance"]

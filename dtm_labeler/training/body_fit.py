@@ -1,0 +1,246 @@
+"""Fitting the body terms and the broad motion components (see :mod:`dtm_labeler.model.body`).
+
+Body terms from labelled clips
+    Per label pair and per clip (positions in the body's heading-canonical frame, so that a
+    turn of the whole body demonstrates nothing): the mean distance, its standard deviation within the clip,
+    its largest value and the spread of the pair's difference vector (at most ``max_frames``
+    frames per clip). A pair is a **segment** when its distance hardly varies in *every* clip
+    (within-clip sd at most ``segment_abs_m``: bones 0, marker clusters on one segment a few
+    mm of skin motion) *although its direction does*: the largest within-clip distance sd is
+    at most ``segment_ratio`` times the largest spread of the difference vector. Without the
+    second test two points that a recording merely never moved apart (head and knees in an
+    upright dance, the trunk in a walk) would pass for one segment and veto the next motion
+    that bends them. And it must be a link of the most rigid tree
+    (:func:`dtm_labeler.training.train.rigid_tree`): a hinge makes every point of the limb keep
+    its distance to both ends of the hinge axis (a knee to the *other* hip in a walk without
+    sideways leg motion), and only the most rigid link of each point is taken for a bone. A
+    segment's allowed range is the range of its clip
+    means (each clip one person, or one marker placement), its within-person spread the
+    largest within-clip sd times ``within_factor`` (floored at ``within_floor_m``), and its
+    between-person spread ``between_rel`` of its length (for a person outside the range; by
+    default 5 % for joint centres -- wider lets a ghost take a hidden joint's label: ghost
+    rejection 0.72 at 15 % against 0.84 at 5 % on the CMU walk with 2 hidden + 2 ghosts -- and 30 %
+    for markers, whose placement differs between sessions and labs: the CMU and HDM05 thigh
+    markers sit 11 cm apart along the thigh). A body outside that range is what calibration is for.
+    Every other pair gets a **reach limit**: the path length between the two points along the
+    most rigid tree (:func:`dtm_labeler.training.train.rigid_tree`), each link taken at its
+    longest, so only anatomically impossible distances cost anything.
+
+Broad components by EM on held-out frames
+    The last ``validation_fraction`` of every clip is held out (contiguous: other moves of the
+    same take), the mixtures are fitted to the rest, and for each triangle the weight ``w`` of
+    the broad conditional ``q`` -- of ``N(mu, s^2 Sigma + diag(floor))``, moment-matched to the
+    fitted part; the floor ``broad_floor_m`` / ``broad_floor_mps`` keeps directions the training
+    never moved in open -- beside the motion conditional ``p`` is found by EM on the held-out
+    triples: ``r_i = w q_i / ((1 - w) p_i + w q_i)``, ``w = mean r_i``, for each scale ``s`` of a
+    grid, keeping the ``(w, s)`` of the highest held-out likelihood. ``w`` is kept in
+    ``[min_weight, max_weight]`` so that even a take whose held-out part shows nothing new (a
+    steady walk) leaves unseen poses a tail. The model keeps its mixtures fitted to all frames
+    and gets the broad part (:class:`dtm_labeler.model.body.BroadMotion`) moment-matched to all
+    frames with the chosen ``(w, s)``.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Callable, Sequence
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import shortest_path
+
+from ..model.body import REACH, SEGMENT, BodyModel, BroadMotion, broad_covariance
+from ..model.features import FULL, MISSING, feature_map_for, observed_map, triangle_features
+from ..model.mixture import GaussianMixture, logsumexp_rows
+from ..model.structure import Structure
+
+
+@dataclass(frozen=True)
+class BodySettings:
+    """How body terms and broad components are fitted (module doc)."""
+
+    segment_abs_m: float = 0.008
+    segment_ratio: float = 0.05
+    within_factor: float = 1.5
+    within_floor_m: float = 0.005
+    between_rel: float | None = None    # None: 0.05 for the 14 body points, 0.3 for marker sets (placement)
+    reach_sd_m: float = 0.03
+    # structure prior (CBGA, greedy): nats per frame for an edge of constant length. Off by default:
+    # pulled onto the segments, the CBGA chose pelvis-marker hubs whose occlusion cuts many
+    # conditionals (eq. 31); 41-marker streams with gaps fell from 100 % to 32 % (CMU 85_02).
+    segment_edge_prior: float = 0.0
+    edge_prior_sd_m: float = 0.05       # ... falling to 0 at this within-clip sd of its length
+    max_frames: int = 3000
+    validation_fraction: float = 0.2
+    min_weight: float = 0.02
+    max_weight: float = 0.5
+    scales: tuple = (2.0, 3.0, 4.0)
+    broad_floor_m: float = 0.15         # broad component: at least this sd of every relative position ...
+    broad_floor_mps: float = 1.0        # ... and of every velocity
+    em_iterations: int = 50
+
+    def check(self) -> None:
+        if not 0.0 < self.validation_fraction < 0.5:
+            raise ValueError("validation fraction must be in (0, 0.5)")
+        if not 0.0 < self.min_weight <= self.max_weight < 1.0:
+            raise ValueError("need 0 < min_weight <= max_weight < 1")
+        if (self.between_rel is not None and self.between_rel < 0) or self.within_floor_m <= 0 or self.reach_sd_m <= 0:
+            raise ValueError("body spreads must be positive")
+
+
+def pair_statistics(clips: Sequence[np.ndarray], max_frames: int = 3000) -> dict[str, np.ndarray]:
+    """Per clip (C, M, M) of (F, M, 3) heading-canonical positions: mean, within-clip sd and
+    largest distance of every label pair and the spread (root of the summed variances) of its
+    difference vector in the body's frame; NaN where a pair is never seen together in a clip."""
+    means, sds, maxs, vecs = [], [], [], []
+    for c in clips:
+        P = c[np.linspace(0, c.shape[0] - 1, min(c.shape[0], max_frames)).astype(np.int64)]
+        v = P[:, :, None, :] - P[:, None, :, :]
+        d = np.linalg.norm(v, axis=-1)                                                  # (F, M, M)
+        with np.errstate(invalid="ignore", all="ignore"):
+            seen = np.isfinite(d).sum(0)
+            mu = np.nanmean(np.where(seen >= 2, d, np.nan), axis=0) if d.shape[0] else d[0]
+            means.append(np.where(seen >= 2, mu, np.nan))
+            sds.append(np.where(seen >= 2, np.nanstd(d, axis=0), np.nan))
+            maxs.append(np.where(seen >= 2, np.nanmax(np.where(np.isfinite(d), d, -np.inf), axis=0), np.nan))
+            vecs.append(np.where(seen >= 2, np.sqrt(np.nanvar(v, axis=0).sum(-1)), np.nan))
+    return {"mean": np.stack(means), "sd": np.stack(sds), "max": np.stack(maxs), "vec": np.stack(vecs)}
+
+
+def reach_limits(longest: np.ndarray, parents: np.ndarray) -> np.ndarray:
+    """(M, M) path length between every two points along the tree ``parents`` with each link
+    (point, parent) at its ``longest`` distance: no pose puts them farther apart."""
+    M = parents.size
+    child = np.flatnonzero(parents >= 0)
+    w = np.maximum(longest[child, parents[child]], 1e-6)
+    graph = coo_matrix((w, (child, parents[child])), shape=(M, M))
+    return shortest_path(graph, directed=False)
+
+
+def fit_body(stats: dict[str, np.ndarray], parents: np.ndarray, settings: BodySettings | None = None,
+             joint_centres: bool = True) -> BodyModel:
+    """The generic body from :func:`pair_statistics` of the training clips: segments,
+    ranges, spreads and reach limits (module doc). ``joint_centres``: the points are the 14
+    body points (between-person spread 5 % of a length by default) rather than markers, whose
+    placement varies between sessions and labs (30 %)."""
+    s = settings or BodySettings()
+    between_rel = s.between_rel if s.between_rel is not None else (0.05 if joint_centres else 0.3)
+    st = stats
+    M = st["mean"].shape[1]
+    with np.errstate(invalid="ignore", all="ignore"):
+        length = np.nanmean(st["mean"], axis=0)
+        sd_max = np.nanmax(st["sd"], axis=0)
+        vec_max = np.nanmax(st["vec"], axis=0)
+        lo, hi = np.nanmin(st["mean"], axis=0), np.nanmax(st["mean"], axis=0)
+        longest = np.nanmax(st["max"], axis=0)
+    iu, ju = np.triu_indices(M, 1)
+    seen = np.isfinite(length[iu, ju]) & np.isfinite(sd_max[iu, ju])
+    sd_p = sd_max[iu, ju]
+    link = np.zeros((M, M), dtype=bool)
+    child = np.flatnonzero(parents >= 0)
+    link[child, parents[child]] = link[parents[child], child] = True
+    seg = seen & link[iu, ju] & (sd_p <= s.segment_abs_m) & (sd_p <= s.segment_ratio * np.nan_to_num(vec_max[iu, ju]))
+    longest = np.where(np.isfinite(longest), longest, 0.0)
+    reach = reach_limits(longest, parents)
+    kind = np.where(seg, SEGMENT, REACH)
+    L = np.where(seg, length[iu, ju], reach[iu, ju])
+    pair_lo = np.where(seg, lo[iu, ju], 0.0)
+    pair_hi = np.where(seg, hi[iu, ju], reach[iu, ju])
+    within = np.where(seg, np.maximum(s.within_factor * np.nan_to_num(sd_p), s.within_floor_m),
+                      s.reach_sd_m)
+    between = between_rel * L
+    keep = seen | ~seg
+    return BodyModel(n_labels=M, pairs=np.stack([iu, ju], 1)[keep], kind=kind[keep], lo=pair_lo[keep],
+                     hi=pair_hi[keep], within_sd=within[keep], between_sd=between[keep])
+
+
+def edge_prior(stats: dict[str, np.ndarray], settings: BodySettings | None = None) -> np.ndarray:
+    """(M, M) structure prior per edge and frame (:meth:`TripleScores.with_edge_prior
+    <dtm_labeler.search.structure_search.TripleScores.with_edge_prior>`): ``beta (1 - sd / sd0)``
+    for a pair whose largest within-clip distance sd is below ``sd0``, else 0 -- an edge whose
+    length a motion does not change (bones, clusters, the trunk) keeps its triangle's relative
+    positions the same in motions the training never showed."""
+    s = settings or BodySettings()
+    with np.errstate(all="ignore"):
+        sd = np.nanmax(stats["sd"], axis=0)
+    beta = s.segment_edge_prior * np.clip(1.0 - np.nan_to_num(sd, nan=np.inf) / s.edge_prior_sd_m, 0.0, 1.0)
+    np.fill_diagonal(beta, 0.0)
+    return beta
+
+
+# -- broad components ---------------------------------------------------------------------------
+def validation_rows(clip_frames: Sequence[int], copies: int, fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """Row masks over the recorded frames (``clip_frames`` per clip, concatenated) and over
+    the training rows (the recorded frames then ``copies`` augmented copies of them, as
+    :func:`dtm_labeler.training.train.training_states` stacks them): held out = the last
+    ``fraction`` of every clip (and every copy of those frames)."""
+    held = np.concatenate([np.arange(n) >= n - max(1, int(round(fraction * n))) for n in clip_frames])
+    return held, np.tile(held, copies + 1)
+
+
+def broad_weight(log_p: np.ndarray, log_q: np.ndarray, w0: float, iterations: int,
+                 bounds: tuple[float, float]) -> tuple[float, float]:
+    """EM for the weight of the broad density ``q`` beside the mixture ``p`` on held-out rows:
+    returns ``(w, total log-likelihood)``, ``w`` clipped to ``bounds``."""
+    w = w0
+    stack = np.stack([log_p, log_q], 1)
+    for _ in range(iterations):
+        lw = stack + np.log([1.0 - w, w])
+        r = np.exp(lw[:, 1] - logsumexp_rows(lw))
+        w = float(np.clip(r.mean(), *bounds))
+    return w, float(logsumexp_rows(stack + np.log([1.0 - w, w])).sum())
+
+
+def moments(X: np.ndarray, floor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and covariance (plus the diagonal ``floor``) of feature rows."""
+    return X.mean(0), np.cov(X, rowvar=False, bias=True) + np.diag(floor)
+
+
+_PARENTS = feature_map_for(observed_map((MISSING, FULL, FULL)))          # eq. 12 feature -> (B, C) part
+
+
+def conditional_log_pdf(mix: GaussianMixture, X: np.ndarray, first: bool) -> np.ndarray:
+    """``log P(A | B, C)`` of eq. 12 feature rows under ``mix`` (the joint for the first triangle)."""
+    out = mix.log_pdf(X)
+    return out if first else out - mix.linear_map(_PARENTS).log_pdf(X @ _PARENTS.T)
+
+
+def broad_components(structure: Structure, train_states: np.ndarray, train_codes: np.ndarray,
+                     held_rows: np.ndarray, recorded: np.ndarray, fit: Callable[[np.ndarray, int], GaussianMixture],
+                     floor: np.ndarray, settings: BodySettings | None = None,
+                     progress: Callable[[int, int], None] | None = None) -> tuple[BroadMotion, dict]:
+    """The broad part of every triangle's conditional, fitted on held-out frames (module doc).
+
+    ``train_states`` / ``train_codes``: the rows the mixtures are fitted to; ``held_rows``
+    marks those held out for the fit of ``(w, s)``, ``recorded`` those that are recorded
+    (not augmented) -- the held-out likelihood is measured on recorded frames only.
+    ``fit(X, t)`` fits triangle ``t``'s motion mixture (floored) to feature rows ``X``;
+    ``floor`` is the covariance floor of the mixtures."""
+    s = settings or BodySettings()
+    bfloor = np.r_[np.full(9, s.broad_floor_mps ** 2), np.full(6, s.broad_floor_m ** 2)]
+    gaussians, weights, scales = [], [], []
+    for t, tri in enumerate(structure.triangles):
+        if progress:
+            progress(t, structure.n_triangles)
+        ok = (train_codes[:, list(tri)] == FULL).all(axis=1)
+        X_fit = triangle_features(train_states[ok & ~held_rows], tri)
+        X_val = triangle_features(train_states[ok & held_rows & recorded], tri)
+        X_all = triangle_features(train_states[ok], tri)
+        w, scale = s.min_weight, s.scales[len(s.scales) // 2]
+        if X_fit.shape[0] >= 20 and X_val.shape[0] >= 10:
+            log_p = conditional_log_pdf(fit(X_fit, t), X_val, t == 0)
+            mu, cov = moments(X_fit, floor)
+            best = -np.inf
+            for sc in s.scales:
+                g = GaussianMixture(np.ones(1), mu[None], broad_covariance(cov, sc, bfloor)[None])
+                wt, ll = broad_weight(log_p, conditional_log_pdf(g, X_val, t == 0), 0.1, s.em_iterations,
+                                      (s.min_weight, s.max_weight))
+                if ll > best:
+                    best, w, scale = ll, wt, sc
+        mu, cov = moments(X_all, floor)
+        gaussians.append(GaussianMixture(np.ones(1), mu[None], broad_covariance(cov, scale, bfloor)[None]))
+        weights.append(w)
+        scales.append(scale)
+    if progress:
+        progress(structure.n_triangles, structure.n_triangles)
+    return BroadMotion(np.array(weights), gaussians), {
+        "weights": weights, "scales": scales, "settings": dict(asdict(s), scales=list(s.scales))}

@@ -1,0 +1,304 @@
+"""Body terms on the DTM's edges, the broad motion component, subject calibration (issue 13).
+
+The claims checked: a labeling that breaks a bone length scores worse than the true labeling
+of any unseen pose of the same body (and without the body terms it does not); an edge with a
+missing end point contributes nothing, so the marginalisation of eq. 30-31 is unchanged;
+calibration on another person's frames sets that person's lengths; the structure prior
+favours segment edges; v1 model files still load, as models without body terms.
+"""
+import json
+
+import numpy as np
+import pytest
+
+from dtm_labeler.model.body import REACH, SEGMENT, BodyModel, EdgeTerms, slot_distances
+from dtm_labeler.model.io import FORMAT_VERSION, ModelFileError, load_model, model_from_arrays, save_model
+from dtm_labeler.model.mixture import GaussianMixture
+from dtm_labeler.model.structure import BODY14_GIVEN, Structure
+from dtm_labeler.motion.pointsets import BODY14
+from dtm_labeler.motion.synthetic import synthesize
+from dtm_labeler.search import structure_search as ss
+from dtm_labeler.search.problem import Background, FrameProblem
+from dtm_labeler.training.body_fit import broad_weight, reach_limits
+from dtm_labeler.training.calibrate import CalibrationError, calibrate, self_calibrate
+from dtm_labeler.training.train import TrainConfig, canonical_states, train_model
+from dtm_labeler.model.features import point_states
+
+I = {n: i for i, n in enumerate(BODY14)}
+FAST = dict(mixture="fixed", k_fixed=2, structure="given", seed=0)
+
+
+@pytest.fixture(scope="module")
+def walker():
+    return synthesize(duration=3.0, seed=0, heading=0.3)
+
+
+@pytest.fixture(scope="module")
+def models(walker):
+    body, _ = train_model([walker], TrainConfig(**FAST))
+    today, _ = train_model([walker], TrainConfig(**FAST, body_terms=False, broad_component=False))
+    return body, today
+
+
+@pytest.fixture(scope="module")
+def person(models, walker):
+    """The model calibrated on its own training walker: that person's body terms."""
+    return calibrate(models[0], walker)
+
+
+def _rotate_chain(P, root, chain, angle, axis):
+    """Rotate the points ``chain`` of every frame about point ``root`` (lengths kept)."""
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    R = np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+    out = P.copy()
+    out[:, chain] = (P[:, chain] - P[:, [root]]) @ R.T + P[:, [root]]
+    return out
+
+
+def _fitness(model, positions, rate, assignments):
+    """Fitness of label assignments (rows: label -> point index) on every frame (velocities
+    from the previous frame of ``positions``)."""
+    states = point_states(positions, rate)
+    out = []
+    for f in range(1, positions.shape[0]):
+        problem = FrameProblem(model, states[f], Background())
+        out.append(problem.fitness(np.asarray(assignments)))
+    return np.array(out)                                   # (F-1, A)
+
+
+def test_model_has_segments_and_reach_limits(models):
+    body = models[0].body
+    seg = {(BODY14[u], BODY14[v]) for u, v in body.segments}
+    bones = {("lhip", "lknee"), ("lknee", "lankle"), ("lshoulder", "lelbow"), ("lelbow", "lwrist"),
+             ("rhip", "rknee"), ("rknee", "rankle"), ("rshoulder", "relbow"), ("relbow", "rwrist")}
+    assert bones <= {tuple(sorted(p, key=BODY14.index)) for p in seg}
+    assert ("lankle", "rankle") not in seg and ("lwrist", "lhip") not in seg   # these move apart
+    # reach limit of a non-segment pair: at least the largest distance seen, at most the chain length
+    r = body.pair_index()[I["lwrist"], I["lhip"]]
+    assert body.kind[r] == REACH and 0.5 < body.hi[r] < 1.6
+    # all 8 limb bones are edges of the given structure, so each carries a segment term
+    assert models[0].body_edges is not None and (models[0].body_edges.inv_sd > 0).sum() >= 8
+
+
+def test_wrong_bone_length_scores_worse_than_any_unseen_pose(walker, models, person):
+    """Unseen poses of the right body: the left arm raised sideways and the left leg kicked out
+    (rotations about the shoulder / hip: every bone length kept), never in the walk the model
+    learned. Wrong labelings of the same frames, each breaking a bone length: legs exchanged
+    below the hips (knees and ankles) and the left arm chain shifted by one (wrist label on the
+    elbow point, elbow unlabelled). With this person's body terms (the model calibrated on its
+    training walker) the true labeling of every unseen pose beats both wrong ones; with the
+    motion mixtures alone a wrong labeling wins in some of them (the issue's failure)."""
+    body_model, today = person, models[1]
+    P = walker.positions[::3]
+    unseen = _rotate_chain(P, I["lshoulder"], [I["lelbow"], I["lwrist"]], 1.2, (1, 0, 0))
+    unseen = _rotate_chain(unseen, I["lhip"], [I["lknee"], I["lankle"]], 0.7, (1, 0, 0))
+    for a, b in ((I["lhip"], I["lknee"]), (I["lelbow"], I["lwrist"]), (I["lknee"], I["lankle"])):
+        assert np.allclose(np.linalg.norm(unseen[:, a] - unseen[:, b], axis=1),
+                           np.linalg.norm(P[:, a] - P[:, b], axis=1))
+    truth = np.arange(14)
+    legs = truth.copy()
+    for l, r in (("lknee", "rknee"), ("lankle", "rankle")):
+        legs[[I[l], I[r]]] = legs[[I[r], I[l]]]
+    arm = truth.copy()
+    arm[I["lwrist"]], arm[I["lelbow"]] = I["lelbow"], 14               # 14 = missing
+    f = _fitness(body_model, unseen, walker.rate / 3, [truth, legs, arm])
+    assert (f[:, 0] - f[:, 1:].max(1) > 1).all(), (f[:, 0] - f[:, 1:].max(1)).min()
+    f0 = _fitness(today, unseen, walker.rate / 3, [truth, legs, arm])
+    assert (f0[:, 1:].max(1) > f0[:, 0]).any()          # the motion mixtures alone prefer a wrong one
+    # and an unseen pose is not vetoed: it costs less than breaking one bone by 5 cm in a seen pose
+    seen = _fitness(body_model, P, walker.rate / 3, [truth])[:, 0]
+    stretched = P.copy()
+    stretched[:, I["lwrist"]] += 0.05 * (P[:, I["lwrist"]] - P[:, I["lelbow"]]) / np.linalg.norm(
+        P[:, I["lwrist"]] - P[:, I["lelbow"]], axis=1, keepdims=True)
+    broken = _fitness(body_model, stretched, walker.rate / 3, [truth])[:, 0]
+    arm_only = _fitness(body_model, _rotate_chain(P, I["lshoulder"], [I["lelbow"], I["lwrist"]], 1.2, (1, 0, 0)),
+                        walker.rate / 3, [truth])[:, 0]
+    assert np.median(seen - arm_only) < np.median(seen - broken)
+
+
+def test_edge_terms_vanish_with_a_missing_end_point(person, walker):
+    """Marginalisation: an edge whose end point is missing has no body term (factor 1), so the
+    fitness of a labeling with a missing label is the marginalised motion terms (eq. 30-31)
+    plus the body terms of the edges that are fully seen -- checked against an independent
+    sum over the structure's edges, and the motion part against the model without a body."""
+    model = person
+    P = walker.positions[40:42].copy()
+    P[1, I["lknee"]] += [0.0, 0.0, 0.12]                  # thigh and shank 12 cm off: body terms non-zero
+    states = point_states(P, walker.rate)[1]
+    body = model.body
+    sd, idx = body.sd, body.pair_index()
+    for missing in ("lknee", "lankle", "neck"):
+        ind = np.arange(14)
+        ind[I[missing]] = 14
+        problem = FrameProblem(model, states, Background())
+        plain = FrameProblem(model.replace(body=None), states, Background())
+        got = float(problem.fitness(ind[None])[0] - plain.fitness(ind[None])[0])
+        expect = 0.0
+        seen_edges = set()
+        for t, tri in enumerate(model.triangles):
+            slots = ((0, 1), (0, 2), (1, 2)) if t == 0 else ((0, 1), (0, 2))
+            for i, j in slots:
+                u, v = int(tri[i]), int(tri[j])
+                seen_edges.add(tuple(sorted((u, v))))
+                if I[missing] in (u, v) or idx[u, v] < 0:
+                    continue
+                d = np.linalg.norm(P[1, u] - P[1, v])
+                r = idx[u, v]
+                x = max(0.0, body.lo[r] - d, d - body.hi[r]) / sd[r]
+                expect -= 0.5 * x * x
+        assert got == pytest.approx(expect, abs=1e-9)
+        assert len(seen_edges) == 2 * 14 - 3                  # every edge of the DTM counted once
+    assert expect < -10                                        # the displaced knee costs (when it is seen)
+
+
+def test_frame_log_likelihood_includes_body_terms(person, walker):
+    model = person
+    states = canonical_states(walker, model.heading_pairs)[5:9]
+    stretched = states.copy()
+    stretched[:, I["lwrist"], :3] += np.array([0.0, 0.0, -0.10])
+    d = model.frame_log_likelihood(states) - model.frame_log_likelihood(stretched)
+    d0 = model.replace(body=None).frame_log_likelihood(states) - model.replace(body=None).frame_log_likelihood(stretched)
+    assert (d - d0 > 5).all()          # the body terms add the cost of a 10 cm longer forearm
+
+
+def test_body_edge_terms_formula():
+    body = BodyModel(n_labels=3, pairs=[[0, 1], [0, 2], [1, 2]], kind=[SEGMENT, REACH, SEGMENT],
+                     lo=[0.3, 0.0, 0.2], hi=[0.3, 1.0, 0.25], within_sd=[0.01, 0.03, 0.01], between_sd=[0, 0, 0])
+    et = EdgeTerms(body, np.array([[0, 1, 2]]))
+    d = np.array([[0.32, 1.06, 0.22], [0.3, 0.5, 0.30]])
+    got = et(np.zeros(2, dtype=int), d, np.ones((2, 3), bool))
+    assert got == pytest.approx([-0.5 * (2.0 ** 2 + 2.0 ** 2), -0.5 * 5.0 ** 2])
+    assert et(np.zeros(1, dtype=int), d[:1], np.array([[True, False, False]])) == pytest.approx([-2.0])
+    b = et.bounds(np.array([[0, 1, 2]]), 3)
+    assert b[0, 1] == pytest.approx(0.3 + 6 * 0.01) and b[1, 0] == b[0, 1]
+    with pytest.raises(ValueError):
+        BodyModel(n_labels=3, pairs=[[1, 0]], kind=[SEGMENT], lo=[0.1], hi=[0.1], within_sd=[0.01], between_sd=[0])
+
+
+def test_reach_limits_are_tree_path_lengths():
+    parents = np.array([-1, 0, 1, 0])                  # chain 2-1-0-3
+    longest = np.zeros((4, 4))
+    for c, p, L in ((1, 0, 0.3), (2, 1, 0.25), (3, 0, 0.4)):
+        longest[c, p] = longest[p, c] = L
+    R = reach_limits(longest, parents)
+    assert R[2, 3] == pytest.approx(0.95) and R[1, 3] == pytest.approx(0.7) and R[0, 2] == pytest.approx(0.55)
+
+
+def test_broad_weight_em_recovers_contamination():
+    rng = np.random.default_rng(0)
+    narrow = GaussianMixture(np.ones(1), np.zeros((1, 2)), np.eye(2)[None] * 0.01)
+    wide = GaussianMixture(np.ones(1), np.zeros((1, 2)), np.eye(2)[None] * 1.0)
+    X = np.vstack([narrow.sample(1600, rng), wide.sample(400, rng)])
+    w, _ = broad_weight(narrow.log_pdf(X), wide.log_pdf(X), 0.5, 200, (1e-3, 0.9))
+    assert w == pytest.approx(0.2, abs=0.03)
+
+
+def test_broad_part_of_each_conditional(models, walker):
+    """The broad part: one Gaussian per triangle, wider than the motion mixture in every
+    direction, weight from the held-out EM; the term is log((1-w) e^motion + w e^broad), and a
+    triangle whose new vertex is missing still contributes exactly 0 (eq. 30-31)."""
+    body, today = models
+    assert body.broad is not None and today.broad is None
+    for t, (g, m) in enumerate(zip(body.broad.gaussians, today.mixtures)):
+        assert np.trace(g.covariances[0]) > 2 * np.trace(m.covariances, axis1=1, axis2=2).max()
+        assert np.diag(g.covariances[0])[9:].min() >= 0.15 ** 2 - 1e-12       # position floor
+        assert 0.0 < body.broad.weights[t] < 0.6
+    states = canonical_states(walker, body.heading_pairs)[10:12]
+    s = states[:, body.triangles[3]].reshape(2, 18)
+    codes = np.full((2, 3), 2)
+    motion, _ = body.terms[3].evaluate(s, np.full(2, 26))
+    broad, _ = body.broad_terms[3].evaluate(s, np.full(2, 26))
+    got, _ = body.triangle_terms(3, s, codes)
+    w = body.broad.weights[3]
+    assert got == pytest.approx(np.log((1 - w) * np.exp(motion) + w * np.exp(broad)))
+    codes[:, 0] = 0                                         # the new vertex A missing
+    assert body.triangle_terms(3, s, codes)[0] == pytest.approx([0.0, 0.0], abs=1e-12)
+    # the batched hot path gives the same terms
+    problem = FrameProblem(body, point_states(walker.positions[9:12], walker.rate)[2], Background())
+    table = problem.triangle_table(np.arange(14)[None], problem.candidate_bins(np.arange(14)[None]))
+    assert np.isfinite(table).all()
+
+
+def test_calibration_sets_the_persons_lengths(models):
+    model = models[0]
+    tall = synthesize(duration=1.0, seed=3, height=1.95)
+    cal = calibrate(model, tall)
+    b0, b1 = model.body, cal.body
+    seg = b1.kind == SEGMENT
+    u, v = b1.pairs[seg, 0], b1.pairs[seg, 1]
+    true = np.median(np.linalg.norm(tall.positions[:, u] - tall.positions[:, v], axis=-1), axis=0)
+    assert np.allclose(b1.lo[seg], true, atol=1e-6) and np.allclose(b1.hi[seg], true, atol=1e-6)
+    assert (b1.between_sd[seg] == 0).all() and not np.allclose(b0.lo[seg], b1.lo[seg])
+    assert cal.provenance["calibration"]["scale"] > 1.05
+    # the tall person's own frames fit the calibrated body better than the generic one
+    states = canonical_states(tall, model.heading_pairs)[1:]
+    assert (cal.frame_log_likelihood(states) >= model.frame_log_likelihood(states) - 1e-9).all()
+    assert (cal.frame_log_likelihood(states) > model.frame_log_likelihood(states) + 1).mean() > 0.5
+    with pytest.raises(CalibrationError):
+        calibrate(models[1], tall)                         # no body terms to calibrate
+    with pytest.raises(CalibrationError):
+        calibrate(model, np.zeros((5, 3, 3)))
+
+
+def test_self_calibration_without_labels(models):
+    model = models[0]
+    other = synthesize(duration=1.0, seed=5, height=1.6, heading=2.0)
+    rng = np.random.default_rng(1)
+    clouds = [f[rng.permutation(14)] for f in other.positions]           # unlabelled, shuffled
+    cal, confirmed = self_calibrate(model, clouds, other.rate)
+    assert np.isfinite(confirmed[..., 0]).mean() > 0.8
+    seg = cal.body.kind == SEGMENT
+    u, v = cal.body.pairs[seg, 0], cal.body.pairs[seg, 1]
+    true = np.median(np.linalg.norm(other.positions[:, u] - other.positions[:, v], axis=-1), axis=0)
+    assert np.abs(cal.body.lo[seg] - true).max() < 0.01
+    assert cal.provenance["calibration"]["source"] == "self-labelled"
+
+
+def test_structure_prior_favours_segment_edges(walker):
+    states = canonical_states(walker, np.array([[I["lhip"], I["rhip"]]]))
+    scores = ss.TripleScores.from_states(states[1:])
+    given = Structure.from_names(BODY14_GIVEN, BODY14).array[None]
+    beta = np.zeros((14, 14))
+    beta[I["lhip"], I["lknee"]] = beta[I["lknee"], I["lhip"]] = 1.5
+    with_prior = scores.with_edge_prior(beta)
+    assert with_prior.score(given)[0] == pytest.approx(scores.score(given)[0] + 1.5 * scores.n_frames)
+    big = np.full((14, 14), 0.0)
+    big[I["lankle"], I["rwrist"]] = big[I["rwrist"], I["lankle"]] = 1e3
+    g = ss.greedy(scores.with_edge_prior(big), 14)
+    assert (min(I["lankle"], I["rwrist"]), max(I["lankle"], I["rwrist"])) in g.structure.edges()
+
+
+def test_model_file_v2_round_trip_and_v1_files(models, tmp_path, walker):
+    model = models[0]
+    path = save_model(calibrate(model, walker), tmp_path / "m.npz")
+    back = load_model(path)
+    assert FORMAT_VERSION == 2
+    for k in ("pairs", "kind", "lo", "hi", "within_sd", "between_sd"):
+        assert np.array_equal(getattr(back.body, k), getattr(back.body, k))
+    assert back.body.calibration["segments"] > 0
+    states = canonical_states(walker, model.heading_pairs)[3:9]
+    assert np.array_equal(back.frame_log_likelihood(states), calibrate(model, walker).frame_log_likelihood(states))
+    assert np.array_equal(back.broad.weights, model.broad.weights)
+    # a version-1 file (no body arrays) loads as a model without body terms
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files if not k.startswith("body_")}
+    header = json.loads(bytes(arrays["header"]).decode())
+    header["format_version"] = 1
+    header.pop("body")
+    header.pop("broad")
+    arrays = {k: v for k, v in arrays.items() if not k.startswith("broad")}
+    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    v1 = model_from_arrays(arrays, "v1")
+    assert v1.body is None and v1.broad is None and v1.provenance["format_version_read"] == 1
+    assert np.allclose(v1.frame_log_likelihood(states),
+                       model.replace(body=None, broad=None).frame_log_likelihood(states))
+    header["format_version"] = 3
+    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    with pytest.raises(ModelFileError, match="format version 3 is not supported"):
+        model_from_arrays(arrays, "v3")
+    # a version-2 header announcing body terms without the arrays is refused
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files if not k.startswith("body_")}
+    with pytest.raises(ModelFileError, match="body"):
+        model_from_arrays(arrays, "v2")

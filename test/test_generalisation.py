@@ -1,0 +1,67 @@
+"""The generalisation experiment of ``dtm-eval`` on a tiny budget: one cell per variant, the
+diagnosis of where the truth loses, the report section and ``--merge``."""
+import json
+
+import pytest
+
+import argparse
+
+from dtm_labeler.cli.evaluate import _merge_saved, make_plan
+from dtm_labeler.evaluation import generalisation as gen
+from dtm_labeler.evaluation.report import write_report
+from dtm_labeler.training.train import TrainConfig
+
+
+@pytest.fixture(scope="module")
+def cells(data_dir):
+    """Subject 55: a lambada model (first 300 frames) labels 0.2 s of a later part of the
+    lambada after a 0.25 s calibration window, today's model and the body model."""
+    plan = gen.Plan(cases=("D2_halves",), stream_frames=24, single_frames=1, calibration_s=0.25)
+    train = gen.load_source(data_dir, "D2@0:0.14", "body14")
+    test = gen.load_source(data_dir, "D2@0.5:0.55", "body14")
+    out, info = {}, {}
+    for variant in ("today", "body"):
+        cfg = TrainConfig(mixture="fixed", k_fixed=2, structure="given", seed=0,
+                          **(gen.TODAY if variant == "today" else {}))
+        model, info[variant] = gen.train_case_model([train], cfg)
+        out[variant] = gen.run_variant(model, test, variant, plan, markers=False)
+        if variant == "body":
+            out["body + calibration"] = gen.run_variant(model, test, "body + calibration", plan, markers=False)
+    return plan, out, info
+
+
+def test_variants_are_scored_on_the_same_frames(cells):
+    plan, out, info = cells
+    assert info["body"]["segments"] >= 8 and info["body"]["segment_edges"] >= 8 and info["today"]["segments"] == 0
+    for v in gen.VARIANTS:
+        r = out[v]
+        assert r["calibration_frames"] == 30                      # 0.25 s at 120 Hz
+        assert r["stream"]["frames"] == 24 and r["single"]["frames"] == 1
+        d = r["diagnosis"]
+        assert d["model_errors"] + d["search_errors"] == d["wrong"] <= d["frames"] == 24
+    cal = out["body + calibration"]["calibration"]
+    assert cal["segments"] == cal["segments_total"] and 0.5 < cal["confirmed_fraction"] <= 1.0
+
+
+def test_report_section_and_merge(cells, tmp_path):
+    plan, out, info = cells
+    res = {"generalisation": {"plan": gen.plan_dict(plan), "results": {"D2_halves": out},
+                              "cases": {"D2_halves": {"group": gen.GROUPS[0], "title": "lambada halves", "note": "",
+                                                      "points": "body14", "train": [{"spec": "D2@0:0.14"}],
+                                                      "test": {"spec": "D2@0.5:0.55"}, "models": info}}}}
+    eplan = vars(make_plan(argparse.Namespace(quick=True, frames_per_test=None, seed=0)))
+    meta = {"plan": eplan, "date": "today", "command": "dtm-eval", "wall_s": 1.0, "jobs": 1, "data_dir": "data",
+            "machine": {"cpus": 2}, "sections": ["generalisation"]}
+    paths = write_report(tmp_path, res, meta)
+    text = paths["report"].read_text()
+    assert "## Generalisation" in text and "**same person, other take**" in text
+    assert "D2@0:0.14 → D2@0.5:0.55" in text and "fig_generalisation.png" in paths["figures"]
+    assert (tmp_path / "fig_generalisation.png").stat().st_size > 1000
+    # --merge keeps the sections of the saved results that this run did not redo
+    saved = json.loads((tmp_path / "results.json").read_text())
+    saved["results"]["table3"] = {"kept": True}
+    saved["meta"]["sections"] = ["table3", "generalisation"]
+    (tmp_path / "results.json").write_text(json.dumps(saved))
+    merged, sections = _merge_saved(tmp_path, {"generalisation": {"new": 1}}, ["generalisation"])
+    assert merged["table3"] == {"kept": True} and merged["generalisation"] == {"new": 1}
+    assert sections == ["table3", "generalisation"]
