@@ -80,7 +80,9 @@ def test_migration_moves_individuals_toward_the_better_model(data):
         isl = [island(pop, 0), island(truth[None], 1)]
         migrate(isl, 1)
         moved_to_run.append(16 - len(isl[0].pop))
-    assert np.mean(moved_to_run) < 2.0
+    # (the broad part of each triangle's conditional makes far-off individuals cost alike in both
+    # models, so some of them drift either way; the near-right ones stay)
+    assert np.mean(moved_to_run) < 0.5 * np.mean(moved_to_walk)
 
 
 def test_bank_labels_a_switching_sequence(data):

@@ -35,7 +35,7 @@ def walker():
 
 @pytest.fixture(scope="module")
 def models(walker):
-    body, _ = train_model([walker], TrainConfig(**FAST))
+    body, _ = train_model([walker], TrainConfig(**FAST, broad_component=True))
     today, _ = train_model([walker], TrainConfig(**FAST, body_terms=False, broad_component=False))
     return body, today
 

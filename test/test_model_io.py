@@ -15,7 +15,7 @@ from dtm_labeler.motion.synthetic import synthesize
 @pytest.fixture(scope="module")
 def trained():
     clips = [synthesize(duration=1.5, seed=s, heading=h, noise_mm=2) for s, h in [(0, 0.0), (1, 2.0)]]
-    model, _ = train_model(clips, TrainConfig(mixture="fixed", k_fixed=2, structure="given"))
+    model, _ = train_model(clips, TrainConfig(mixture="fixed", k_fixed=2, structure="given", broad_component=True))
     test = synthesize(duration=0.3, seed=9, heading=-1.0, noise_mm=2)
     return model, canonical_states(test, model.heading_pairs)
 
@@ -94,7 +94,7 @@ def _corrupt_cases(good):
         "body arrays missing": (drop("body_lo"), "body terms lack"),
         "body pair out of range": (replace("body_pairs", good["body_pairs"] + 50), "inconsistent model"),
         "broad arrays missing": (drop("broad3_covariance"), "broad components lack"),
-        "broad weight not in (0, 1)": (replace("broad_weights", good["broad_weights"] * 20), "inconsistent model"),
+        "broad weight not in (0, 1)": (replace("broad_weights", good["broad_weights"] + 1.0), "inconsistent model"),
         "no header": (drop("header"), "no header"),
         "header not json": (replace("header", np.frombuffer(b"\xff\xfe{", dtype=np.uint8)), "corrupt header"),
         "header a list": (replace("header", np.frombuffer(b"[1, 2]", dtype=np.uint8)), "does not name format"),

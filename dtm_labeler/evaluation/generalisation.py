@@ -7,8 +7,9 @@ does (labels stripped, points shuffled, stream and single mode), in three varian
   (``TrainConfig(body_terms=False, broad_component=False)``: a format-1 model);
   structure: the hand-given one for the 14 body points, the one grown along the rigid tree
   (``--structure body``) at all markers, for every variant;
-* **body** -- the same training with the body terms and the broad motion component
-  (:mod:`dtm_labeler.model.body`; the ``dtm-train`` default), generic body;
+* **body** -- the same training with the body terms (:mod:`dtm_labeler.model.body`; the
+  ``dtm-train`` default): a generic body, whose reach limits apply (its segment lengths wait
+  for a calibration);
 * **body + calibration** -- that model calibrated on the first seconds of the test recording
   (at most ``calibration_s``, at most a third of it), the frames labelled by the model itself
   and confirmed by their vote confidence (:func:`~dtm_labeler.training.calibrate.self_calibrate`;

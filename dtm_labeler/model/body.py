@@ -32,6 +32,13 @@ clique (a product of experts with the motion term), not a density of its own, an
 with different numbers of labelled points keep comparing over the same dimensions
 (:mod:`dtm_labeler.search.problem`). It depends on distances only: no heading, no velocity.
 
+Whose lengths. Segment lengths hold for one person. A generic body (lengths over the training
+people) applies only its reach limits: measured on people outside the training set (another
+lab's joint centres from surface markers, other proportions) its segment ranges cost right
+labelings more than they save (cross-subject stream 99.9 % without them, 85 % with them), so
+the segment terms wait for a subject calibration (:mod:`dtm_labeler.training.calibrate`),
+which gives the person's own lengths; :attr:`BodyModel.applied_kinds` says which apply.
+
 Missing markers (eq. 30-31): an edge with an unobserved end point has no term (factor 1). This
 is exact where the motion density of the missing point lies inside the distances the body
 allows (``exp(b) = 1`` there, so integrating the point out leaves the motion marginal of
@@ -138,6 +145,12 @@ class BodyModel:
         return replace(self, within_sd=np.hypot(self.within_sd, np.sqrt(2.0) * position_sd_m))
 
     # -- model file ------------------------------------------------------------------
+    @property
+    def applied_kinds(self) -> tuple[int, ...]:
+        """The pair kinds whose terms the labeler applies: segments and reach limits once
+        calibrated to a person, reach limits only for a generic body (module doc)."""
+        return (SEGMENT, REACH) if self.calibration else (REACH,)
+
     def to_arrays(self) -> dict[str, np.ndarray]:
         return {"body_pairs": self.pairs.astype(np.int64), "body_kind": self.kind.astype(np.int64),
                 "body_lo": self.lo, "body_hi": self.hi, "body_within_sd": self.within_sd,
@@ -166,7 +179,7 @@ class EdgeTerms:
 
     SLOTS = ((0, 1), (0, 2), (1, 2))
 
-    def __init__(self, body: BodyModel, triangles: np.ndarray):
+    def __init__(self, body: BodyModel, triangles: np.ndarray, kinds: tuple[int, ...] = (SEGMENT, REACH)):
         tri = np.asarray(triangles, dtype=np.int64)
         T = tri.shape[0]
         self.lo = np.zeros((T, 3))
@@ -177,6 +190,7 @@ class EdgeTerms:
         for s, (i, j) in enumerate(self.SLOTS):
             rows = idx[tri[:, i], tri[:, j]]
             live = rows >= 0
+            live[live] = np.isin(body.kind[rows[live]], kinds)
             if s == 2:
                 live[1:] = False                      # (B_t, C_t) was introduced by an earlier triangle
             self.lo[live, s] = body.lo[rows[live]]

@@ -276,7 +276,7 @@ class TriangulatedModel:
         self.triangles = self.structure.array
         if self.body is not None and self.body.n_labels != len(self.labels):
             raise ValueError(f"body terms for {self.body.n_labels} labels, model has {len(self.labels)}")
-        edges = EdgeTerms(self.body, self.triangles) if self.body is not None else None
+        edges = EdgeTerms(self.body, self.triangles, self.body.applied_kinds) if self.body is not None else None
         self.body_edges = edges if edges is not None and edges.active else None
         if self.broad is not None and len(self.broad.gaussians) != len(self.mixtures):
             raise ValueError(f"{len(self.broad.gaussians)} broad components for {len(self.mixtures)} triangles")
