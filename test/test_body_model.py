@@ -20,7 +20,7 @@ from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search import structure_search as ss
 from dtm_labeler.search.problem import Background, FrameProblem
 from dtm_labeler.training.body_fit import broad_weight, reach_limits
-from dtm_labeler.training.calibrate import CalibrationError, calibrate, self_calibrate
+from dtm_labeler.training.calibrate import CalibrationError, calibrate, calibrated_body, self_calibrate
 from dtm_labeler.training.train import TrainConfig, canonical_states, train_model
 from dtm_labeler.model.features import point_states
 
@@ -253,6 +253,30 @@ def test_self_calibration_without_labels(models):
     true = np.median(np.linalg.norm(other.positions[:, u] - other.positions[:, v], axis=-1), axis=0)
     assert np.abs(cal.body.lo[seg] - true).max() < 0.01
     assert cal.provenance["calibration"]["source"] == "self-labelled"
+
+
+def test_calibration_checks_left_against_right(models):
+    """Confirmed labels with the right arm chain shifted by one for the whole window (the wrist
+    point labelled relbow, no rwrist): its "upper arm" is the shoulder-wrist distance; the
+    mirror check drops it and takes the left upper arm's length, and the untouched left side
+    keeps its own. Without mirror pairs the wrong length is learnt."""
+    model = models[0]
+    other = synthesize(duration=1.0, seed=7, height=1.7)
+    P = other.positions.copy()
+    P[:, I["relbow"]] = P[:, I["rwrist"]]
+    P[:, I["rwrist"]] = np.nan
+    idx = model.body.pair_index()
+    up_r, up_l = idx[I["rshoulder"], I["relbow"]], idx[I["lshoulder"], I["lelbow"]]
+    assert model.body.kind[up_r] == SEGMENT and model.body.kind[up_l] == SEGMENT
+    true_l = np.median(np.linalg.norm(other.positions[:, I["lshoulder"]] - other.positions[:, I["lelbow"]], axis=-1))
+    wrong = np.median(np.linalg.norm(P[:, I["rshoulder"]] - P[:, I["relbow"]], axis=-1))
+    assert wrong - true_l > 0.05
+    cal = calibrate(model, P)
+    assert abs(cal.body.lo[up_r] - true_l) < 0.005 and abs(cal.body.lo[up_l] - true_l) < 0.005
+    assert cal.body.hi[up_r] == cal.body.lo[up_r]
+    assert cal.provenance["calibration"]["segments_from_mirror"] >= 1
+    naive = calibrated_body(model.body, P)[0]              # no mirror pairs: no check
+    assert naive.lo[up_r] > true_l + 0.05 or naive.lo[up_r] == model.body.lo[up_r]
 
 
 def test_structure_prior_favours_segment_edges(walker):

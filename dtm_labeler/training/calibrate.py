@@ -12,6 +12,15 @@ lengths replace the generic ones. :func:`calibrate` does that for a model with b
   model's and 1.5 x the frames' own (robust, MAD-based) scatter; a segment whose labelled
   length scatters by more than ``max_spread_m`` keeps its generic range (its labels were not
   one segment);
+* **left and right agree**: a person's left and right segments have the same length within a
+  centimetre or two, so a segment whose measured length differs from its mirror's (left and
+  right labels exchanged, :attr:`TriangulatedModel.mirror_pairs`) by more than ``mirror_abs_m``
+  or ``mirror_rel`` of their length was measured on a wrong labeling -- an arm chain shifted by
+  one, the wrist labelled elbow for the whole window, gives a steady "upper arm" as long as the
+  bent arm -- and of the two, the one farther outside its generic range (relative to its
+  length) is dropped. A segment not measured (dropped, scattering, or its labels unconfirmed)
+  whose mirror was measured takes the mirror's length, with spread ``mirror_sd_m``: the
+  body is the person's, and a left/right-symmetric one is closer to it than the generic range;
 * the **reach** limits are scaled by the subject's size: the median ratio of the calibrated
   segment lengths to the generic ones (clipped to [0.75, 1.33]);
 * the motion mixtures are kept (the motion is not the person's).
@@ -34,6 +43,7 @@ node published with high confidence) and :func:`self_calibrate` (raw clouds).
 from __future__ import annotations
 
 import datetime as _dt
+import warnings
 from dataclasses import dataclass, replace
 from typing import Sequence
 
@@ -59,6 +69,9 @@ class CalibrationSettings:
                                      # body poorly is still labelled; the medians are robust to a few wrong ones)
     open_between_rel: float = 0.3    # self-labelling, first round: between-person spread of the generic body
     rounds: int = 2                  # self-calibration: label, calibrate, label again, ...
+    mirror_abs_m: float = 0.02       # left/right segment lengths that differ by more than this ...
+    mirror_rel: float = 0.08         # ... and by more than this fraction of their length disagree
+    mirror_sd_m: float = 0.01        # spread of a segment length taken from its mirror
 
 
 class CalibrationError(ValueError):
@@ -78,17 +91,51 @@ def labelled_positions(model: TriangulatedModel, source: MotionClip | np.ndarray
     return P
 
 
-def calibrated_body(body: BodyModel, positions: np.ndarray, settings: CalibrationSettings | None = None
-                    ) -> tuple[BodyModel, dict]:
-    """The body of the person in ``positions`` (F, M, 3) (module doc); and a summary."""
+def mirror_rows(body: BodyModel, mirror_pairs: np.ndarray | None) -> np.ndarray:
+    """(P,) the row of each pair's mirror pair (left and right labels exchanged) in ``body``,
+    -1 where it has none or is its own mirror (neck-head, the hips' pair)."""
+    m = np.arange(body.n_labels)
+    mp = np.asarray(mirror_pairs if mirror_pairs is not None else np.zeros((0, 2)), dtype=np.int64).reshape(-1, 2)
+    m[mp[:, 0]], m[mp[:, 1]] = mp[:, 1], mp[:, 0]
+    rows = body.pair_index()[m[body.pairs[:, 0]], m[body.pairs[:, 1]]]
+    rows[rows == np.arange(rows.size)] = -1
+    return rows
+
+
+def symmetric_segments(body: BodyModel, measured: np.ndarray, length: np.ndarray, mirror: np.ndarray,
+                       s: CalibrationSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Which measured segments to keep and which to take from their mirror (module doc):
+    returns (kept (P,) bool, borrowed (P,) bool)."""
+    has = mirror >= 0
+    mr = np.where(has, mirror, 0)
+    both = measured & has & measured[mr]
+    with np.errstate(invalid="ignore"):
+        gap = np.abs(length - length[mr])
+        off = both & (gap > np.maximum(s.mirror_abs_m, s.mirror_rel * 0.5 * (length + length[mr])))
+        outside = np.maximum(np.maximum(body.lo - length, length - body.hi), 0.0) / (0.5 * (body.lo + body.hi))
+    rows = np.arange(length.size)
+    wrong = off & ((outside > outside[mr]) | ((outside == outside[mr]) & (rows > mr)))
+    kept = measured & ~wrong
+    borrowed = (body.kind == SEGMENT) & ~kept & has & kept[mr]
+    return kept, borrowed
+
+
+def calibrated_body(body: BodyModel, positions: np.ndarray, settings: CalibrationSettings | None = None,
+                    mirror_pairs: np.ndarray | None = None) -> tuple[BodyModel, dict]:
+    """The body of the person in ``positions`` (F, M, 3) (module doc); and a summary.
+    ``mirror_pairs`` (left, right) label pairs: check left against right (none: no check)."""
     s = settings or CalibrationSettings()
     u, v = body.pairs[:, 0], body.pairs[:, 1]
     d = np.linalg.norm(positions[:, u] - positions[:, v], axis=-1)                   # (F, P)
     seen = np.isfinite(d).sum(0)
-    with np.errstate(all="ignore"):
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)          # pairs never seen together: NaN
         med = np.nanmedian(np.where(np.isfinite(d), d, np.nan), axis=0)
         mad = 1.4826 * np.nanmedian(np.abs(d - med), axis=0)
-    seg = (body.kind == SEGMENT) & (seen >= s.min_frames) & (np.nan_to_num(mad, nan=np.inf) <= s.max_spread_m)
+    measured = ((body.kind == SEGMENT) & (seen >= s.min_frames)
+                & (np.nan_to_num(mad, nan=np.inf) <= s.max_spread_m))
+    mirror = mirror_rows(body, mirror_pairs)
+    seg, borrowed = symmetric_segments(body, measured, med, mirror, s)
     if not seg.any():
         raise CalibrationError(f"no segment seen in at least {s.min_frames} calibration frames "
                                f"({positions.shape[0]} frames given)")
@@ -99,11 +146,17 @@ def calibrated_body(body: BodyModel, positions: np.ndarray, settings: Calibratio
     lo[seg] = hi[seg] = med[seg]
     within[seg] = np.maximum(body.within_sd[seg], s.within_factor * np.nan_to_num(mad[seg]))
     between[seg] = 0.0
+    src = mirror[borrowed]
+    lo[borrowed] = hi[borrowed] = med[src]
+    within[borrowed] = np.maximum(within[src], s.mirror_sd_m)
+    between[borrowed] = 0.0
     reach = body.kind != SEGMENT
     hi[reach] = body.hi[reach] * ratio
     between[reach] = 0.0
     summary = {"frames": int(positions.shape[0]), "segments": int(seg.sum()),
                "segments_total": int((body.kind == SEGMENT).sum()), "scale": float(ratio),
+               "segments_from_mirror": int(borrowed.sum()),
+               "asymmetric_dropped": int((measured & ~seg).sum()),
                "median_change_m": float(np.median(np.abs(med[seg] - generic[seg]))),
                "calibrated": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
     return replace(body, lo=lo, hi=hi, within_sd=within, between_sd=between, calibration=summary), summary
@@ -118,7 +171,7 @@ def calibrate(model: TriangulatedModel, source: MotionClip | np.ndarray,
         raise CalibrationError("the model has no body terms to calibrate (format version 1 or trained "
                                "without them); retrain with dtm-train")
     P = labelled_positions(model, source)
-    body, summary = calibrated_body(model.body, P, settings)
+    body, summary = calibrated_body(model.body, P, settings, model.mirror_pairs)
     return model.replace(body=body, provenance=dict(model.provenance, calibration=summary))
 
 
@@ -197,5 +250,5 @@ def calibrate_from_clip(model: TriangulatedModel, clip: MotionClip, labels: str 
     return out, dict(out.provenance["calibration"])
 
 
-__all__ = ["LABEL_SOURCES", "calibrate_from_clip", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "self_label",
+__all__ = ["LABEL_SOURCES", "calibrate_from_clip", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "mirror_rows", "self_label",
            "self_calibrate", "labelled_positions"]
