@@ -20,7 +20,10 @@ lengths replace the generic ones. :func:`calibrate` does that for a model with b
   bent arm -- and of the two, the one farther outside its generic range (relative to its
   length) is dropped. A segment not measured (dropped, scattering, or its labels unconfirmed)
   whose mirror was measured takes the mirror's length, with spread ``mirror_sd_m``: the
-  body is the person's, and a left/right-symmetric one is closer to it than the generic range;
+  body is the person's, and a left/right-symmetric one is closer to it than the generic range.
+  Only pairs that are symmetric in the training (generic lengths within the same tolerance)
+  are compared: marker sets place some markers asymmetrically on purpose (Plug-in Gait's thigh
+  and shank markers sit at different heights left and right), so their clusters' lengths differ;
 * the **reach** limits are scaled by the subject's size: the median ratio of the calibrated
   segment lengths to the generic ones (clipped to [0.75, 1.33]);
 * the motion mixtures are kept (the motion is not the person's).
@@ -106,13 +109,15 @@ def symmetric_segments(body: BodyModel, measured: np.ndarray, length: np.ndarray
                        s: CalibrationSettings) -> tuple[np.ndarray, np.ndarray]:
     """Which measured segments to keep and which to take from their mirror (module doc):
     returns (kept (P,) bool, borrowed (P,) bool)."""
-    has = mirror >= 0
-    mr = np.where(has, mirror, 0)
+    mr = np.where(mirror >= 0, mirror, 0)
+    generic = 0.5 * (body.lo + body.hi)
+    has = (mirror >= 0) & (np.abs(generic - generic[mr])
+                           <= np.maximum(s.mirror_abs_m, s.mirror_rel * 0.5 * (generic + generic[mr])))
     both = measured & has & measured[mr]
     with np.errstate(invalid="ignore"):
         gap = np.abs(length - length[mr])
         off = both & (gap > np.maximum(s.mirror_abs_m, s.mirror_rel * 0.5 * (length + length[mr])))
-        outside = np.maximum(np.maximum(body.lo - length, length - body.hi), 0.0) / (0.5 * (body.lo + body.hi))
+        outside = np.maximum(np.maximum(body.lo - length, length - body.hi), 0.0) / generic
     rows = np.arange(length.size)
     wrong = off & ((outside > outside[mr]) | ((outside == outside[mr]) & (rows > mr)))
     kept = measured & ~wrong
