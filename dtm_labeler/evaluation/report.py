@@ -486,24 +486,29 @@ def _generalisation(res: dict, out: Path, figures: list) -> list[str]:
     lines = ["## Generalisation: other takes, other motions, other people", "",
              "Models trained on some recordings label another one (labels stripped, points shuffled). **today** = "
              "the motion mixtures alone (as before the body model: a format-1 model); **body** = the same "
-             "training with the motion-independent body terms (segment lengths, reach limits on the DTM's edges) "
-             "and the broad motion component (`dtm-train`'s default); **body + calibration** = that model "
+             "training with the motion-independent body terms on the DTM's edges (`dtm-train`'s default): a generic "
+             "body, of which only the reach limits apply (segment lengths wait for a calibration; the broad motion "
+             "component is off by default); **body + calibration** = that model "
              f"calibrated on the first ≤ {plan['calibration_s']:g} s of the test recording (at most a third of "
-             "it), labelled by the model itself and kept where the votes confirm it (no true label used). All "
+             "it), labelled by the model itself and kept where the votes confirm it (no true label used; a "
+             "segment whose confirmed length disagrees with its mirror's is dropped and takes the mirror's "
+             "length), then its segment lengths and reach limits apply. All "
              "variants are scored on the same frames after the calibration window: stream mode on the first "
              f"{plan['stream_frames']} of them ({plan['marker_stream_frames']} at 41 markers), single mode on "
              f"{plan['single_frames']} ({plan['marker_single_frames']}) frames spread over them. Model errors = "
              "frames whose search result is wrong although the true labeling scores lower (the model prefers the "
              "wrong one); the rest of the wrong frames are search errors.", ""]
+    if res.get("note"):
+        lines += [res["note"], ""]
     header = ["case", "trained on → tested on"] + [f"{v} {m}" for v in VARIANTS for m in ("stream", "single")] + \
-        ["model / search errors (today → body)"]
+        ["model / search errors (today → body → calibrated)"]
     for group in GROUPS:
         rows = []
         for key, info in cases.items():
             if info["group"] != group:
                 continue
             r = results.get(key, {})
-            diag = [r.get(v, {}).get("diagnosis") for v in ("today", "body")]
+            diag = [r.get(v, {}).get("diagnosis") for v in VARIANTS]
             err = " → ".join("n/a" if not d else f"{d['model_errors']} / {d['search_errors']}" for d in diag)
             train = ", ".join(t["spec"] for t in info["train"])
             rows.append([info["title"] + (f" ({info['note']})" if info["note"] else ""),
@@ -511,15 +516,18 @@ def _generalisation(res: dict, out: Path, figures: list) -> list[str]:
                         + [_gen_acc(r.get(v), m) for v in VARIANTS for m in ("stream", "single")] + [err])
         if rows:
             lines += [f"**{group}**", "", md_table(header, rows), ""]
-    worst = []
-    for key, info in cases.items():
-        d = results.get(key, {}).get("today", {}).get("diagnosis")
-        if d and d["worst_triangles"]:
-            w = d["worst_triangles"][0]
-            worst.append(f"{info['title']}: ({', '.join(w['triangle'])}) {w['truth_minus_chosen']:.1f} nats")
-    if worst:
-        lines += ["Where today's truth loses (mean fitness of the true minus the chosen labeling over the model's "
-                  "error frames, worst triangle): " + "; ".join(worst) + ".", ""]
+    for variant, who in (("today", "today's"), ("body + calibration", "the calibrated model's")):
+        worst = []
+        for key, info in cases.items():
+            d = results.get(key, {}).get(variant, {}).get("diagnosis")
+            if d and d["worst_triangles"]:
+                w = d["worst_triangles"][0]
+                worst.append(f"{info['title']}: ({', '.join(w['triangle'])}) {w['truth_minus_chosen']:.1f} nats "
+                             f"(body terms {w['body_part']:.1f})")
+        if worst:
+            lines += [f"Where {who} truth loses (mean fitness of the true minus the chosen labeling over the "
+                      "model's error frames, worst triangle; of it, the body terms' part): " + "; ".join(worst) + ".",
+                      ""]
     lat = [results[k]["body"]["stream"]["latency_ms"] for k in cases if results.get(k, {}).get("body", {}).get("stream")]
     lat0 = [results[k]["today"]["stream"]["latency_ms"] for k in cases
             if results.get(k, {}).get("today", {}).get("stream")]
