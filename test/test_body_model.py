@@ -20,7 +20,8 @@ from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search import structure_search as ss
 from dtm_labeler.search.problem import Background, FrameProblem
 from dtm_labeler.training.body_fit import broad_weight, reach_limits
-from dtm_labeler.training.calibrate import CalibrationError, calibrate, calibrated_body, self_calibrate
+from dtm_labeler.training.calibrate import (CalibrationError, calibrate, calibrated_body, self_calibrate,
+                                           wrong_side)
 from dtm_labeler.training.train import TrainConfig, canonical_states, train_model
 from dtm_labeler.model.features import point_states
 
@@ -277,6 +278,29 @@ def test_calibration_checks_left_against_right(models):
     assert cal.provenance["calibration"]["segments_from_mirror"] >= 1
     naive = calibrated_body(model.body, P)[0]              # no mirror pairs: no check
     assert naive.lo[up_r] > true_l + 0.05 or naive.lo[up_r] == model.body.lo[up_r]
+
+
+def test_calibration_checks_each_point_on_its_side(models):
+    """Confirmed labels with the legs exchanged below the hips for the whole window (lknee,
+    lankle on the right leg's points and vice versa; the hips kept): those labels lie on the
+    wrong side of the trunk's midline, so their segments keep the generic range instead of the
+    hip-to-other-knee distances; the arms, on their own sides, are calibrated."""
+    model = models[0]
+    other = synthesize(duration=1.0, seed=9, height=1.7, heading=1.0)
+    P = other.positions.copy()
+    for a, b in (("lknee", "rknee"), ("lankle", "rankle")):
+        P[:, [I[a], I[b]]] = P[:, [I[b], I[a]]]
+    assert wrong_side(P, model.mirror_pairs, model.heading_pairs)[[I["lknee"], I["rankle"]]].all()
+    assert not wrong_side(other.positions, model.mirror_pairs, model.heading_pairs).any()
+    cal = calibrate(model, P)
+    idx = model.body.pair_index()
+    thigh = idx[I["lhip"], I["lknee"]]
+    assert model.body.kind[thigh] == SEGMENT
+    assert cal.body.lo[thigh] == model.body.lo[thigh] and cal.body.hi[thigh] == model.body.hi[thigh]
+    arm = idx[I["lshoulder"], I["lelbow"]]
+    true_arm = np.median(np.linalg.norm(other.positions[:, I["lshoulder"]] - other.positions[:, I["lelbow"]], axis=-1))
+    assert abs(cal.body.lo[arm] - true_arm) < 1e-6
+    assert cal.provenance["calibration"]["wrong_side_labels"] == 4
 
 
 def test_structure_prior_favours_segment_edges(walker):

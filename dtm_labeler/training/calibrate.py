@@ -24,6 +24,13 @@ lengths replace the generic ones. :func:`calibrate` does that for a model with b
   Only pairs that are symmetric in the training (generic lengths within the same tolerance)
   are compared: marker sets place some markers asymmetrically on purpose (Plug-in Gait's thigh
   and shank markers sit at different heights left and right), so their clusters' lengths differ;
+* **each point on its side**: a label of the left or right side whose point lies on the other
+  side of the body's midline (the vertical plane through the mean of the trunk's left/right
+  pair midpoints, :attr:`TriangulatedModel.heading_pairs`, across their mean right-minus-left
+  axis) in most calibration frames where it is seen was confirmed on its mirror point (the
+  left front-head marker labelled right front head, knees exchanged below the hips): its
+  segments keep their generic range. Mirror lengths alone cannot see such a swap when both
+  sides exchange, or when the mirror label is never given;
 * the **reach** limits are scaled by the subject's size: the median ratio of the calibrated
   segment lengths to the generic ones (clipped to [0.75, 1.33]);
 * the motion mixtures are kept (the motion is not the person's).
@@ -105,6 +112,33 @@ def mirror_rows(body: BodyModel, mirror_pairs: np.ndarray | None) -> np.ndarray:
     return rows
 
 
+def wrong_side(positions: np.ndarray, mirror_pairs: np.ndarray | None, heading_pairs: np.ndarray | None,
+               min_frames: int = 10) -> np.ndarray:
+    """(M,) labels whose point lies on the other side of the body's midline in more than half
+    of the frames (at least ``min_frames``) where it and the trunk are seen (module doc). The
+    vertical axis is z."""
+    M = positions.shape[1]
+    out = np.zeros(M, dtype=bool)
+    mp = np.asarray(mirror_pairs if mirror_pairs is not None else np.zeros((0, 2)), dtype=np.int64).reshape(-1, 2)
+    hp = np.asarray(heading_pairs if heading_pairs is not None else np.zeros((0, 2)), dtype=np.int64).reshape(-1, 2)
+    if not len(mp) or not len(hp):
+        return out
+    xy = positions[..., :2]
+    right = xy[:, hp[:, 1]] - xy[:, hp[:, 0]]                                       # (F, H, 2)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        axis = np.nanmean(right / np.linalg.norm(right, axis=-1, keepdims=True), axis=1)   # (F, 2)
+        centre = np.nanmean(0.5 * (xy[:, hp[:, 0]] + xy[:, hp[:, 1]]), axis=1)           # (F, 2)
+    side = np.zeros(M)
+    side[mp[:, 0]], side[mp[:, 1]] = -1.0, 1.0
+    offset = np.einsum("fmk,fk->fm", xy - centre[:, None], axis) * side                # > 0: own side
+    seen = np.isfinite(offset) & (side != 0)
+    wrong = (np.where(seen, offset, 0.0) < 0).sum(0)
+    n = seen.sum(0)
+    out[:] = (n >= min_frames) & (wrong > 0.5 * n)
+    return out
+
+
 def symmetric_segments(body: BodyModel, measured: np.ndarray, length: np.ndarray, mirror: np.ndarray,
                        s: CalibrationSettings) -> tuple[np.ndarray, np.ndarray]:
     """Which measured segments to keep and which to take from their mirror (module doc):
@@ -126,9 +160,11 @@ def symmetric_segments(body: BodyModel, measured: np.ndarray, length: np.ndarray
 
 
 def calibrated_body(body: BodyModel, positions: np.ndarray, settings: CalibrationSettings | None = None,
-                    mirror_pairs: np.ndarray | None = None) -> tuple[BodyModel, dict]:
+                    mirror_pairs: np.ndarray | None = None, heading_pairs: np.ndarray | None = None
+                    ) -> tuple[BodyModel, dict]:
     """The body of the person in ``positions`` (F, M, 3) (module doc); and a summary.
-    ``mirror_pairs`` (left, right) label pairs: check left against right (none: no check)."""
+    ``mirror_pairs`` (left, right) label pairs: check left against right, ``heading_pairs``
+    (the trunk's pairs): check each sided point's side (none: no check)."""
     s = settings or CalibrationSettings()
     u, v = body.pairs[:, 0], body.pairs[:, 1]
     d = np.linalg.norm(positions[:, u] - positions[:, v], axis=-1)                   # (F, P)
@@ -139,6 +175,8 @@ def calibrated_body(body: BodyModel, positions: np.ndarray, settings: Calibratio
         mad = 1.4826 * np.nanmedian(np.abs(d - med), axis=0)
     measured = ((body.kind == SEGMENT) & (seen >= s.min_frames)
                 & (np.nan_to_num(mad, nan=np.inf) <= s.max_spread_m))
+    flipped = wrong_side(positions, mirror_pairs, heading_pairs, s.min_frames)
+    measured &= ~(flipped[u] | flipped[v])
     mirror = mirror_rows(body, mirror_pairs)
     seg, borrowed = symmetric_segments(body, measured, med, mirror, s)
     if not seg.any():
@@ -162,6 +200,7 @@ def calibrated_body(body: BodyModel, positions: np.ndarray, settings: Calibratio
                "segments_total": int((body.kind == SEGMENT).sum()), "scale": float(ratio),
                "segments_from_mirror": int(borrowed.sum()),
                "asymmetric_dropped": int((measured & ~seg).sum()),
+               "wrong_side_labels": int(flipped.sum()),
                "median_change_m": float(np.median(np.abs(med[seg] - generic[seg]))),
                "calibrated": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
     return replace(body, lo=lo, hi=hi, within_sd=within, between_sd=between, calibration=summary), summary
@@ -176,7 +215,7 @@ def calibrate(model: TriangulatedModel, source: MotionClip | np.ndarray,
         raise CalibrationError("the model has no body terms to calibrate (format version 1 or trained "
                                "without them); retrain with dtm-train")
     P = labelled_positions(model, source)
-    body, summary = calibrated_body(model.body, P, settings, model.mirror_pairs)
+    body, summary = calibrated_body(model.body, P, settings, model.mirror_pairs, model.heading_pairs)
     return model.replace(body=body, provenance=dict(model.provenance, calibration=summary))
 
 
@@ -255,5 +294,5 @@ def calibrate_from_clip(model: TriangulatedModel, clip: MotionClip, labels: str 
     return out, dict(out.provenance["calibration"])
 
 
-__all__ = ["LABEL_SOURCES", "calibrate_from_clip", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "mirror_rows", "self_label",
+__all__ = ["LABEL_SOURCES", "calibrate_from_clip", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "mirror_rows", "wrong_side", "self_label",
            "self_calibrate", "labelled_positions"]
