@@ -13,7 +13,9 @@ does (labels stripped, points shuffled, stream and single mode), in three varian
 * **body + calibration** -- that model calibrated on the first seconds of the test recording
   (at most ``calibration_s``, at most a third of it), the frames labelled by the model itself
   and confirmed by their vote confidence (:func:`~dtm_labeler.training.calibrate.self_calibrate`;
-  no true label is used), then the rest labelled.
+  no true label is used; segments whose confirmed length disagrees with their mirror's, or
+  whose labels lie on the wrong side of the trunk, are not taken from those labels), then the
+  rest labelled.
 
 All three variants are scored on the same frames: those after the calibration window
 (stream mode: the first ``stream_frames`` of them through one labeler; single mode:
@@ -218,7 +220,8 @@ def run_variant(model: TriangulatedModel, test: MotionClip, variant: str, plan: 
             return out
         info = model.provenance["calibration"]
         out["calibration"] = {k: info[k] for k in ("frames", "segments", "segments_total", "scale",
-                                                   "median_change_m")}
+                                                   "median_change_m", "segments_from_mirror",
+                                                   "asymmetric_dropped", "wrong_side_labels")}
         out["calibration"]["confirmed_fraction"] = float(np.isfinite(confirmed[..., 0]).mean())
     n_stream = plan.marker_stream_frames if markers else plan.stream_frames
     n_single = plan.marker_single_frames if markers else plan.single_frames
