@@ -30,7 +30,9 @@ lengths replace the generic ones. :func:`calibrate` does that for a model with b
   axis) in most calibration frames where it is seen was confirmed on its mirror point (the
   left front-head marker labelled right front head, knees exchanged below the hips): its
   segments keep their generic range. Mirror lengths alone cannot see such a swap when both
-  sides exchange, or when the mirror label is never given;
+  sides exchange, or when the mirror label is never given. True labels can fail this test (a
+  pirouette's crossed legs: subject 5's left knee and ankle lie right of the midline in most
+  of its first 2 s), so labels from a capture skip both checks (``check_labels=False``);
 * the **reach** limits are scaled by the subject's size: the median ratio of the calibrated
   segment lengths to the generic ones (clipped to [0.75, 1.33]);
 * the motion mixtures are kept (the motion is not the person's).
@@ -140,9 +142,10 @@ def wrong_side(positions: np.ndarray, mirror_pairs: np.ndarray | None, heading_p
 
 
 def symmetric_segments(body: BodyModel, measured: np.ndarray, length: np.ndarray, mirror: np.ndarray,
-                       s: CalibrationSettings) -> tuple[np.ndarray, np.ndarray]:
+                       s: CalibrationSettings, check: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Which measured segments to keep and which to take from their mirror (module doc):
-    returns (kept (P,) bool, borrowed (P,) bool)."""
+    returns (kept (P,) bool, borrowed (P,) bool). ``check=False`` (trusted labels): keep every
+    measured segment, only fill the unmeasured ones from their mirrors."""
     mr = np.where(mirror >= 0, mirror, 0)
     generic = 0.5 * (body.lo + body.hi)
     has = (mirror >= 0) & (np.abs(generic - generic[mr])
@@ -150,7 +153,7 @@ def symmetric_segments(body: BodyModel, measured: np.ndarray, length: np.ndarray
     both = measured & has & measured[mr]
     with np.errstate(invalid="ignore"):
         gap = np.abs(length - length[mr])
-        off = both & (gap > np.maximum(s.mirror_abs_m, s.mirror_rel * 0.5 * (length + length[mr])))
+        off = check & both & (gap > np.maximum(s.mirror_abs_m, s.mirror_rel * 0.5 * (length + length[mr])))
         outside = np.maximum(np.maximum(body.lo - length, length - body.hi), 0.0) / generic
     rows = np.arange(length.size)
     wrong = off & ((outside > outside[mr]) | ((outside == outside[mr]) & (rows > mr)))
@@ -160,11 +163,13 @@ def symmetric_segments(body: BodyModel, measured: np.ndarray, length: np.ndarray
 
 
 def calibrated_body(body: BodyModel, positions: np.ndarray, settings: CalibrationSettings | None = None,
-                    mirror_pairs: np.ndarray | None = None, heading_pairs: np.ndarray | None = None
-                    ) -> tuple[BodyModel, dict]:
+                    mirror_pairs: np.ndarray | None = None, heading_pairs: np.ndarray | None = None,
+                    check_labels: bool = True) -> tuple[BodyModel, dict]:
     """The body of the person in ``positions`` (F, M, 3) (module doc); and a summary.
     ``mirror_pairs`` (left, right) label pairs: check left against right, ``heading_pairs``
-    (the trunk's pairs): check each sided point's side (none: no check)."""
+    (the trunk's pairs): check each sided point's side (none: no check); ``check_labels=False``
+    trusts the labels (an operator-labelled trial: a dancer's crossed legs are not a swap) and
+    skips both checks."""
     s = settings or CalibrationSettings()
     u, v = body.pairs[:, 0], body.pairs[:, 1]
     d = np.linalg.norm(positions[:, u] - positions[:, v], axis=-1)                   # (F, P)
@@ -175,10 +180,11 @@ def calibrated_body(body: BodyModel, positions: np.ndarray, settings: Calibratio
         mad = 1.4826 * np.nanmedian(np.abs(d - med), axis=0)
     measured = ((body.kind == SEGMENT) & (seen >= s.min_frames)
                 & (np.nan_to_num(mad, nan=np.inf) <= s.max_spread_m))
-    flipped = wrong_side(positions, mirror_pairs, heading_pairs, s.min_frames)
+    flipped = (wrong_side(positions, mirror_pairs, heading_pairs, s.min_frames) if check_labels
+               else np.zeros(body.n_labels, dtype=bool))
     measured &= ~(flipped[u] | flipped[v])
     mirror = mirror_rows(body, mirror_pairs)
-    seg, borrowed = symmetric_segments(body, measured, med, mirror, s)
+    seg, borrowed = symmetric_segments(body, measured, med, mirror, s, check_labels)
     if not seg.any():
         raise CalibrationError(f"no segment seen in at least {s.min_frames} calibration frames "
                                f"({positions.shape[0]} frames given)")
@@ -207,15 +213,18 @@ def calibrated_body(body: BodyModel, positions: np.ndarray, settings: Calibratio
 
 
 def calibrate(model: TriangulatedModel, source: MotionClip | np.ndarray,
-              settings: CalibrationSettings | None = None) -> TriangulatedModel:
+              settings: CalibrationSettings | None = None, check_labels: bool = True) -> TriangulatedModel:
     """``model`` with the body terms of the person in ``source``: a labelled clip (the
     model's labels or points derivable from it) or (F, M, 3) positions in the model's label
-    order (NaN = unseen). The model's own settings, structure and mixtures are kept."""
+    order (NaN = unseen). The model's own settings, structure and mixtures are kept.
+    ``check_labels``: check left against right and each point's side (labels from a model);
+    False trusts them (an operator-labelled capture)."""
     if model.body is None:
         raise CalibrationError("the model has no body terms to calibrate (format version 1 or trained "
                                "without them); retrain with dtm-train")
     P = labelled_positions(model, source)
-    body, summary = calibrated_body(model.body, P, settings, model.mirror_pairs, model.heading_pairs)
+    body, summary = calibrated_body(model.body, P, settings, model.mirror_pairs, model.heading_pairs,
+                                    check_labels)
     return model.replace(body=body, provenance=dict(model.provenance, calibration=summary))
 
 
@@ -285,7 +294,7 @@ def calibrate_from_clip(model: TriangulatedModel, clip: MotionClip, labels: str 
         except (KeyError, ValueError):
             labels = "model"
     if labels == "capture":
-        out = calibrate(model, clip, settings)
+        out = calibrate(model, clip, settings, check_labels=False)
         out.provenance["calibration"] = dict(out.provenance["calibration"], source="capture labels")
     else:
         out, confirmed = self_calibrate(model, clip_clouds(model, clip), clip.rate, settings)
