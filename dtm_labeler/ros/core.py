@@ -507,3 +507,22 @@ class LabelerCore:
         if done and self.worker.engine is not None:
             self.worker.engine.close()
         return done
+
+
+class CoreOwner:
+    """What the plain and the managed node expose of their :class:`LabelerCore` (mixed in
+    before the rclpy node class, so ``destroy_node`` stops the core first)."""
+
+    core: LabelerCore
+
+    def diagnostics(self):
+        """The DiagnosticStatus entries (labeling, model) as published on /diagnostics."""
+        return self.core.diagnostics()
+
+    def stop(self, timeout: float = 0.3) -> bool:
+        """Stop the worker and loader threads; True when they ended within ``timeout``."""
+        return self.core.shutdown(timeout)
+
+    def destroy_node(self):
+        self.stop()
+        return super().destroy_node()
