@@ -1,7 +1,8 @@
 """Shared pytest set-up.
 
 Rule one (../shared/ros2.md): DDS stays on loopback. This runs before any test module
-imports rclpy, and every test session gets its own ROS_DOMAIN_ID unless one is set.
+imports rclpy, and every test session gets its own ROS_DOMAIN_ID unless one is set; under
+``pytest -n N`` every worker moves to a domain of its own.
 """
 import os
 from pathlib import Path
@@ -10,6 +11,9 @@ os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):   # small matrices: threads only add latency
     os.environ.setdefault(_var, "1")
 os.environ.setdefault("ROS_DOMAIN_ID", str(40 + os.getpid() % 50))
+_WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")       # gw0, gw1 ... under pytest -n N
+if _WORKER.startswith("gw"):                               # parallel workers: a domain each
+    os.environ["ROS_DOMAIN_ID"] = str((int(os.environ["ROS_DOMAIN_ID"]) + 1 + int(_WORKER[2:])) % 100)
 
 import pytest  # noqa: E402
 

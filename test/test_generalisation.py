@@ -4,9 +4,9 @@ import json
 
 import pytest
 
-import argparse
 
-from dtm_labeler.cli.evaluate import _merge_saved, make_plan
+from dtm_labeler.cli.evaluate import _merge_saved
+from dtm_labeler.evaluation.plans import make_plan
 from dtm_labeler.evaluation import generalisation as gen
 from dtm_labeler.evaluation.report import write_report
 from dtm_labeler.training.train import TrainConfig
@@ -49,7 +49,7 @@ def test_report_section_and_merge(cells, tmp_path):
                               "cases": {"D2_halves": {"group": gen.GROUPS[0], "title": "lambada halves", "note": "",
                                                       "points": "body14", "train": [{"spec": "D2@0:0.14"}],
                                                       "test": {"spec": "D2@0.5:0.55"}, "models": info}}}}
-    eplan = vars(make_plan(argparse.Namespace(quick=True, frames_per_test=None, seed=0)))
+    eplan = vars(make_plan(quick=True))
     meta = {"plan": eplan, "date": "today", "command": "dtm-eval", "wall_s": 1.0, "jobs": 1, "data_dir": "data",
             "machine": {"cpus": 2}, "sections": ["generalisation"]}
     paths = write_report(tmp_path, res, meta)

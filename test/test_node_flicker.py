@@ -15,7 +15,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from dtm_labeler.cli.demo import ros_env
+
+pytestmark = pytest.mark.realtime      # judged against the wall clock: README runs it alone
 
 
 def test_flicker_stream_is_labelled_frame_after_frame(tmp_path):

@@ -3,6 +3,7 @@ runtime, reject corrupt / missing / mismatched files (old model keeps labelling)
 new path, expected_labels validated against the running model, unload; SIGINT -> exit 0."""
 from __future__ import annotations
 
+import re
 import signal
 
 import pytest
@@ -39,6 +40,9 @@ def test_starts_without_a_model_and_says_so(running):
     cl.wait_diag(lambda d: int(d["frames_skipped_no_model"]) >= before + 1)
     assert len(cl.labeled) == n_out                 # nothing labelled without a model
     assert cl.get("model_path")["model_path"].endswith("not_there.npz")
+    from std_srvs.srv import Trigger
+    r = cl.call(Trigger, "calibrate")
+    assert not r.success and "no model loaded" in r.message
 
 
 def test_good_model_loads_at_runtime(running):
@@ -91,6 +95,28 @@ def test_reload_service_reads_the_file_again(running):
     assert r.success and str(wm.path) in r.message
     cl.wait_diag(lambda d: int(d["reloads_ok"]) == before + 1 and d["model_status"] == "loaded")
     assert cl.run_frames(feed, 10) > 0.95
+
+
+def test_calibrate_service_swaps_in_the_subjects_body(running):
+    """~/calibrate collects calibration_s of confirmed labels from the stream, the loader
+    calibrates the model's body terms to them, and the worker swaps it in without a reset; a
+    reload reads the uncalibrated file again."""
+    from std_srvs.srv import Trigger
+    proc, cl, feed, wm = running
+    d0 = cl.wait_diag(lambda d: d["model_status"] == "loaded")
+    assert d0["calibration"] == "none"
+    assert cl.set(calibration_s=0.5)[0].successful
+    r = cl.call(Trigger, "calibrate")
+    assert r.success and "collecting 0.5 s" in r.message, r.message
+    assert cl.run_frames(feed, 70) > 0.95                             # 0.58 s of stream at 120 Hz
+    d = cl.wait_diag(lambda d: d["calibration"].startswith("calibrated"), 10, "the calibrated model")
+    assert re.search(r"on \d+ frames: [1-9]\d* of \d+ segments", d["calibration"]), d["calibration"]
+    assert int(d["models_prepared"]) > int(d0["models_prepared"])
+    assert d["resets_model_reload"] == d0["resets_model_reload"]       # tracks kept
+    assert proc.wait_log("subject calibration applied")
+    assert cl.run_frames(feed, 15) > 0.95
+    assert cl.call(Trigger, "reload").success
+    cl.wait_diag(lambda d: d["calibration"] == "none" and d["model_status"] == "loaded")
 
 
 def test_reload_to_a_new_path(running):

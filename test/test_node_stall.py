@@ -26,6 +26,8 @@ import pytest
 
 import node_helpers as H
 
+pytestmark = pytest.mark.realtime      # output gaps and exit times against the wall clock: run alone
+
 MAX_STALL_S = 0.5
 
 

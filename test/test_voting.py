@@ -102,3 +102,30 @@ def test_confidence_in_unit_interval_random():
         assert ((conf >= 0) & (conf <= 1)).all()
         assert len(set(labels[labels >= 0].tolist())) == (labels >= 0).sum()
         assert np.all(conf[labels < 0] == 0)
+
+
+def test_unlabelled_is_a_vote_of_its_own():
+    """A ghost track left unlabelled by 5 searches and given a label in the 6th (its marker
+    hidden) stays unlabelled; a track labelled in most frames keeps its label."""
+    vb = VoteBook(window=10, n_labels=3)
+    for _ in range(5):
+        vb.add(np.array([7, 8]), np.array([-1, 2]))
+    vb.add(np.array([7, 8]), np.array([2, -1]))              # the label jumps to the ghost
+    labels, conf = vb.publish(np.array([7, 8]), np.array([2, -1]))
+    assert labels[0] == -1 and conf[0] == 0.0
+    assert labels[1] == 2 and conf[1] == pytest.approx(5 / 6)
+
+
+def test_doubtful_frames_abstain_from_the_unlabelled_vote():
+    """Frames published doubtful (a recovery running, nothing known) cast no "no label" votes:
+    the labels a recovery brings are published at once."""
+    vb = VoteBook(window=10, n_labels=2)
+    for _ in range(6):
+        vb.add(np.array([1, 2]), np.array([-1, -1]), abstain=True)
+    vb.add(np.array([1, 2]), np.array([0, 1]))
+    labels, _ = vb.publish(np.array([1, 2]), np.array([0, 1]))
+    assert labels.tolist() == [0, 1]
+    vb.add(np.array([1, 2]), np.array([-1, -1]))             # voting frames: now 1 label vs 1 none each
+    vb.add(np.array([1, 2]), np.array([-1, -1]))
+    labels, _ = vb.publish(np.array([1, 2]), np.array([-1, -1]))
+    assert labels.tolist() == [-1, -1]

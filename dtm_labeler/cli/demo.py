@@ -41,9 +41,12 @@ from .common import CliError, HelpFormatter, add_corruption_arguments, run_main
 
 EPILOG = """examples:
   dtm-demo
-  dtm-demo --duration 20 --rate-hz 240 --occlude 2 --clutter 3
+  dtm-demo --occlude 2 --gap-frames 1 --clutter 2       flicker: a new 2 of the 14 points hidden every frame, 2 ghosts
+  dtm-demo --data ../shared/data/markers_c3d/hdm05_bd_05-01_01_120.c3d --points all --train-frames 0:70% \\
+           --occlude 3 --gap-frames 1 --clutter 2       41 markers, 3 flickering + 2 ghosts
+  dtm-demo --duration 20 --rate-hz 360 --occlude 2 --clutter 3
   dtm-demo --data ../shared/data/cmu_skeletal/bvh_from_fbx/cmu_55_01_dance-whirl_s55.bvh
-  dtm-demo --data capture.c3d --points all --train-frames 0:80%% --json
+  dtm-demo --data capture.c3d --points all --train-frames 0:80% --json
 """
 
 #: the embedded default: training walker and (different) test walker

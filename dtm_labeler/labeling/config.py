@@ -278,6 +278,11 @@ PARAMS: Tuple[Param, ...] = (
           "every model label missing this frame whose track can still be predicted.", "node"),
     Param("diagnostics_period_s", 1.0, "Period of the /diagnostics status (steady clock).", "node",
           range=(0.01, 3600.0)),
+    Param("calibration_s", 5.0, "Seconds of stream the ~/calibrate service collects: the labels "
+          "published with confidence >= 0.3 in that time set the subject's body terms (segment "
+          "lengths, reach scale; training/calibrate.py), then the calibrated model replaces the "
+          "running one without a reset. Any motion; the model must have body terms.", "node",
+          range=(0.5, 120.0)),
     Param("latency_window", 500, "Frames over which the latency percentiles in /diagnostics are "
           "computed.", "node", range=(1, 1000000)),
 )

@@ -836,7 +836,7 @@ class TrackedLabeler:
         present = assign >= 0
         search_labels[assign[present]] = np.flatnonzero(present)
         upd = inp.upd
-        self.votes.add(upd.track_ids, search_labels)
+        self.votes.add(upd.track_ids, search_labels, abstain=doubtful)
         if self.settings.mode == "stream":
             pub, share = self.votes.publish(upd.track_ids, search_labels)
         else:

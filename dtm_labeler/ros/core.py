@@ -31,6 +31,7 @@ from rclpy.parameter import Parameter
 from ..labeling.bank_labeler import bank_settings_from_params
 from ..labeling.recovery import keep_spare_worker
 from . import params as P
+from .calibration import CalibrationWindow
 from .diagnostics import DiagnosticsBuilder, NodeState, NodeStats
 from .engine import NodeSettings, Source
 from .inputs import InputUnavailable, decode, message_class
@@ -108,9 +109,11 @@ class LabelerCore:
         keep_spare_worker(self.values["recovery"] in ("auto", "background"))
         self.guard = StampGuard(self.values["max_gap_s"], self.values["stamp_source"])
         self.sources = SourceLock()
-        self.model: Dict[str, Any] = dict(status="no model", path="", error="", labels=(), actions=(), active="")
+        self.model: Dict[str, Any] = dict(status="no model", path="", error="", labels=(), actions=(), active="",
+                                          calibration="none")
         self.handler = FrameHandler(node, self.stats, self.lock, lambda: self.values, lambda: self.worker.stopping)
         self.handler.resize(self.values["latency_window"])
+        self.handler.on_calibration = self._calibration_collected
         self.worker = LabelWorker(self.handler, self._on_worker_event, self.settings)
         self.loader = EngineLoader(self.worker.install)
         self.diag = DiagnosticsBuilder()
@@ -195,6 +198,11 @@ class LabelerCore:
             return
         self._set_model(status="loaded", path=p.source.path, error="", labels=p.labels,
                         actions=engine.actions if engine else (), active=engine.active_model if engine else "")
+        if result.request.calibration is not None:
+            self._calibration_applied(p.base.provenance.get("calibration", {}))
+            return
+        if result.request.reload:
+            self._set_model(calibration="none")
         self.handler.clear()
         if replaced:
             self._note_reset(f"model {'reload' if result.request.reload else 'rebuilt'} ({result.request.why})")
@@ -204,8 +212,18 @@ class LabelerCore:
             self.log.info(f"model {'reloaded' if replaced else 'loaded'}: {p.source.path} ({len(p.labels)} labels, "
                           f"{result.seconds * 1e3:.0f} ms off the labeling thread)")
 
+    def _calibration_applied(self, c: dict) -> None:
+        text = (f"calibrated on {c.get('frames', 0)} frames: {c.get('segments', 0)} of "
+                f"{c.get('segments_total', 0)} segments, scale {c.get('scale', 1.0):.3f}")
+        self._set_model(calibration=text)
+        self.log.info(f"subject calibration applied ({text}); tracks kept")
+
     def _on_load_failed(self, result: LoadResult) -> None:
         running = self.worker.engine
+        if result.request.calibration is not None:
+            self._set_model(calibration=f"failed: {result.error}")
+            self.log.warning(f"subject calibration failed, the model is unchanged: {result.error}")
+            return
         with self.lock:
             self.stats.reloads_failed += 1
         self._set_model(status="reload failed" if running else "no model", error=result.error,
@@ -317,7 +335,8 @@ class LabelerCore:
         self.outputs = self.handler.outputs = out
         self._diag_pub = self.node.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._services = [self.node.create_service(Trigger, "~/reset", self._srv_reset),
-                          self.node.create_service(Trigger, "~/reload", self._srv_reload)]
+                          self.node.create_service(Trigger, "~/reload", self._srv_reload),
+                          self.node.create_service(Trigger, "~/calibrate", self._srv_calibrate)]
         self._make_timer()
 
     def close_outputs(self) -> None:
@@ -459,6 +478,32 @@ class LabelerCore:
                             else f"not reloaded: {self.model['error']}")
         return response
 
+    def _srv_calibrate(self, request, response):
+        """Open a calibration window of ``calibration_s`` (ros/calibration.py); the calibrated
+        model replaces the running one when it closes (/diagnostics ``calibration``)."""
+        engine = self.worker.engine
+        why_not = ("no model loaded" if engine is None else
+                   "a bank cannot be calibrated live (calibrate its models with dtm-calibrate)"
+                   if self.values["use_bank"] else
+                   "the model has no body terms (format 1 or trained without them): retrain with dtm-train"
+                   if getattr(engine.prepared.base, "body", None) is None else "")
+        if why_not:
+            response.success, response.message = False, f"not calibrating: {why_not}"
+            return response
+        window = CalibrationWindow(self.values["calibration_s"], len(engine.labels))
+        self.handler.calibration = window
+        self._set_model(calibration=window.status)
+        response.success = True
+        response.message = (f"collecting {window.seconds:g} s of confirmed labels (any motion); /diagnostics "
+                            "'calibration' says when the calibrated model runs")
+        return response
+
+    def _calibration_collected(self, positions) -> None:
+        """Worker thread: the window is full; the loader calibrates and the worker swaps."""
+        self._set_model(calibration=f"calibrating on {positions.shape[0]} frames")
+        self.loader.request(self.source(), self.settings.labeler.noise_mm, self.settings.bank,
+                            why="calibration", calibration=positions)
+
     # ------------------------------------------------------------------ diagnostics
     def state(self) -> NodeState:
         now = time.monotonic()
@@ -471,6 +516,7 @@ class LabelerCore:
         return NodeState(
             name=self.node.get_name(), hardware_id=self.node.get_fully_qualified_name(), model_status=m["status"],
             model_path=m["path"], model_error=m["error"], labels=tuple(m["labels"]),
+            calibration=(h.calibration.status if h.calibration is not None else m["calibration"]),
             active_model=(engine.active_model if engine else "") or v["model_name"],
             actions=engine.actions if engine else (), active=self.active, input_error=self.input_error,
             recovery_error=engine.recovery_failed if engine else "",
@@ -507,3 +553,22 @@ class LabelerCore:
         if done and self.worker.engine is not None:
             self.worker.engine.close()
         return done
+
+
+class CoreOwner:
+    """What the plain and the managed node expose of their :class:`LabelerCore` (mixed in
+    before the rclpy node class, so ``destroy_node`` stops the core first)."""
+
+    core: LabelerCore
+
+    def diagnostics(self):
+        """The DiagnosticStatus entries (labeling, model) as published on /diagnostics."""
+        return self.core.diagnostics()
+
+    def stop(self, timeout: float = 0.3) -> bool:
+        """Stop the worker and loader threads; True when they ended within ``timeout``."""
+        return self.core.shutdown(timeout)
+
+    def destroy_node(self):
+        self.stop()
+        return super().destroy_node()

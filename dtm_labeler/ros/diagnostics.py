@@ -89,6 +89,7 @@ class NodeState:
     model_status: str = "no model"    # loaded | loading | reload failed | no model
     model_path: str = ""
     model_error: str = ""
+    calibration: str = "none"         # ~/calibrate: none | collecting ... | calibrated ... | failed: ...
     labels: Tuple[str, ...] = ()
     active_model: str = ""
     actions: Tuple[str, ...] = ()
@@ -206,6 +207,7 @@ def _model_status(cur: NodeStats, st: NodeState) -> Tuple[int, str, List[Tuple[s
         "reload failed": (WARN, f"reload failed, still running {st.model_path}: {st.model_error}"),
     }.get(st.model_status, (ERROR, f"no model: {st.model_error}"))
     kv = [("model_status", st.model_status), ("model_path", st.model_path), ("model_error", st.model_error),
+          ("calibration", st.calibration),
           ("labels", ",".join(st.labels)), ("n_labels", len(st.labels)),
           ("expected_labels", ",".join(st.config.get("expected_labels", []) or [])),
           ("active_model", st.active_model), ("use_bank", st.config.get("use_bank", False)),

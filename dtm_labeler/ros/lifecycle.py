@@ -30,7 +30,7 @@ from typing import List, Optional
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
 from . import params as P
-from .core import LabelerCore
+from .core import CoreOwner, LabelerCore
 from .node import run
 
 __all__ = ["LabelerLifecycleNode", "main"]
@@ -39,7 +39,7 @@ __all__ = ["LabelerLifecycleNode", "main"]
 CONFIGURE_TIMEOUT_S = 30.0
 
 
-class LabelerLifecycleNode(LifecycleNode):
+class LabelerLifecycleNode(CoreOwner, LifecycleNode):
     """See the module doc; ``kwargs`` go to :class:`rclpy.lifecycle.LifecycleNode`."""
 
     def __init__(self, node_name: str = P.NODE_NAME, **kwargs):
@@ -86,16 +86,6 @@ class LabelerLifecycleNode(LifecycleNode):
         self.core.close_outputs()
         self.core.unload("shut down (lifecycle)")
         return super().on_shutdown(state)
-
-    def diagnostics(self):
-        return self.core.diagnostics()
-
-    def stop(self, timeout: float = 0.3) -> bool:
-        return self.core.shutdown(timeout)
-
-    def destroy_node(self):
-        self.stop()
-        return super().destroy_node()
 
 
 def main(args: Optional[List[str]] = None) -> int:

@@ -8,6 +8,9 @@ built is dropped too. So 100 ``noise_mm`` sets cost one or two rebuilds, and lab
 with the old engine meanwhile. The file is read again only when the source changed or a reload
 was asked for (``model_path`` set, even to the same path; ``~/reload``); a new noise re-widens
 the model already loaded. Results go to ``deliver`` (the worker swaps them in between frames).
+A calibration (``~/calibrate``) is a request too: the loaded model calibrated to the positions
+it carries, kept for later noise changes until the file is read again; like any request it is
+superseded by a newer one (a parameter set in the same instant: call ``~/calibrate`` again).
 """
 from __future__ import annotations
 
@@ -17,6 +20,8 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Optional
 
 from ..labeling.bank_labeler import BankSettings
+from ..model.bank import ModelBank
+from ..training.calibrate import calibrate
 from .engine import Prepared, Source, load, prepare
 
 __all__ = ["LoadRequest", "LoadResult", "EngineLoader"]
@@ -30,6 +35,7 @@ class LoadRequest:
     reload: bool = False       # read the file again even when the source is the loaded one
     generation: int = 0
     why: str = ""
+    calibration: Optional[Any] = None    # (F, M, 3) confirmed positions: calibrate the loaded model to them
 
 
 @dataclass(frozen=True)
@@ -53,6 +59,7 @@ class EngineLoader:
         self._busy = False
         self._stop = False
         self._cached: Optional[tuple] = None      # (source, base) last loaded
+        self._calibrated: Optional[tuple] = None  # (source, base calibrated to the subject)
         self._last: Optional[Prepared] = None     # last delivered
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
@@ -62,11 +69,15 @@ class EngineLoader:
         return self._generation
 
     def request(self, source: Source, noise_mm: float, bank_settings: BankSettings, reload: bool = False,
-                why: str = "") -> int:
-        """Queue a request (replacing any waiting one); returns its generation."""
+                why: str = "", calibration: Optional[Any] = None) -> int:
+        """Queue a request (replacing any waiting one); returns its generation. ``calibration``:
+        (F, M, 3) confirmed positions to calibrate the loaded model's body terms to (``why``
+        should say so); the calibrated model then serves every later request of the same
+        source until the file is read again."""
         with self._cond:
             self._generation += 1
-            self._pending = LoadRequest(source, float(noise_mm), bank_settings, reload, self._generation, why)
+            self._pending = LoadRequest(source, float(noise_mm), bank_settings, reload, self._generation, why,
+                                        calibration)
             self._cond.notify_all()
             return self._generation
 
@@ -141,6 +152,8 @@ class EngineLoader:
     def _build(self, req: LoadRequest) -> Any:
         if req.source.empty:
             return None
+        if req.calibration is not None:
+            return self._calibrate(req)
         last = self._last
         if (not req.reload and last is not None and last.source == req.source and last.noise_mm == req.noise_mm
                 and (last.bank_settings is None or last.bank_settings == req.bank_settings)):
@@ -148,11 +161,28 @@ class EngineLoader:
         cached = self._cached
         if req.reload or cached is None or cached[0] != req.source:
             base = load(req.source)
-            self._cached = (req.source, base)
+            self._cached, self._calibrated = (req.source, base), None
+        elif self._calibrated is not None and self._calibrated[0] == req.source:
+            base = self._calibrated[1]
         else:
             base = cached[1]
         if self._superseded(req):
             return _DROPPED
+        return prepare(req.source, base, req.noise_mm, req.bank_settings)
+
+
+    def _calibrate(self, req: LoadRequest) -> Any:
+        """The loaded model calibrated to ``req.calibration`` (always from the file's model, so
+        calibrations do not compound), widened for ``req.noise_mm``."""
+        cached = self._cached
+        if cached is None or cached[0] != req.source:
+            raise ValueError("the model changed while calibrating; call ~/calibrate again")
+        if isinstance(cached[1], ModelBank):
+            raise ValueError("a bank cannot be calibrated (calibrate its models with dtm-calibrate)")
+        base = calibrate(cached[1], req.calibration)
+        if self._superseded(req):
+            return _DROPPED
+        self._calibrated = (req.source, base)
         return prepare(req.source, base, req.noise_mm, req.bank_settings)
 
 

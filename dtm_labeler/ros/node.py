@@ -40,13 +40,13 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
 from . import params as P
-from .core import LabelerCore
+from .core import CoreOwner, LabelerCore
 from .messages import NO_TRACK
 
 __all__ = ["LabelerNode", "main", "run", "NO_TRACK"]
 
 
-class LabelerNode(Node):
+class LabelerNode(CoreOwner, Node):
     """See the module doc. ``kwargs`` go to :class:`rclpy.node.Node` (e.g. ``context``,
     ``parameter_overrides``, ``namespace``); ``start_worker=False`` is for tests."""
 
@@ -56,18 +56,6 @@ class LabelerNode(Node):
         self.core.open_outputs()
         self.core.load_model("start-up")
         self.core.open_input()
-
-    def diagnostics(self):
-        """The DiagnosticStatus entries (labeling, model) as published on /diagnostics."""
-        return self.core.diagnostics()
-
-    def stop(self, timeout: float = 0.3) -> bool:
-        """Stop the worker and loader threads; True when they ended within ``timeout``."""
-        return self.core.shutdown(timeout)
-
-    def destroy_node(self):
-        self.stop()
-        return super().destroy_node()
 
 
 def run(make_node, args: Optional[List[str]] = None) -> int:

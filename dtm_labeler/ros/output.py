@@ -23,6 +23,7 @@ from .engine import NodeLabeler
 from .messages import LabelledFrame, OccludedLabels, VizThrottle, labeled_marker_array, mocap4r2_markers
 from .pointcloud import make_labeled_cloud
 from .visualization import MarkerArrayBuilder, label_colors
+from .calibration import CalibrationWindow
 from .worker import Frame
 
 __all__ = ["Outputs", "FrameHandler", "reset_kind"]
@@ -69,6 +70,8 @@ class FrameHandler:
         self.overhead = collections.deque(maxlen=500)   # decode + build + publish, ms
         self.stall = collections.deque(maxlen=500)      # frame ready -> its labelling starts, ms
         self._t_done = 0.0                              # perf_counter() when the last frame was done
+        self.calibration: Optional[CalibrationWindow] = None     # open ~/calibrate window (worker thread)
+        self.on_calibration: Callable[[np.ndarray], None] = lambda positions: None
 
     def clear(self) -> None:
         """Forget per-stream state (a model change, a reset)."""
@@ -131,9 +134,18 @@ class FrameHandler:
         if self.stopping():
             return
         self._publish(frame, f, engine, v)
+        if self.calibration is not None and res is not None:
+            self._calibrate(f.stamp, labels, conf, f.xyz)
         self._count(f, res, n, n_finite, t0, t1)
         with self.lock:
             self.stall.append(stall_ms)
+
+    def _calibrate(self, stamp: float, labels: np.ndarray, conf: np.ndarray, xyz: np.ndarray) -> None:
+        window = self.calibration
+        positions = window.add(stamp, labels, conf, xyz) if window is not None else None
+        if positions is not None:
+            self.calibration = None
+            self.on_calibration(positions)
 
     def _publish(self, frame: LabelledFrame, f: Frame, engine: NodeLabeler, v: Dict[str, Any]) -> None:
         out = self.outputs

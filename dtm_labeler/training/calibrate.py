@@ -228,6 +228,16 @@ def calibrate(model: TriangulatedModel, source: MotionClip | np.ndarray,
     return model.replace(body=body, provenance=dict(model.provenance, calibration=summary))
 
 
+def confirmed_positions(labels: np.ndarray, confidence: np.ndarray, xyz: np.ndarray, n_labels: int,
+                        min_confidence: float = 0.3) -> np.ndarray:
+    """(M, 3) positions of one labelled frame in label order: the points labelled with at least
+    ``min_confidence`` (NaN for the other labels) -- what a calibration takes as confirmed."""
+    out = np.full((n_labels, 3), np.nan)
+    ok = (np.asarray(labels) >= 0) & (np.asarray(confidence) >= min_confidence)
+    out[np.asarray(labels)[ok]] = np.asarray(xyz, dtype=np.float64)[ok]
+    return out
+
+
 def self_label(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.ndarray, rate: float,
                settings: LabelerSettings | None = None, min_confidence: float = 0.3) -> np.ndarray:
     """Label unlabelled clouds (one (n, 3) array per frame, or (F, N, 3)) with ``model`` in
@@ -239,8 +249,7 @@ def self_label(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.ndarr
         xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         xyz = xyz[np.isfinite(xyz).all(1)]
         res = lab.process(xyz, f / rate)
-        ok = (res.labels >= 0) & (res.confidence >= min_confidence)
-        out[f, res.labels[ok]] = xyz[ok]
+        out[f] = confirmed_positions(res.labels, res.confidence, xyz, model.n_labels, min_confidence)
     return out
 
 
@@ -303,5 +312,5 @@ def calibrate_from_clip(model: TriangulatedModel, clip: MotionClip, labels: str 
     return out, dict(out.provenance["calibration"])
 
 
-__all__ = ["LABEL_SOURCES", "calibrate_from_clip", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "mirror_rows", "wrong_side", "self_label",
+__all__ = ["LABEL_SOURCES", "calibrate_from_clip", "confirmed_positions", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "mirror_rows", "wrong_side", "self_label",
            "self_calibrate", "labelled_positions"]

@@ -1,0 +1,60 @@
+"""Subject calibration from the live stream (``~/calibrate``): the window of confirmed labels.
+
+A call to ``~/calibrate`` opens a :class:`CalibrationWindow` of ``calibration_s`` seconds of
+the node's own time base. Every frame labelled in it adds the positions of the labels
+published with confidence >= ``min_confidence``
+(:func:`~dtm_labeler.training.calibrate.confirmed_positions`, the confirmation the offline
+self-calibration uses); when the window is full, :meth:`CalibrationWindow.add` hands back the
+(F, M, 3) positions. The node's loader thread then computes the calibrated model
+(:func:`~dtm_labeler.training.calibrate.calibrate`: medians over the window -- milliseconds)
+and the worker swaps it in between two frames, keeping tracks and votes, like a new
+``noise_mm``. Nothing here runs a search: collecting costs one (M, 3) copy per frame.
+
+Pure numpy, no ROS: tested without a node.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from ..training.calibrate import confirmed_positions
+
+__all__ = ["CalibrationWindow", "MIN_CONFIDENCE"]
+
+#: confidence a published label needs to count as confirmed (as the offline self-calibration)
+MIN_CONFIDENCE = 0.3
+
+
+class CalibrationWindow:
+    """Confirmed labels of ``seconds`` of stream (module doc); ``status`` says where it is."""
+
+    def __init__(self, seconds: float, n_labels: int, min_confidence: float = MIN_CONFIDENCE):
+        if seconds <= 0 or n_labels < 1:
+            raise ValueError("a calibration window needs a positive length and at least one label")
+        self.seconds, self.n_labels, self.min_confidence = float(seconds), int(n_labels), float(min_confidence)
+        self._frames: list[np.ndarray] = []
+        self._t0: Optional[float] = None
+        self._last = 0.0
+
+    @property
+    def frames(self) -> int:
+        return len(self._frames)
+
+    @property
+    def status(self) -> str:
+        done = 0.0 if self._t0 is None else self._last - self._t0
+        return f"collecting ({min(done, self.seconds):.1f} of {self.seconds:g} s, {self.frames} frames)"
+
+    def add(self, stamp: float, labels: np.ndarray, confidence: np.ndarray, xyz: np.ndarray
+            ) -> Optional[np.ndarray]:
+        """Add one labelled frame; the (F, M, 3) positions once ``seconds`` are covered, else None."""
+        if self._t0 is None:
+            self._t0 = stamp
+        if stamp < self._t0:                     # the time base went back (a reset): start again
+            self._frames, self._t0 = [], stamp
+        self._last = stamp
+        self._frames.append(confirmed_positions(labels, confidence, xyz, self.n_labels, self.min_confidence))
+        if stamp - self._t0 >= self.seconds:
+            return np.stack(self._frames)
+        return None
