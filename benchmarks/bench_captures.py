@@ -240,7 +240,7 @@ def run_archive(tmp: Path, quick: bool, repeats: int) -> dict:
     model, _, _ = train(clip.slice(tr.start, tr.stop))
     model_path = save_model(model, tmp / "archive_model.npz")
     folder = tmp / "archive"
-    n_takes, frames = (4, 60) if quick else (6, 240)
+    n_takes, frames = (4, 60) if quick else (6, 600)          # 5 s takes: a run is mostly labelling
     starts = np.linspace(clip.n_frames // 2, clip.n_frames - frames, n_takes).astype(int)
     for i, a in enumerate(starts):
         write_take(folder / f"take{i}.c3d", clip.slice(a, a + frames))

@@ -11,7 +11,7 @@ import json
 import numpy as np
 import pytest
 
-from dtm_labeler.model.body import REACH, SEGMENT, BodyModel, EdgeTerms, slot_distances
+from dtm_labeler.model.body import REACH, SEGMENT, BodyModel, EdgeTerms
 from dtm_labeler.model.io import FORMAT_VERSION, ModelFileError, load_model, model_from_arrays, save_model
 from dtm_labeler.model.mixture import GaussianMixture
 from dtm_labeler.model.structure import BODY14_GIVEN, Structure
@@ -122,8 +122,9 @@ def test_edge_terms_vanish_with_a_missing_end_point(person, walker):
     """Marginalisation: an edge whose end point is missing has no body term (factor 1), so the
     fitness of a labeling with a missing label is the marginalised motion terms (eq. 30-31)
     plus the body terms of the edges that are fully seen -- checked against an independent
-    sum over the structure's edges, and the motion part against the model without a body."""
-    model = person
+    sum over the structure's edges, and the motion part against the model without a body
+    (both without the broad part, which a calibrated body brings in)."""
+    model = person.replace(broad=None)
     P = walker.positions[40:42].copy()
     P[1, I["lknee"]] += [0.0, 0.0, 0.12]                  # thigh and shank 12 cm off: body terms non-zero
     states = point_states(P, walker.rate)[1]
@@ -195,12 +196,15 @@ def test_broad_weight_em_recovers_contamination():
     assert w == pytest.approx(0.2, abs=0.03)
 
 
-def test_broad_part_of_each_conditional(models, walker):
+def test_broad_part_of_each_conditional(models, walker, person):
     """The broad part: one Gaussian per triangle, wider than the motion mixture in every
-    direction, weight from the held-out EM; the term is log((1-w) e^motion + w e^broad), and a
-    triangle whose new vertex is missing still contributes exactly 0 (eq. 30-31)."""
-    body, today = models
-    assert body.broad is not None and today.broad is None
+    direction, weight from the held-out EM; applied once the body is calibrated; the term is
+    log((1-w) e^motion + w e^broad), and a triangle whose new vertex is missing still
+    contributes exactly 0 (eq. 30-31)."""
+    generic, today = models
+    assert generic.broad is not None and today.broad is None
+    assert not generic.broad_applied and person.broad_applied
+    body = person
     for t, (g, m) in enumerate(zip(body.broad.gaussians, today.mixtures)):
         assert np.trace(g.covariances[0]) > 2 * np.trace(m.covariances, axis1=1, axis2=2).max()
         assert np.diag(g.covariances[0])[9:].min() >= 0.15 ** 2 - 1e-12       # position floor

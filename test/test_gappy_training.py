@@ -7,7 +7,7 @@ from scipy.stats import multivariate_normal
 from dtm_labeler.evaluation.corruption import realistic_gaps
 from dtm_labeler.evaluation.pipeline import label_clip_run
 from dtm_labeler.labeling.stream import LabelerSettings
-from dtm_labeler.model.features import point_states, triangle_features
+from dtm_labeler.model.features import point_states
 from dtm_labeler.model.mixture_em import make_estimator
 from dtm_labeler.model.mixture_missing import PartialSamples, make_partial_estimator
 from dtm_labeler.motion.load import load_clip

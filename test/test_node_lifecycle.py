@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import signal
 
-import numpy as np
 import pytest
 
 import node_helpers as H

@@ -86,10 +86,11 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--body-terms", action=argparse.BooleanOptionalAction, default=True,
                    help="motion-independent terms on the structure's edges: segment lengths (bones, marker "
                         "clusters; applied once dtm-calibrate has set them for a person) and reach limits")
-    g.add_argument("--broad-component", action=argparse.BooleanOptionalAction, default=False,
+    g.add_argument("--broad-component", action=argparse.BooleanOptionalAction, default=True,
                    help="one broad component per triangle mixture, its weight fitted on held-out frames, so a "
-                        "pose the training never showed is not vetoed; off by default: it also makes a ghost "
-                        "near the body cheap to label (synthetic flicker demo: ghosts rejected 91 %% -> 67 %%)")
+                        "pose the training never showed is not vetoed; applied once the body is calibrated "
+                        "(dtm-calibrate, dtm-label --calibrate, ~/calibrate): with a generic body it would make "
+                        "ghosts near the body cheap to label")
     p.add_argument("--seed", type=int, default=0)
     b = p.add_argument_group("model bank (one model per action, Ukita sections 4.1-4.4)")
     b.add_argument("--action", default=None, metavar="NAME",

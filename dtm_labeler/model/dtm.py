@@ -280,7 +280,9 @@ class TriangulatedModel:
         self.body_edges = edges if edges is not None and edges.active else None
         if self.broad is not None and len(self.broad.gaussians) != len(self.mixtures):
             raise ValueError(f"{len(self.broad.gaussians)} broad components for {len(self.mixtures)} triangles")
-        self.broad_terms = None if self.broad is None else \
+        # the broad part applies once the body is calibrated to a person (model/body.py, "Whose lengths")
+        self.broad_applied = self.broad is not None and self.body is not None and bool(self.body.calibration)
+        self.broad_terms = None if not self.broad_applied else \
             [TriangleTerms(g, first=(t == 0)) for t, g in enumerate(self.broad.gaussians)]
 
     def edge_terms(self, tri: np.ndarray, d: np.ndarray, observed: np.ndarray) -> np.ndarray:
@@ -351,7 +353,7 @@ class TriangulatedModel:
             for t, tri in enumerate(self.triangles):
                 mix = self.mixtures[t]
                 mu, cov = np.asarray(mix.means), np.asarray(mix.covariances)
-                if self.broad is not None:
+                if self.broad_applied:
                     g = self.broad.gaussians[t]
                     mu, cov = np.vstack([mu, g.means]), np.concatenate([cov, g.covariances])
                 maps = {}
@@ -375,7 +377,7 @@ class TriangulatedModel:
 
     def _batched_for(self, pid: int) -> "BatchedTerms | MixedBatchedTerms":
         motion = BatchedTerms(self.terms, pid)
-        if self.broad is None:
+        if not self.broad_applied:
             return motion
         return MixedBatchedTerms(motion, BatchedTerms(self.broad_terms, pid), self.broad)
 
@@ -402,7 +404,7 @@ class TriangulatedModel:
         two-part conditional of :mod:`.body` when the model has broad components)."""
         pids = pattern_id(codes)
         val, roots = self.terms[t].evaluate(s, pids, finite)
-        if self.broad is None:
+        if not self.broad_applied:
             return val, roots
         broad, _ = self.broad_terms[t].evaluate(s, pids, finite)
         return self.broad.combine(np.full(val.shape, t), val, broad), roots

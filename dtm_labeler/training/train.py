@@ -85,12 +85,12 @@ class TrainConfig:
     proportion_jitter: float | None = None  # relative sd of each segment's length factor
     tempo_jitter: float | None = None       # relative sd of the velocity factor (same poses, faster / slower)
     given_structure: Sequence[Sequence[str]] | None = None
-    # issue 13 (model/body.py, training/body_fit.py): motion-independent edge terms (segments apply
-    # once calibrated, reach limits always) and one broad component per mixture fitted on held-out
-    # frames (off by default: it makes a ghost near the body cheap to label -- flicker demo, ghosts
-    # rejected 91 % without it, 67 % with it); both False reproduce the format-1 models
+    # issue 13 (model/body.py, training/body_fit.py): motion-independent edge terms and one broad
+    # component per mixture fitted on held-out frames. Reach limits apply always; segment lengths
+    # and the broad component once the body is calibrated to a person (a generic body's broad
+    # tails make ghosts cheap). Both False reproduce the format-1 models.
     body_terms: bool = True
-    broad_component: bool = False
+    broad_component: bool = True
     body: BodySettings = field(default_factory=BodySettings)
 
     def check(self) -> None:
