@@ -265,3 +265,20 @@ def test_bag_make_feeds_star_ghosts_and_label_writes_c3d(hdm, upper_model, tmp_p
     assert back.names == tuple(UPPER) and back.rate == 120.0 and back.n_frames == 40
     ok = np.abs(back.positions - clip.positions).max(-1) < 1e-4          # float32 in the bag
     assert ok.mean() > 0.9
+
+
+def test_half_the_markers_hidden_stream(hdm, upper_model):
+    """A take with half its samples hidden in realistic gaps (log-normal, mean 0.25 s):
+    frames that show few labels must not teach the running fitness level (before: the level
+    sank, the accept margin grew, a wrong labeling was carried with no search -- 31 % here)."""
+    from dtm_labeler.evaluation.corruption import realistic_gaps
+    from dtm_labeler.evaluation.pipeline import run_stream
+    from dtm_labeler.model.io import load_model
+    model = load_model(upper_model)
+    clip = hdm.select(list(model.labels)).slice(2000, 2240)
+    hidden = realistic_gaps(clip.n_frames, clip.n_points, clip.rate, missing=0.5, mean_gap_s=0.25, seed=1)
+    assert 0.4 < hidden.mean() < 0.6
+    P = clip.positions.copy()
+    P[hidden] = np.nan
+    m = run_stream(model, corrupt_clip(clip._replace(positions=P), seed=0), use_ids=True).metrics
+    assert m.accuracy >= 0.85, m.accuracy
