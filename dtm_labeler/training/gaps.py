@@ -158,6 +158,15 @@ def usable_structure(scores: TripleScores, structure: Structure, n: int, root_pa
     return best
 
 
+def fit_rows(X: np.ndarray, config, rng: np.random.Generator, seed: int) -> FitResult:
+    """A triangle's mixture (``config.mixture``) on eq. 12 feature rows ``X``, at most
+    ``max_frames_per_triangle`` of them, drawn with ``rng``."""
+    if X.shape[0] > config.max_frames_per_triangle:
+        X = X[np.sort(rng.choice(X.shape[0], config.max_frames_per_triangle, replace=False))]
+    return make_estimator(config.mixture, k_fixed=config.k_fixed, k_min=config.k_min, k_max=config.k_max,
+                          reg_covar=config.reg_covar, removal=config.mdl_removal, random_state=seed).fit(X)
+
+
 def fit_triangle(train_states: np.ndarray, tri: Sequence[int], config, rng: np.random.Generator, seed: int,
                  labels: Sequence[str]) -> FitResult:
     """One triangle's mixture: on its fully seen frames (as always), or by EM with missing data
@@ -173,10 +182,7 @@ def fit_triangle(train_states: np.ndarray, tri: Sequence[int], config, rng: np.r
     if full.sum() < MIN_TRIANGLE_FRAMES:
         raise ValueError(f"triangle {names} has only {int(full.sum())} usable frames (all three points seen)")
     if partial.sum() <= PARTIAL_SHARE * (partial.sum() + full.sum()):
-        X = triangle_features(train_states[full], tri)
-        if X.shape[0] > config.max_frames_per_triangle:
-            X = X[np.sort(rng.choice(X.shape[0], config.max_frames_per_triangle, replace=False))]
-        return make_estimator(config.mixture, **kw).fit(X)
+        return fit_rows(triangle_features(train_states[full], tri), config, rng, seed)
     data = PartialSamples.from_states(train_states[full | partial], tri)
     if data.n > config.max_frames_per_triangle:
         data = data.take(np.sort(rng.choice(data.n, config.max_frames_per_triangle, replace=False)))

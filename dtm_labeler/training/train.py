@@ -46,9 +46,8 @@ from ..model.features import FULL, canonicalise, lateral_yaw, observation_state,
 from ..motion.naming import common_names
 from ..motion.pointsets import BODY14, left_right_pairs
 from ..model.mixture import GaussianMixture
-from ..model.mixture_em import make_estimator
-from .gaps import (MIN_TRIPLE_FRAMES, coverage_report, fill_yaw, fit_triangle, loglik_per_label, structure_scores,
-                   unattachable, usable_structure)
+from .gaps import (MIN_TRIPLE_FRAMES, coverage_report, fill_yaw, fit_rows, fit_triangle, loglik_per_label,
+                   structure_scores, unattachable, usable_structure)
 from ..model.structure import BODY14_GIVEN, Structure
 from ..search import structure_search as ss
 from .body_fit import (BodySettings, broad_components, edge_prior, fit_body, pair_statistics,
@@ -429,12 +428,8 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
     broad, broad_info = None, None
     if config.broad_component:
         def fit_features(X: np.ndarray, t: int) -> GaussianMixture:      # triangle t's floored mixture on rows X
-            if X.shape[0] > config.max_frames_per_triangle:
-                X = X[np.sort(rng.choice(X.shape[0], config.max_frames_per_triangle, replace=False))]
-            fit = make_estimator(config.mixture, k_fixed=config.k_fixed, k_min=config.k_min, k_max=config.k_max,
-                                 reg_covar=config.reg_covar, removal=config.mdl_removal,
-                                 random_state=config.seed + t).fit(X)
-            return floor_covariances(fit.mixture, config.position_floor_m, config.velocity_floor_mps)
+            return floor_covariances(fit_rows(X, config, rng, config.seed + t).mixture, config.position_floor_m,
+                                     config.velocity_floor_mps)
 
         train_codes = observation_state(train_states)
         held, held_rows = validation_rows([c.n_frames for c in clips], train_states.shape[0] // states.shape[0] - 1,
