@@ -4,8 +4,9 @@
 session's ROS_DOMAIN_ID): a synthetic walker at 120 Hz for 10 s with 2 of its 14 markers hidden
 and a new pair hidden every frame, plus 2 ghost points. The node's searches run in its
 background worker (the node's default), frames go on with the labels the tracks carry, and
-skipped frames are still followed by the tracker -- so the node labels nearly every frame it
-is sent instead of a few per second. Floors with margin for a loaded 2-core machine.
+a frame replaced while the worker was busy is still followed by the tracker and published
+with the labels its tracks carry -- so the node labels nearly every frame it is sent instead
+of a few per second. Floors with margin for a loaded 2-core machine.
 """
 from __future__ import annotations
 
@@ -32,5 +33,6 @@ def test_flicker_stream_is_labelled_frame_after_frame(tmp_path):
     assert out.returncode == 0, out.stderr[-2000:]
     d = json.loads(out.stdout[out.stdout.index("{"):])
     assert d["node_ok"] and d["frames_sent"] >= 1100
-    assert d["frames_labelled"] >= 0.9 * d["frames_sent"], d
+    assert d["frames_labelled"] >= 0.95 * d["frames_sent"], d      # searched, or carried by the tracks
+    assert d["frames_labelled"] - d["frames_carried"] >= 0.5 * d["frames_sent"], d   # the searches keep up
     assert d["accuracy"] >= 0.9 and d["ghost_rejection"] >= 0.8, d

@@ -360,7 +360,8 @@ def _main(argv=None) -> int:
 
     received = s["node_received"]
     summary = dict(desc, frames_sent=sent, frames_received_by_node=received, frames_labelled=s["labeled"],
-                   frames_skipped=s["node_skipped"], skipped_detail=s["node_skipped_detail"],
+                   frames_carried=s["node_carried"], frames_skipped=s["node_skipped"],
+                   skipped_detail=s["node_skipped_detail"],
                    frames_lost=max(sent - received, 0), accuracy=s["accuracy"], true_markers=s["true_markers"],
                    ghost_rejection=s["ghost_rejection"], latency_ms=s["latency_ms"],
                    node_latency_ms=s["node_latency_ms"], player_lateness_ms=play.get("lateness_ms", {}),
@@ -373,7 +374,8 @@ def _main(argv=None) -> int:
         lat, nl = s["latency_ms"], s["node_latency_ms"]
         acc = s["accuracy"]
         print("summary")
-        print(f"  frames      sent {sent}, received by the node {received}, labelled {s['labeled']}, "
+        print(f"  frames      sent {sent}, received by the node {received}, labelled {s['labeled']} "
+              f"({s['node_carried']} carried by the tracks while a search ran), "
               f"skipped {s['node_skipped']} " + (f"({', '.join(f'{k} {v}' for k, v in s['node_skipped_detail'].items() if v)})"
                                                  if s["node_skipped"] else "")
               + (f", lost in transport {sent - received}" if sent > received else ""))

@@ -149,6 +149,17 @@ class FrameResult:
 
 
 @dataclass
+class CarriedFrame:
+    """A frame the labeler followed without searching it (:meth:`TrackedLabeler.observe`): each
+    point gets the label (and confidence) its track was last published with, -1 for a point
+    whose track is new or was unlabelled."""
+
+    labels: np.ndarray            # (n,) label index per input point, -1 = unlabelled
+    confidence: np.ndarray        # (n,)
+    track_ids: np.ndarray         # (n,) int64, -1 for dropped (non-finite) points
+
+
+@dataclass
 class Candidate:
     """A labeling of this frame under one model: assignment (label -> point, ``n`` missing)."""
 
@@ -268,6 +279,7 @@ class TrackedLabeler:
         self.tracker.reset()
         self.votes.reset()
         self.track_label: dict[int, int] = {}      # label each track carries (also while coasting)
+        self._carried = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))  # last published, by track
         self.last_stamp = None
         self.heading = None
         self.centre = None
@@ -314,14 +326,25 @@ class TrackedLabeler:
             self._build()
         self._configure_recovery()
 
-    def observe(self, xyz: np.ndarray, stamp: float, ids: np.ndarray | None = None) -> None:
-        """A frame that will not be labelled (the consumer was busy and takes a newer one): the
-        tracks follow it, so that labels stay on their markers across the skip. Costs the
-        tracker update only (a fraction of a millisecond)."""
+    def observe(self, xyz: np.ndarray, stamp: float, ids: np.ndarray | None = None) -> CarriedFrame:
+        """A frame that will not be searched (the consumer was busy and takes a newer one): the
+        tracks follow it, so that labels stay on their markers across the skip, and each point
+        gets the label its track was last published with (:class:`CarriedFrame`). Costs the
+        tracker update and a lookup (a fraction of a millisecond); the votes, levels and search
+        state are not touched -- nothing searched vouches for this frame."""
         inp = self._begin(xyz, stamp, ids)
         lost = set(int(t) for t in inp.upd.lost)
         if lost:
             self.track_label = {t: lab for t, lab in self.track_label.items() if t not in lost}
+        tids, labs, conf = self._carried
+        tracks = inp.upd.track_ids
+        pos = np.minimum(np.searchsorted(tids, tracks), max(tids.size - 1, 0))
+        hit = (tids[pos] == tracks) if tids.size else np.zeros(tracks.size, dtype=bool)
+        lab = np.where(hit, labs[pos] if tids.size else -1, -1)
+        cf = np.where(hit, conf[pos] if tids.size else 0.0, 0.0)
+        keep, n_in = inp.keep, inp.n_in
+        return CarriedFrame(scatter(lab.astype(np.int64), keep, n_in, -1), scatter(cf, keep, n_in, 0.0),
+                            scatter(inp.ids, keep, n_in, -1))
 
     def predicted_position(self, track_id: int, stamp: float) -> np.ndarray:
         """Where a (possibly coasting) track is predicted at ``stamp`` (NaN if unknown)."""
@@ -892,6 +915,8 @@ class TrackedLabeler:
         self.track_label = {t: lab for t, lab in self.track_label.items()
                             if t not in seen and t not in lost and lab not in taken}
         self.track_label.update(published)
+        order = np.argsort(upd.track_ids, kind="stable")
+        self._carried = (upd.track_ids[order], pub[order].astype(np.int64), np.asarray(conf, dtype=float)[order])
         self._since_search += 1
         self._frame_no += 1
         if present.any():
@@ -908,5 +933,5 @@ def _input_index(assign: np.ndarray, keep: np.ndarray) -> np.ndarray:
     return out
 
 
-__all__ = ["TrackedLabeler", "Engine", "FrameResult", "FrameInput", "FrameSearch", "Candidate", "scatter",
+__all__ = ["TrackedLabeler", "Engine", "FrameResult", "CarriedFrame", "FrameInput", "FrameSearch", "Candidate", "scatter",
            "label_weight", "frame_weight"]

@@ -179,6 +179,9 @@ class LabelerCore:
         elif kind == "settings":
             with self.lock:
                 self.stats.settings_applied += 1
+        elif kind == "stale":                # replaced frames not carried (a reset was pending)
+            with self.lock:
+                self.stats.skipped["stale"] += int(detail)
         else:
             self.log.error(f"worker: {detail}")
 
@@ -379,7 +382,7 @@ class LabelerCore:
             self.node.destroy_subscription(self.sub)
             self.sub = None
         self.active = False
-        if self.worker.discard() is not None:
+        for _ in range(self.worker.discard()):
             self._skip("inactive")
 
     def unload(self, reason: str) -> None:

@@ -49,7 +49,8 @@ class NodeStats:
 
     received: int = 0
     published: int = 0
-    labelled: int = 0                 # published with at least one finite point searched
+    labelled: int = 0                 # published with at least one finite point (searched or carried)
+    frames_carried: int = 0           # of those, not searched (the worker was busy): the labels tracks carry
     skipped: collections.Counter = field(default_factory=_counter)       # DROP_REASONS
     resets: collections.Counter = field(default_factory=_counter)        # RESET_KINDS
     stamp_faults: collections.Counter = field(default_factory=_counter)  # STAMP_FAULTS
@@ -173,7 +174,8 @@ def _labeling_values(cur: NodeStats, in_rate: float, out_rate: float, st: NodeSt
     lat, labt, ovh = st.latency_ms, st.labeling_ms, st.overhead_ms
     kv: List[Tuple[str, Any]] = [
         ("input_rate_hz", f"{in_rate:.2f}"), ("output_rate_hz", f"{out_rate:.2f}"),
-        ("frames_received", cur.received), ("frames_labelled", cur.labelled), ("frames_published", cur.published)]
+        ("frames_received", cur.received), ("frames_labelled", cur.labelled), ("frames_published", cur.published),
+        ("frames_carried", cur.frames_carried)]
     kv += [(f"frames_skipped_{r}", cur.skipped[r]) for r in DROP_REASONS]
     kv += [("frames_lost_before_node", cur.lost_before_node), ("frames_overrun", cur.frames_overrun),
            ("last_bad_cloud", cur.last_bad_input), ("last_error", cur.last_error),

@@ -139,9 +139,10 @@ class NodeLabeler:
         """Label one frame: the labeler's FrameResult (labels, confidence, track_ids, ...)."""
         return self._lab.process(xyz, stamp, ids)
 
-    def observe(self, xyz: np.ndarray, stamp: float, ids: Optional[np.ndarray] = None) -> None:
-        """A frame the worker skips: the tracks follow it (they survive the skip)."""
-        self._lab.observe(xyz, stamp, ids)
+    def observe(self, xyz: np.ndarray, stamp: float, ids: Optional[np.ndarray] = None):
+        """A frame the worker does not search: the tracks follow it (they survive the skip);
+        returns the labels they carry (:class:`~dtm_labeler.labeling.tracked.CarriedFrame`)."""
+        return self._lab.observe(xyz, stamp, ids)
 
     @property
     def recovery_failed(self) -> str:

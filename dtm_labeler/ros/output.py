@@ -87,14 +87,17 @@ class FrameHandler:
             self.stall = collections.deque(self.stall, maxlen=n)
 
     # -- the frame ------------------------------------------------------------------------------
-    def __call__(self, f: Frame, engine: Optional[NodeLabeler]) -> None:
+    def __call__(self, f: Frame, engine: Optional[NodeLabeler], carried: bool = False) -> None:
+        """Label ``f`` and publish it; ``carried``: the worker does not search it (it was
+        replaced in the slot by a newer frame) -- its points get the labels their tracks carry
+        (:meth:`NodeLabeler.observe`), published in order before the newer frame."""
         if engine is None:
             with self.lock:
                 self.stats.skipped["no_model"] += 1
             self.log.warning("no model loaded: frame not labelled (set model_path)", throttle_duration_sec=5.0)
             return
         try:
-            self._handle(f, engine)
+            self._handle(f, engine, carried)
         except Exception as e:
             if self.stopping():
                 return
@@ -107,7 +110,7 @@ class FrameHandler:
             engine.reset()
             self.clear()
 
-    def _handle(self, f: Frame, engine: NodeLabeler) -> None:
+    def _handle(self, f: Frame, engine: NodeLabeler, carried: bool = False) -> None:
         if f.resets:                         # counted and logged where they were decided (executor)
             engine.reset()
             self.clear()
@@ -117,7 +120,11 @@ class FrameHandler:
         # the node's own stall: from "a frame is there and the last one is done" to labelling it
         # (engine swaps, settings, resets in between -- and any thread holding the worker up)
         stall_ms = (t0 - max(f.t_recv, self._t_done)) * 1e3
-        if n_finite:
+        if n_finite and carried:
+            res = engine.observe(f.xyz, f.stamp, f.ids)
+            labels, conf, tracks = res.labels, res.confidence, res.track_ids
+            res = None                       # no search result: nothing below reads one
+        elif n_finite:
             res = engine.process(f.xyz, f.stamp, f.ids)
             labels, conf, tracks = res.labels, np.asarray(res.confidence, dtype=float), res.track_ids
         else:   # nothing to search: every point published unlabelled (the labeler needs points)
@@ -136,9 +143,10 @@ class FrameHandler:
         self._publish(frame, f, engine, v)
         if self.calibration is not None and res is not None:
             self._calibrate(f.stamp, labels, conf, f.xyz)
-        self._count(f, res, n, n_finite, t0, t1)
-        with self.lock:
-            self.stall.append(stall_ms)
+        self._count(f, res, n, n_finite, t0, t1, carried)
+        if not carried:
+            with self.lock:
+                self.stall.append(stall_ms)
 
     def _calibrate(self, stamp: float, labels: np.ndarray, conf: np.ndarray, xyz: np.ndarray) -> None:
         window = self.calibration
@@ -172,7 +180,7 @@ class FrameHandler:
                 colors=label_colors(len(engine.labels)), lifetime_s=v["viz_marker_lifetime_s"])
         return b
 
-    def _count(self, f: Frame, res, n: int, n_finite: int, t0: float, t1: float) -> None:
+    def _count(self, f: Frame, res, n: int, n_finite: int, t0: float, t1: float, carried: bool = False) -> None:
         t_end = time.perf_counter()
         self.frame_number += 1
         # overrun: this frame took longer (receive -> published) than the stamp interval
@@ -183,6 +191,7 @@ class FrameHandler:
             s = self.stats
             s.published += 1
             s.labelled += bool(n_finite)
+            s.frames_carried += bool(n_finite) and carried
             s.frames_empty += n == 0
             s.frames_nonfinite += n_finite < n
             s.points_nonfinite += n - n_finite
@@ -196,7 +205,8 @@ class FrameHandler:
                 s.recoveries_joined += bool(res.recovered)
                 s.last_log_likelihood = float(res.log_likelihood)
             self.latency.append((t_end - f.t_recv) * 1e3)
-            self.labeling.append((t1 - t0) * 1e3)
+            if not carried:                  # labeling time is the searched frames'
+                self.labeling.append((t1 - t0) * 1e3)
             self.overhead.append(f.decode_ms + (t_end - t1) * 1e3)
             self.t_published, self.t_failing = time.monotonic(), None
         self._t_done = time.perf_counter()

@@ -371,7 +371,8 @@ class ReplayMonitor:
                         frames_scored=s.frames_scored, out_of_order=self.out_of_order,
                         latency_ms=_pcts(lat), node_latency_ms=_pcts(node_lat),
                         node_received=int(d.get("frames_received", 0)), node_published=int(d.get(
-                            "frames_published", 0)), node_skipped=self.skipped(d),
+                            "frames_published", 0)), node_carried=int(d.get("frames_carried", 0)),
+                        node_skipped=self.skipped(d),
                         node_skipped_detail={k[len("frames_skipped_"):]: int(v) for k, v in d.items()
                                              if k.startswith("frames_skipped_")})
 

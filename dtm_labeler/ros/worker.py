@@ -1,22 +1,25 @@
 """The node's worker thread: owns the labeler, labels the newest frame, never queues.
 
 * Frames arrive in a ONE-SLOT buffer (:meth:`LabelWorker.submit`, executor thread): a frame still
-  waiting there is replaced by the newer one and counted ``stale`` -- there is no other queue in
-  the node (DDS history is keep-last), so latency cannot build up: when labeling is slower than
-  the input, the node labels the newest frame and drops the ones in between. A reset a dropped
-  frame asked for (a gap, a loop) is carried over to the frame that replaces it. The dropped
-  frames are not lost to the tracker: the newest ``OBSERVED_SKIPS`` of them are observed
-  (:meth:`NodeLabeler.observe`, a tracker update) before the next labelled frame, so the
-  tracks -- and the labels they carry -- survive the skip and the next frame needs no new search.
+  waiting there is replaced by the newer one -- there is no other queue of searches in the node
+  (DDS history is keep-last), so latency cannot build up: when labeling is slower than the input,
+  the node searches the newest frame only. The replaced frames are not dropped: the newest
+  ``OBSERVED_SKIPS`` of them are *carried* before the newest is searched -- the tracker follows
+  each (:meth:`NodeLabeler.observe`, a fraction of a millisecond) and it is published, in order,
+  with the labels its tracks carry (diagnostics ``frames_carried``). The tracks -- and their
+  labels -- survive the skip, the next frame needs no new search, and a burst of slow frames
+  leaves no hole in the output. Only a frame pushed out of that list, or replaced while a
+  reset is pending (a gap, a loop: the tracks are about to be forgotten), is dropped and
+  counted ``stale``; a reset it asked for is carried over to the frame that replaces it.
 * Between two frames the worker swaps in what the loader prepared (:meth:`install`), applies the
   newest settings (:meth:`settings`; older ones waiting are dropped) and runs a requested reset
   (:meth:`request_reset`) -- all fast: the slow part (reading files, widening the model) was done
   by the loader thread.
 * The worker is the only thread that touches the :class:`~.engine.NodeLabeler`. It calls
-  ``label(frame, engine)`` (the node's frame handler) and ``on_event(kind, detail)`` for what
-  the node reports: ``loaded`` ((LoadResult, new | replaced | swapped | same | unloaded)),
-  ``load_failed`` (LoadResult),
-  ``settings``, ``reset`` (reason), ``error`` (text). :meth:`stop` returns within its timeout even during a long search (the
+  ``label(frame, engine)`` (the node's frame handler; ``label(frame, engine, True)`` for a frame
+  to carry) and ``on_event(kind, detail)`` for what the node reports: ``loaded`` ((LoadResult,
+  new | replaced | swapped | same | unloaded)), ``load_failed`` (LoadResult), ``settings``,
+  ``reset`` (reason), ``stale`` (how many replaced frames were dropped), ``error`` (text). :meth:`stop` returns within its timeout even during a long search (the
   thread is a daemon; the handler must not publish once :attr:`stopping` is set).
 """
 from __future__ import annotations
@@ -30,7 +33,7 @@ from .loader import LoadResult
 
 __all__ = ["Frame", "LabelWorker", "OBSERVED_SKIPS"]
 
-#: skipped frames the tracker still follows before the next labelled frame
+#: replaced frames carried (followed by the tracker, published) before the next searched frame
 OBSERVED_SKIPS = 16
 
 
@@ -50,7 +53,7 @@ class Frame:
 
 
 class LabelWorker:
-    def __init__(self, label: Callable[[Frame, Optional[NodeLabeler]], None],
+    def __init__(self, label: Callable[..., None],
                  on_event: Callable[[str, Any], None], settings: Any, name: str = "dtm_labeler_worker"):
         self._label = label
         self.current_settings = settings      # what engines are built with (newest applied)
@@ -85,14 +88,18 @@ class LabelWorker:
 
     # -- from other threads ------------------------------------------------------------------
     def submit(self, frame: Frame) -> Optional[Frame]:
-        """Put ``frame`` in the slot; returns the frame it replaced (now stale), if any."""
+        """Put ``frame`` in the slot; the frame it replaces joins the frames to carry. Returns
+        the frame dropped for good (stale: pushed out of that list), if any."""
         with self._cond:
             old, self._slot = self._slot, frame
+            dropped = None
             if old is not None:
                 frame.resets = old.resets + frame.resets
-                self._skipped = (self._skipped + [old])[-OBSERVED_SKIPS:]
+                self._skipped.append(old)
+                if len(self._skipped) > OBSERVED_SKIPS:
+                    dropped = self._skipped.pop(0)
             self._cond.notify()
-            return old
+            return dropped
 
     def install(self, result: LoadResult) -> None:
         with self._cond:
@@ -109,11 +116,12 @@ class LabelWorker:
             self._reset.append(reason)
             self._cond.notify()
 
-    def discard(self) -> Optional[Frame]:
-        """Drop the waiting frame, if any (input closed); returns it."""
+    def discard(self) -> int:
+        """Drop the waiting frame and the frames to carry (input closed); returns how many."""
         with self._cond:
-            old, self._slot, self._skipped = self._slot, None, []
-            return old
+            n = (self._slot is not None) + len(self._skipped)
+            self._slot, self._skipped = None, []
+            return n
 
     def drop_engine(self) -> None:
         """Forget the engine and anything the loader delivered for it (lifecycle cleanup)."""
@@ -138,17 +146,17 @@ class LabelWorker:
                 resets, self._reset = self._reset, []
             self._between_frames(result, settings, resets)
             if frame is not None and not self._stop:
-                self._observe(skipped if not (resets or frame.resets) else [])
+                if resets or frame.resets:
+                    if skipped:
+                        self._on_event("stale", len(skipped))
+                else:
+                    for f in skipped:
+                        if self._stop:
+                            break
+                        self._label(f, self.engine, True)
                 self._label(frame, self.engine)
-
-    def _observe(self, skipped: List[Frame]) -> None:
-        if self.engine is None:
-            return
-        try:
-            for f in skipped:
-                self.engine.observe(f.xyz, f.stamp, f.ids)
-        except Exception as e:   # never let the worker die
-            self._on_event("error", f"{type(e).__name__}: {e}")
+            elif skipped:
+                self._on_event("stale", len(skipped))
 
     def _between_frames(self, result: Optional[LoadResult], settings: Any, resets: List[str]) -> None:
         try:
