@@ -277,6 +277,11 @@ PARAMS: Tuple[Param, ...] = (
     Param("publish_mocap4r2", True, "Publish markers/labeled_mocap4r2 (mocap4r2_msgs/Markers, "
           "marker_name = label) -- built only while it has subscribers and mocap4r2_msgs is "
           "installed.", "node"),
+    Param("carry_max_ms", 30.0, "A cloud that arrived while a search ran is published afterwards, "
+          "with the labels its tracks carry, if it is at most this old then (ms); older ones are "
+          "only followed by the tracker and counted stale. Bounds the lateness of carried frames "
+          "when labeling cannot keep up (0 = never carry: newest cloud only).", "node",
+          range=(0.0, 10000.0)),
     Param("publish_occluded", True, "Add an occluded=true, predicted=true LabeledMarker for "
           "every model label missing this frame whose track can still be predicted.", "node"),
     Param("diagnostics_period_s", 1.0, "Period of the /diagnostics status (steady clock).", "node",

@@ -412,8 +412,17 @@ def _handle(kind: str, payload, labeler):
     raise ValueError(f"unknown request {kind!r}")
 
 
+#: scheduling niceness of the worker process: its searches use the cores the stream leaves
+#: idle and yield them to the labeling thread (and the driver) whenever those need them
+RECOVERY_NICE = 10
+
+
 def main() -> int:
     key = bytes.fromhex(sys.stdin.readline().strip())
+    try:
+        os.nice(RECOVERY_NICE)
+    except OSError:                     # pragma: no cover - not permitted here: run at the same priority
+        pass
     return serve(sys.argv[1], key)
 
 

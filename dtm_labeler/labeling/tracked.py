@@ -197,6 +197,16 @@ class FrameSearch:
         self.evaluations += other.evaluations
 
 
+def _lookup(tracks: np.ndarray, keys: np.ndarray, labels: np.ndarray,
+            confidence: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(label, confidence) of each of ``tracks`` in the sorted ``keys`` (-1, 0 where absent)."""
+    if keys.size == 0:
+        return np.full(tracks.size, -1, dtype=np.int64), np.zeros(tracks.size)
+    pos = np.minimum(np.searchsorted(keys, tracks), keys.size - 1)
+    hit = keys[pos] == tracks
+    return np.where(hit, labels[pos], -1).astype(np.int64), np.where(hit, confidence[pos], 0.0)
+
+
 def scatter(values: np.ndarray, keep: np.ndarray, n_in: int, fill) -> np.ndarray:
     """Per-kept-point values back to input order (``fill`` for dropped points)."""
     out = np.full(n_in, fill, dtype=np.asarray(values).dtype)
@@ -280,6 +290,7 @@ class TrackedLabeler:
         self.votes.reset()
         self.track_label: dict[int, int] = {}      # label each track carries (also while coasting)
         self._carried = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))  # last published, by track
+        self._label_confidence = np.zeros(self.n_labels)     # last published confidence of each label
         self.last_stamp = None
         self.heading = None
         self.centre = None
@@ -336,12 +347,21 @@ class TrackedLabeler:
         lost = set(int(t) for t in inp.upd.lost)
         if lost:
             self.track_label = {t: lab for t, lab in self.track_label.items() if t not in lost}
-        tids, labs, conf = self._carried
         tracks = inp.upd.track_ids
-        pos = np.minimum(np.searchsorted(tids, tracks), max(tids.size - 1, 0))
-        hit = (tids[pos] == tracks) if tids.size else np.zeros(tracks.size, dtype=bool)
-        lab = np.where(hit, labs[pos] if tids.size else -1, -1)
-        cf = np.where(hit, conf[pos] if tids.size else 0.0, 0.0)
+        lab, cf = _lookup(tracks, *self._carried)
+        # a track that coasted through the last searched frame (a marker hidden then) carries the
+        # label the search left on it, at that label's last published confidence -- unless a
+        # track published this frame already holds the label
+        tl = self.track_label
+        if tl and (lab < 0).any():
+            keys = np.fromiter(tl.keys(), dtype=np.int64, count=len(tl))
+            vals = np.fromiter(tl.values(), dtype=np.int64, count=len(tl))
+            order = np.argsort(keys)
+            coast, _ = _lookup(tracks, keys[order], vals[order], np.zeros(keys.size))
+            coast[np.isin(tracks, self._carried[0])] = -1      # seen then: its published label stands
+            coast[np.isin(coast, lab[lab >= 0])] = -1
+            lab = np.where(coast >= 0, coast, lab)
+            cf = np.where(coast >= 0, self._label_confidence[np.maximum(coast, 0)], cf)
         keep, n_in = inp.keep, inp.n_in
         return CarriedFrame(scatter(lab.astype(np.int64), keep, n_in, -1), scatter(cf, keep, n_in, 0.0),
                             scatter(inp.ids, keep, n_in, -1))
@@ -917,6 +937,7 @@ class TrackedLabeler:
         self.track_label.update(published)
         order = np.argsort(upd.track_ids, kind="stable")
         self._carried = (upd.track_ids[order], pub[order].astype(np.int64), np.asarray(conf, dtype=float)[order])
+        self._label_confidence[pub[pub >= 0]] = np.asarray(conf, dtype=float)[pub >= 0]
         self._since_search += 1
         self._frame_no += 1
         if present.any():

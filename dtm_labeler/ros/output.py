@@ -90,11 +90,21 @@ class FrameHandler:
     def __call__(self, f: Frame, engine: Optional[NodeLabeler], carried: bool = False) -> None:
         """Label ``f`` and publish it; ``carried``: the worker does not search it (it was
         replaced in the slot by a newer frame) -- its points get the labels their tracks carry
-        (:meth:`NodeLabeler.observe`), published in order before the newer frame."""
+        (:meth:`NodeLabeler.observe`), published in order before the newer frame, unless it is
+        older than ``carry_max_ms`` by now (then only the tracker follows it; counted stale)."""
         if engine is None:
             with self.lock:
                 self.stats.skipped["no_model"] += 1
             self.log.warning("no model loaded: frame not labelled (set model_path)", throttle_duration_sec=5.0)
+            return
+        if carried and (time.perf_counter() - f.t_recv) * 1e3 > self.values()["carry_max_ms"]:
+            try:                             # too late to publish: the tracks still follow it
+                engine.observe(f.xyz, f.stamp, f.ids)
+            except Exception as e:
+                self.log.error(f"labeler error on a skipped frame: {type(e).__name__}: {e}",
+                               throttle_duration_sec=2.0)
+            with self.lock:
+                self.stats.skipped["stale"] += 1
             return
         try:
             self._handle(f, engine, carried)

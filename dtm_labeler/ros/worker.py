@@ -8,9 +8,11 @@
   each (:meth:`NodeLabeler.observe`, a fraction of a millisecond) and it is published, in order,
   with the labels its tracks carry (diagnostics ``frames_carried``). The tracks -- and their
   labels -- survive the skip, the next frame needs no new search, and a burst of slow frames
-  leaves no hole in the output. Only a frame pushed out of that list, or replaced while a
-  reset is pending (a gap, a loop: the tracks are about to be forgotten), is dropped and
-  counted ``stale``; a reset it asked for is carried over to the frame that replaces it.
+  leaves no hole in the output. A frame older than ``carry_max_ms`` by the time the worker
+  reaches it is only followed by the tracker (the handler decides), one pushed out of that
+  list or replaced while a reset is pending (a gap, a loop: the tracks are about to be
+  forgotten) is dropped; those count ``stale``. A reset a dropped frame asked for is carried
+  over to the frame that replaces it.
 * Between two frames the worker swaps in what the loader prepared (:meth:`install`), applies the
   newest settings (:meth:`settings`; older ones waiting are dropped) and runs a requested reset
   (:meth:`request_reset`) -- all fast: the slow part (reading files, widening the model) was done
