@@ -141,7 +141,12 @@ def test_node_uses_the_bank(tmp_path, data):
         Parameter("model_path", value=str(tmp_path / "walk.npz"))])
     core = node.core
     published = []
-    core.outputs.labeled.publish = published.append
+
+    def capture(data):                 # markers/labeled goes out serialised (ros/messages.py)
+        from rclpy.serialization import deserialize_message
+        from dtm_labeler_msgs.msg import LabeledMarkerArray
+        published.append(deserialize_message(data, LabeledMarkerArray) if isinstance(data, bytes) else data)
+    core.outputs.labeled.publish = capture
 
     def diag():
         st = {s.name.rsplit(": ", 1)[1]: s for s in node.diagnostics()}

@@ -53,6 +53,10 @@ def raw_cloud(fields, dtype, rows, bigendian=False, point_step=None):
 
 
 def labels_of(out):
+    if isinstance(out, bytes):          # the node publishes markers/labeled serialised (messages.py)
+        from rclpy.serialization import deserialize_message
+        from dtm_labeler_msgs.msg import LabeledMarkerArray
+        out = deserialize_message(out, LabeledMarkerArray)
     return np.array([m.label_index for m in out.markers if not m.occluded])
 
 

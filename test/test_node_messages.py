@@ -38,6 +38,31 @@ def test_labeled_marker_array():
     assert m.markers[0].confidence == pytest.approx(0.9) and m.markers[1].label_index == -1
 
 
+@pytest.mark.parametrize("n, frame_id, occluded", [(3, "world", True), (45, "", True), (0, "w", False),
+                                                   (17, "mocap_origin", False)])
+def test_labeled_marker_array_cdr_is_the_message(n, frame_id, occluded):
+    """The bytes the node publishes deserialise to exactly the message rclpy would have
+    serialised (every padding case: label lengths 1-8, odd counts, empty frames)."""
+    from builtin_interfaces.msg import Time
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from dtm_labeler.ros.messages import Occluded, labeled_marker_array_cdr
+    from dtm_labeler_msgs.msg import LabeledMarkerArray
+    rng = np.random.default_rng(n)
+    names = tuple("L" * (i % 8) + str(i) for i in range(41))
+    labels = np.full(n, -1)
+    labels[:min(n, 41)] = rng.permutation(41)[:min(n, 41)]
+    rng.shuffle(labels)
+    f = frame(header=Header(stamp=Time(sec=1795456025, nanosec=479829802), frame_id=frame_id),
+              frame_number=2 ** 40 + n, xyz=rng.normal(size=(n, 3)), labels=labels, confidence=rng.random(n),
+              tracks=np.arange(n) - 2, names=names, log_likelihood=-1234.5, active_model="run" * (n % 2),
+              latency_ms=7.25, occluded=[Occluded(3, 2 ** 33 + 5, np.array([1.0, -2.0, 3.5]))] if occluded else [])
+    ours = deserialize_message(labeled_marker_array_cdr(f), LabeledMarkerArray)
+    ref = deserialize_message(serialize_message(labeled_marker_array(f)), LabeledMarkerArray)
+    assert ours == ref
+    assert len(ours.markers) == n + occluded and ours.n_unlabeled == int((labels < 0).sum())
+
+
 def test_mocap4r2_markers():
     pytest.importorskip("mocap4r2_msgs.msg")
     from mocap4r2_msgs.msg import Marker

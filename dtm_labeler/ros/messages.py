@@ -20,12 +20,14 @@ The labelled PointCloud2 is :func:`~.pointcloud.make_labeled_cloud`; RViz marker
 """
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass, field
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-__all__ = ["NO_TRACK", "LabelledFrame", "Occluded", "labeled_marker_array", "mocap4r2_markers",
+__all__ = ["NO_TRACK", "LabelledFrame", "Occluded", "labeled_marker_array", "labeled_marker_array_cdr",
+           "mocap4r2_markers",
            "output_header", "OccludedLabels", "VizThrottle"]
 
 #: LabeledMarker.track_id of a point without a track (a non-finite point).
@@ -101,6 +103,95 @@ def labeled_marker_array(f: LabelledFrame):
     out.n_unlabeled = int(f.labels.size - np.count_nonzero(f.labels >= 0))
     out.latency_ms = float(f.latency_ms)
     return out
+
+
+class _Cdr:
+    """A little-endian plain-CDR writer (what rmw serialises ROS 2 messages to): primitives
+    aligned to their size from the start of the payload, strings as uint32 length (with the
+    terminating NUL) + bytes + NUL, sequences as uint32 count + elements."""
+
+    HEADER = b"\x00\x01\x00\x00"        # encapsulation: CDR, little endian
+
+    def __init__(self) -> None:
+        self.parts: List[bytes] = []
+        self.pos = 0
+
+    def align(self, n: int) -> None:
+        pad = -self.pos % n
+        if pad:
+            self.parts.append(b"\x00" * pad)
+            self.pos += pad
+
+    def put(self, fmt: str, *values, align: int = 4) -> None:
+        self.align(align)
+        b = struct.pack("<" + fmt, *values)
+        self.parts.append(b)
+        self.pos += len(b)
+
+    def raw(self, b: bytes) -> None:
+        self.parts.append(b)
+        self.pos += len(b)
+
+    def string(self, text: str | bytes) -> None:
+        b = text.encode() if isinstance(text, str) else text
+        self.put("I", len(b) + 1)
+        self.raw(b + b"\x00")
+
+    def bytes(self) -> bytes:
+        return self.HEADER + b"".join(self.parts)
+
+
+def _marker_struct(name: bytes, pos: int) -> Tuple[struct.Struct, int]:
+    """The packing of one LabeledMarker with label ``name`` written at payload offset ``pos``
+    (its paddings depend on ``pos`` mod 8 and the label's length), and the offset after it."""
+    p4 = pos + (-pos % 4)
+    q = p4 + 4 + len(name) + 1                   # label: length, bytes, NUL
+    a = q + (-q % 4)                             # label_index, track_id
+    b = a + 8 + (-(a + 8) % 8)                   # position (3 x float64)
+    fmt = f"<{p4 - pos}xI{len(name) + 1}s{a - q}xiI{b - a - 8}xdddf??"
+    return struct.Struct(fmt), b + 30            # + confidence (float32), occluded, predicted
+
+
+_MARKER_STRUCTS: Dict[Tuple[bytes, int], Tuple[struct.Struct, int]] = {}
+
+
+def labeled_marker_array_cdr(f: LabelledFrame) -> bytes:
+    """The serialised ``dtm_labeler_msgs/LabeledMarkerArray`` of a labelled frame -- what
+    ``rclpy.serialization.serialize_message(labeled_marker_array(f))`` gives (padding bytes
+    zeroed), written straight from the arrays with one packing per marker (a publisher takes
+    the bytes as they are): building ~45 message objects and converting them costs 0.6 ms per
+    frame at 41 markers, this about a tenth of it."""
+    names = [n.encode() for n in f.names]
+    w = _Cdr()
+    st = f.header.stamp
+    w.put("iI", int(st.sec), int(st.nanosec))
+    w.string(f.header.frame_id)
+    w.put("Q", int(f.frame_number), align=8)
+    xyz = np.asarray(f.xyz, dtype=float).tolist()
+    conf = np.asarray(f.confidence, dtype=np.float32).tolist()
+    labels, tracks = f.labels.tolist(), f.tracks.tolist()
+    w.put("I", len(labels) + len(f.occluded))
+    rows = [(names[lab] if lab >= 0 else b"", lab if lab >= 0 else -1, NO_TRACK if t < 0 else t & 0xFFFFFFFF,
+             p, c if lab >= 0 else 0.0, False) for p, lab, c, t in zip(xyz, labels, conf, tracks)]
+    rows += [(names[o.label], o.label, o.track & 0xFFFFFFFF, [float(v) for v in o.position], 0.0, True)
+             for o in f.occluded]
+    cache, parts, pos = _MARKER_STRUCTS, w.parts, w.pos
+    for name, lab, track, p, c, occ in rows:
+        key = (name, pos % 8)
+        packing = cache.get(key)
+        if packing is None:
+            packing = cache[key] = _marker_struct(name, pos % 8)
+        s, end = packing
+        parts.append(s.pack(len(name) + 1, name + b"\x00", lab, track, p[0], p[1], p[2], c, occ, occ))
+        pos += end - pos % 8
+    w.pos = pos
+    w.put("I", len(names))
+    for n in names:
+        w.string(n)
+    w.put("d", float(f.log_likelihood), align=8)
+    w.string(f.active_model)
+    w.put("fI", float(f.latency_ms), int(f.labels.size - np.count_nonzero(f.labels >= 0)))
+    return w.bytes()
 
 
 def mocap4r2_markers(f: LabelledFrame):
