@@ -156,6 +156,10 @@ def run_once(mon, bag: Path, env: dict, n_frames: int, rate: float) -> dict:
                 latency_ms=dict(p50=pct(lat, 50), p90=pct(lat, 90), p99=pct(lat, 99),
                                 max=float(lat.max()) if lat.size else float("nan")),
                 latency_after_warmup_ms=dict(p50=pct(steady, 50), p99=pct(steady, 99)),
+                # the worst latency in each second of the stream: where the slow frames are
+                latency_max_by_second_ms=[round(float(lat[(lab - t0) // 10 ** 9 == k].max()), 1)
+                                          if ((lab - t0) // 10 ** 9 == k).any() else None
+                                          for k in range(int((truth.max() - t0) // 10 ** 9) + 1)] if truth.size else [],
                 player_lateness_ms=play["lateness_ms"], node_labeling_p50_ms=float(d1.get("labeling_p50_ms", "nan")),
                 node_full_searches=int(d1.get("full_searches", 0)))
 

@@ -319,7 +319,7 @@ def _main(argv=None) -> int:
                 if node.poll() is not None:
                     break
                 if time.monotonic() - last >= 1.0:
-                    s = mon.snapshot()
+                    s = mon.snapshot(score=not args.quiet)      # quiet: score at the end (no load here)
                     with mon.lock:
                         recent = np.asarray(mon.latency_ms[prev["labeled"]:])
                     lat = dict(p50=np.percentile(recent, 50), p99=np.percentile(recent, 99)) if recent.size \

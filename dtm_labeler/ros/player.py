@@ -238,6 +238,8 @@ class ReplayMonitor:
         self.recv_times: list[float] = []       # wall reception time per labelled frame
         self.truth_stamps: list[int] = []       # ground-truth stamps in arrival order
         self.out_of_order = 0
+        self._pending: list = []                # (kind, stamp, serialised message) not scored yet
+        self._score_lock = threading.Lock()
         self.diag: dict = {}                    # last /diagnostics values of the labeler
         self.diag_count = 0
         self._ctx = None
@@ -256,10 +258,13 @@ class ReplayMonitor:
         rclpy.init(context=self._ctx, signal_handler_options=SignalHandlerOptions.NO)
         self.node = rclpy.create_node(self.node_name, context=self._ctx)
         rel = ReliabilityPolicy.RELIABLE if self.labeled_qos == "reliable" else ReliabilityPolicy.BEST_EFFORT
+        # raw: the callbacks read the stamp off the bytes and queue them; messages are decoded
+        # and scored when asked (snapshot), so a 41-marker stream does not back this executor
+        # up -- a late callback here would count as the labeler's latency
         self.node.create_subscription(LabeledMarkerArray, "markers/labeled", self._on_labeled,
-                                      QoSProfile(depth=1000, reliability=rel))
+                                      QoSProfile(depth=1000, reliability=rel), raw=True)
         self.node.create_subscription(LabeledMarkerArray, "markers/ground_truth", self._on_truth,
-                                      QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+                                      QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE), raw=True)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
         self._executor = SingleThreadedExecutor(context=self._ctx)
         self._executor.add_node(self.node)
@@ -296,11 +301,9 @@ class ReplayMonitor:
         self.close()
 
     # -- callbacks (executor thread)
-    def _on_labeled(self, msg) -> None:
+    def _on_labeled(self, raw: bytes) -> None:
         now = time.time()
-        from .bag import markers_to_arrays, stamp_ns_of
-        st = stamp_ns_of(msg)
-        xyz, labels = markers_to_arrays(msg)
+        st = _cdr_stamp_ns(raw)
         with self.lock:
             if self.stamps and st <= self.stamps[-1]:
                 self.out_of_order += 1
@@ -308,16 +311,32 @@ class ReplayMonitor:
             self.recv_times.append(now)
             self.n_labeled += 1
             self.latency_ms.append((now - st * 1e-9) * 1e3)
-            self.node_latency_ms.append(float(msg.latency_ms))
-            self.scorer.add_output(st, xyz, labels)
+            self._pending.append(("out", st, raw))
 
-    def _on_truth(self, msg) -> None:
-        from .bag import markers_to_arrays, stamp_ns_of
-        xyz, labels = markers_to_arrays(msg)
+    def _on_truth(self, raw: bytes) -> None:
+        st = _cdr_stamp_ns(raw)
         with self.lock:
             self.n_truth += 1
-            self.truth_stamps.append(stamp_ns_of(msg))
-            self.scorer.add_truth(stamp_ns_of(msg), xyz, labels)
+            self.truth_stamps.append(st)
+            self._pending.append(("truth", st, raw))
+
+    def _score_pending(self) -> None:
+        """Decode and score the messages received since the last call (in arrival order)."""
+        from rclpy.serialization import deserialize_message
+        from dtm_labeler_msgs.msg import LabeledMarkerArray
+        from .bag import markers_to_arrays
+        with self._score_lock:
+            with self.lock:
+                pending, self._pending = self._pending, []
+            decoded = [(kind, st, deserialize_message(raw, LabeledMarkerArray)) for kind, st, raw in pending]
+            with self.lock:
+                for kind, st, msg in decoded:
+                    xyz, labels = markers_to_arrays(msg)
+                    if kind == "out":
+                        self.node_latency_ms.append(float(msg.latency_ms))
+                        self.scorer.add_output(st, xyz, labels)
+                    else:
+                        self.scorer.add_truth(st, xyz, labels)
 
     def _on_diag(self, msg) -> None:
         for st in msg.status:
@@ -360,7 +379,10 @@ class ReplayMonitor:
         d = self.diag if d is None else d
         return sum(int(v) for k, v in d.items() if k.startswith("frames_skipped_"))
 
-    def snapshot(self) -> dict:
+    def snapshot(self, score: bool = True) -> dict:
+        """Counts, latency and (``score``: decoding what arrived since) accuracy so far."""
+        if score:
+            self._score_pending()
         with self.lock:
             lat = np.asarray(self.latency_ms)
             node_lat = np.asarray(self.node_latency_ms)
@@ -375,6 +397,14 @@ class ReplayMonitor:
                         node_skipped=self.skipped(d),
                         node_skipped_detail={k[len("frames_skipped_"):]: int(v) for k, v in d.items()
                                              if k.startswith("frames_skipped_")})
+
+
+def _cdr_stamp_ns(raw: bytes) -> int:
+    """Header stamp (ns) of a serialised message that starts with a std_msgs/Header (CDR:
+    4 bytes of encapsulation -- the second says the byte order -- then int32 sec, uint32
+    nanosec)."""
+    sec, nsec = struct.unpack_from("<iI" if raw[1] & 1 else ">iI", raw, 4)
+    return sec * 1_000_000_000 + nsec
 
 
 def _pcts(v: np.ndarray) -> dict:
