@@ -197,14 +197,12 @@ class FrameSearch:
         self.evaluations += other.evaluations
 
 
-def _lookup(tracks: np.ndarray, keys: np.ndarray, labels: np.ndarray,
-            confidence: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(label, confidence) of each of ``tracks`` in the sorted ``keys`` (-1, 0 where absent)."""
+def _find(keys: np.ndarray, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(index into the sorted ``keys``, found) of each of ``tracks`` (vectorised dict lookup)."""
     if keys.size == 0:
-        return np.full(tracks.size, -1, dtype=np.int64), np.zeros(tracks.size)
+        return np.zeros(tracks.size, dtype=np.int64), np.zeros(tracks.size, dtype=bool)
     pos = np.minimum(np.searchsorted(keys, tracks), keys.size - 1)
-    hit = keys[pos] == tracks
-    return np.where(hit, labels[pos], -1).astype(np.int64), np.where(hit, confidence[pos], 0.0)
+    return pos, keys[pos] == tracks
 
 
 def scatter(values: np.ndarray, keep: np.ndarray, n_in: int, fill) -> np.ndarray:
@@ -348,17 +346,17 @@ class TrackedLabeler:
         if lost:
             self.track_label = {t: lab for t, lab in self.track_label.items() if t not in lost}
         tracks = inp.upd.track_ids
-        lab, cf = _lookup(tracks, *self._carried)
+        tids, labs, conf = self._carried
+        pos, seen = _find(tids, tracks)
+        lab = np.where(seen, labs[pos], -1) if tids.size else np.full(tracks.size, -1, dtype=np.int64)
+        cf = np.where(seen, conf[pos], 0.0) if tids.size else np.zeros(tracks.size)
         # a track that coasted through the last searched frame (a marker hidden then) carries the
         # label the search left on it, at that label's last published confidence -- unless a
         # track published this frame already holds the label
-        tl = self.track_label
-        if tl and (lab < 0).any():
-            keys = np.fromiter(tl.keys(), dtype=np.int64, count=len(tl))
-            vals = np.fromiter(tl.values(), dtype=np.int64, count=len(tl))
-            order = np.argsort(keys)
-            coast, _ = _lookup(tracks, keys[order], vals[order], np.zeros(keys.size))
-            coast[np.isin(tracks, self._carried[0])] = -1      # seen then: its published label stands
+        if self.track_label and not seen.all():
+            keys, vals = self._track_labels()
+            pos, hit = _find(keys, tracks)
+            coast = np.where(hit & ~seen, vals[pos], -1)
             coast[np.isin(coast, lab[lab >= 0])] = -1
             lab = np.where(coast >= 0, coast, lab)
             cf = np.where(coast >= 0, self._label_confidence[np.maximum(coast, 0)], cf)
@@ -765,6 +763,14 @@ class TrackedLabeler:
         out_ids = upd.track_ids if ids is None else np.asarray(ids, dtype=np.int64)[keep]
         return FrameInput(xyz.shape[0], finite, keep, pts, upd, reason, n_ignored, dt, out_ids)
 
+    def _track_labels(self) -> tuple[np.ndarray, np.ndarray]:
+        """:attr:`track_label` as (track ids sorted, their labels), for :func:`_find`."""
+        tl = self.track_label
+        tids = np.fromiter(tl.keys(), dtype=np.int64, count=len(tl))
+        labs = np.fromiter(tl.values(), dtype=np.int64, count=len(tl))
+        order = np.argsort(tids)
+        return tids[order], labs[order]
+
     def _seeds(self, track_ids: np.ndarray, n: int) -> np.ndarray | None:
         """Warm start: the labels the tracks carried last frame (vectorised lookup); None when
         fewer than half of the frame's labels can be carried (a fresh search is due)."""
@@ -772,12 +778,9 @@ class TrackedLabeler:
             return None
         M = self.n_labels
         seed = np.full(M, n, dtype=np.int64)
-        tids = np.fromiter(self.track_label.keys(), dtype=np.int64, count=len(self.track_label))
-        labs = np.fromiter(self.track_label.values(), dtype=np.int64, count=len(self.track_label))
-        order = np.argsort(tids)
-        pos = np.minimum(np.searchsorted(tids[order], track_ids), tids.size - 1)
-        hit = tids[order][pos] == track_ids
-        seed[labs[order][pos[hit]]] = np.flatnonzero(hit)
+        tids, labs = self._track_labels()
+        pos, hit = _find(tids, track_ids)
+        seed[labs[pos[hit]]] = np.flatnonzero(hit)
         if 2 * int(hit.sum()) < min(M, n):
             return None                  # most tracks are new (e.g. the input's ids restarted): search afresh
         if self.settings.method == "tracker":

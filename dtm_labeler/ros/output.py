@@ -106,15 +106,6 @@ class FrameHandler:
                 self.stats.skipped["no_model"] += 1
             self.log.warning("no model loaded: frame not labelled (set model_path)", throttle_duration_sec=5.0)
             return
-        if carried and (time.perf_counter() - f.t_recv) * 1e3 > self.values()["carry_max_ms"]:
-            try:                             # too late to publish: the tracks still follow it
-                engine.observe(f.xyz, f.stamp, f.ids)
-            except Exception as e:
-                self.log.error(f"labeler error on a skipped frame: {type(e).__name__}: {e}",
-                               throttle_duration_sec=2.0)
-            with self.lock:
-                self.stats.skipped["stale"] += 1
-            return
         try:
             self._handle(f, engine, carried)
         except Exception as e:
@@ -130,6 +121,11 @@ class FrameHandler:
             self.clear()
 
     def _handle(self, f: Frame, engine: NodeLabeler, carried: bool = False) -> None:
+        if carried and (time.perf_counter() - f.t_recv) * 1e3 > self.values()["carry_max_ms"]:
+            engine.observe(f.xyz, f.stamp, f.ids)      # too late to publish: the tracks still follow it
+            with self.lock:
+                self.stats.skipped["stale"] += 1
+            return
         if f.resets:                         # counted and logged where they were decided (executor)
             engine.reset()
             self.clear()
