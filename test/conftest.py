@@ -38,3 +38,44 @@ def _no_node_left_behind():
     helpers = sys.modules.get("node_helpers")
     if helpers is not None:
         helpers.kill_leftovers()
+
+
+def _node_processes(value, depth: int = 0):
+    """The NodeProcess objects in a fixture value (itself, a NodeClient's target, or one level
+    of tuple/list/dict)."""
+    helpers = __import__("sys").modules.get("node_helpers")
+    if helpers is None or depth > 1:
+        return
+    if isinstance(value, helpers.NodeProcess):
+        yield value
+    elif isinstance(value, helpers.NodeClient):
+        yield value.target
+    elif isinstance(value, (tuple, list)):
+        for v in value:
+            yield from _node_processes(v, depth + 1)
+    elif isinstance(value, dict):
+        for v in value.values():
+            yield from _node_processes(v, depth + 1)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """A failed test that talked to node processes shows each one's state and the end of its
+    log (a node that stopped answering says why, or shows that it said nothing)."""
+    outcome = yield
+    report = outcome.get_result()
+    if not report.failed:
+        return
+    seen = set()
+    for value in getattr(item, "funcargs", {}).values():
+        for proc in _node_processes(value):
+            if id(proc) in seen:
+                continue
+            seen.add(id(proc))
+            rc = proc.proc.poll()
+            state = "running" if rc is None else f"exited with {rc}"
+            try:
+                tail = "\n".join(proc.log().splitlines()[-40:])
+            except OSError as e:
+                tail = f"(log unreadable: {e})"
+            report.sections.append((f"node {proc.fqn} ({state}, log {proc.log_path})", tail))

@@ -475,8 +475,12 @@ class NodeClient:
     def _wait_future(self, fut, timeout: float = 10.0):
         end = time.monotonic() + timeout
         while not fut.done():
+            if not self.target.alive():
+                raise AssertionError(f"{self.target.fqn} exited (status {self.target.proc.returncode}) "
+                                     "while a service call to it was waiting")
             if time.monotonic() > end:
-                raise AssertionError("parameter service call timed out")
+                raise AssertionError(f"service call to {self.target.fqn} timed out after {timeout:g} s "
+                                     f"(node {'running' if self.target.alive() else 'gone'})")
             time.sleep(0.002)
         return fut.result()
 
