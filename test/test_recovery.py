@@ -9,7 +9,8 @@ import pytest
 
 from dtm_labeler.evaluation.metrics import MetricsAccumulator
 from dtm_labeler.labeling.config import LabelerSettings
-from dtm_labeler.labeling.recovery import DeferredRecovery, ProcessRecovery
+from dtm_labeler.labeling.recovery import (DeferredRecovery, InterimReporter, ProcessRecovery, RecoveryRequest,
+                                           RecoveryResult)
 from dtm_labeler.labeling.stream import StreamLabeler
 from dtm_labeler.labeling.tracker import Tracker, TrackerSettings
 from dtm_labeler.motion.synthetic import synthesize
@@ -86,6 +87,68 @@ def test_process_recovery_worker_joins_and_stops(model, walker):
     assert np.mean(acc) >= 0.95
     lab.close()
     assert rec._proc.wait(5) == 0
+
+
+def _first_request(model, walker) -> RecoveryRequest:
+    """The full search a stream asks for in its first frame with velocities."""
+    lab = StreamLabeler(model, LabelerSettings(recovery="background", audit_period_s=0))
+    lab.recovery.close()
+    lab.recovery = DeferredRecovery(lab, delay_frames=100)
+    rng = np.random.default_rng(3)
+    for k in range(2):
+        xyz, _ = shuffled(walker, k, rng, ghosts=2)
+        lab.process(xyz, k / walker.rate)
+    return lab.recovery._result.request
+
+
+def test_interim_results_report_the_best_so_far(model, walker):
+    """Anytime recovery: the search sends its best labeling so far at the end of generations in
+    which it improved -- flagged interim, fitness rising, never above the final result's -- and
+    sends nothing when not asked to."""
+    req = _first_request(model, walker)
+    assert req.kind == "full"
+    worker = StreamLabeler(model, LabelerSettings(recovery="inline"))
+    sent = []
+    rep = InterimReporter(req, sent.append, period_s=0.0)
+    res = worker.recover(req, rng=np.random.default_rng(0), interim=rep)
+    assert len(sent) >= 1 and rep.sent == len(sent)
+    assert all(isinstance(r, RecoveryResult) and r.interim and r.request is req for r in sent)
+    assert set(sent[0].candidates) == set(req.searched)
+    fits = [max(f for _, f in r.candidates.values()) for r in sent]
+    assert all(b > a for a, b in zip(fits, fits[1:]))         # only improvements are sent
+    assert not res.interim and fits[-1] <= max(f for _, f in res.candidates.values()) + 1e-9
+    # the same search without a reporter gives the same final labeling (the hook only reads)
+    again = StreamLabeler(model, LabelerSettings(recovery="inline")).recover(req, rng=np.random.default_rng(0))
+    for m in res.candidates:
+        assert np.array_equal(res.candidates[m][0], again.candidates[m][0])
+
+
+def test_worker_sends_interim_results_before_the_final_one(model, walker):
+    """The real worker process: polling while a full search runs returns interim results
+    (classes of the package module, not of the worker's __main__) while the request stays
+    busy, then the final result."""
+    req = _first_request(model, walker)
+    lab = StreamLabeler(model, LabelerSettings(recovery="background", audit_period_s=0))
+    rec = lab.recovery
+    deadline = time.monotonic() + 60
+    while not rec.ready and time.monotonic() < deadline:
+        rec.poll()
+        time.sleep(0.05)
+    assert rec.ready, rec.failed
+    rec.submit(req)
+    got = []
+    while time.monotonic() < deadline:
+        r = rec.poll()
+        if r is not None:
+            got.append(r)
+            if not r.interim:
+                break
+            assert rec.busy                                      # the final result is still to come
+        time.sleep(0.0005)
+    assert got and not got[-1].interim and not rec.busy, rec.failed
+    assert any(r.interim for r in got[:-1])
+    assert all(type(r) is RecoveryResult for r in got)
+    lab.close()
 
 
 def test_observed_frames_keep_the_tracks(model, walker):

@@ -263,6 +263,14 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _frames_with_errors(per_frame: list) -> dict:
+    """How many scored frames had a wrong or missing label, and how many of them came before
+    the stream's first fully right frame (the start-up, before any labeling was known)."""
+    wrong = [c < t for _, c, t in per_frame]
+    first_right = wrong.index(False) if False in wrong else len(wrong)
+    return dict(total=int(sum(wrong)), before_first_right_frame=first_right)
+
+
 def _fmt_ms(d: dict, k: str) -> str:
     v = d.get(k, float("nan"))
     return "  n/a" if v != v else f"{v:5.1f}"
@@ -348,6 +356,8 @@ def _main(argv=None) -> int:
                                   and mon.n_labeled >= int(d.get("frames_published", 0)), timeout=4.0)
             time.sleep(0.1)
             s = mon.snapshot()
+            with mon.lock:
+                per_frame = sorted(mon.scorer.per_frame)
         node_rc = stop_process(node)
         node_failed = node_failed or node_rc not in (0, -signal.SIGINT)
         node_log = tail(log_path, 20) if node_failed else ""
@@ -363,7 +373,8 @@ def _main(argv=None) -> int:
                    frames_carried=s["node_carried"], frames_skipped=s["node_skipped"],
                    skipped_detail=s["node_skipped_detail"],
                    frames_lost=max(sent - received, 0), accuracy=s["accuracy"], true_markers=s["true_markers"],
-                   ghost_rejection=s["ghost_rejection"], latency_ms=s["latency_ms"],
+                   ghost_rejection=s["ghost_rejection"], frames_with_errors=_frames_with_errors(per_frame),
+                   latency_ms=s["latency_ms"],
                    node_latency_ms=s["node_latency_ms"], player_lateness_ms=play.get("lateness_ms", {}),
                    node_resets=int(final.get("resets_gap", 0) or 0) + int(final.get("resets_time_backwards", 0) or 0),
                    node_exit_status=node_rc, node_ok=not node_failed, node_log_tail=node_log or None, domain_id=int(env["ROS_DOMAIN_ID"]),
@@ -381,7 +392,9 @@ def _main(argv=None) -> int:
               + (f", lost in transport {sent - received}" if sent > received else ""))
         print(f"  accuracy    {'n/a' if acc != acc else f'{100 * acc:.2f} %'} of {s['true_markers']} visible true "
               f"markers in labelled frames" + (f"; ghosts left unlabeled {100 * s['ghost_rejection']:.1f} %"
-                                               if s["ghosts"] else ""))
+                                               if s["ghosts"] else "")
+              + f"; {summary['frames_with_errors']['total']} frames with an error "
+                f"({summary['frames_with_errors']['before_first_right_frame']} of them at the start)")
         print(f"  latency     end-to-end (stamp -> labelled frame here) p50 {lat['p50']:.1f} ms, "
               f"p99 {lat['p99']:.1f} ms, max {lat['max']:.1f} ms; in the node p50 {nl['p50']:.1f} ms, "
               f"p99 {nl['p99']:.1f} ms")

@@ -36,6 +36,9 @@ import numpy as np
 #: recovery kinds: a warm-started search (full GA when it falls short), a full search, audits: a
 #: region sweep of the current labeling or a full search from scratch while the labeling looks fine
 KINDS = ("recover", "full", "sweep", "audit")
+#: kinds whose best-so-far is worth publishing: searches the stream asked for because it had no
+#: labeling it could vouch for (an audit checks a labeling that already fits)
+INTERIM_KINDS = ("recover", "full")
 
 
 @dataclass
@@ -61,6 +64,45 @@ class RecoveryResult:
     evaluations: int
     state: dict = field(default_factory=dict)
     seconds: float = 0.0
+    interim: bool = False           # the search's best so far; the final result follows
+
+
+#: the shortest time between two interim results of one search (:class:`InterimReporter`)
+INTERIM_PERIOD_S = 0.004
+
+
+class InterimReporter:
+    """Anytime recovery: while a background search runs, its best labeling so far goes to the
+    stream as an *interim* result -- at the end of a GA generation in which the best improved,
+    at most once per :data:`INTERIM_PERIOD_S`. On the demo walker a full search takes 40-200 ms
+    (the GA, its region sweeps, restarts when the first run falls short), but the GA's best is
+    the right labeling after its first generation or two in most frames: waiting for the end
+    left the first 20 frames of a stream without labels. An interim result joins a frame the
+    way the final one does (:meth:`~.tracked.TrackedLabeler._join`: taken only where it fits
+    the frame better than the labeling carried), so a poor one costs nothing."""
+
+    def __init__(self, request: RecoveryRequest, send, period_s: float = INTERIM_PERIOD_S):
+        self.request, self.send, self.period_s = request, send, period_s
+        self._last_t = -np.inf
+        self._sent_f = -np.inf
+        self.sent = 0
+
+    def hook(self, searched: list[int], inner=None):
+        """A per-generation hook for :func:`~..search.evolve.evolve` over the islands of
+        ``searched`` (after ``inner``, e.g. the bank's migration)."""
+        def report(islands, gen: int) -> int:
+            evals = inner(islands, gen) if inner is not None else 0
+            now = time.perf_counter()
+            if now - self._last_t < self.period_s:
+                return evals
+            bests = {searched[i]: isl.best() for i, isl in enumerate(islands) if len(isl.pop)}
+            top = max((f for _, f in bests.values()), default=-np.inf)
+            if top > self._sent_f:
+                self.send(RecoveryResult(self.request, bests, False, gen, 0, interim=True))
+                self._last_t, self._sent_f = now, top
+                self.sent += 1
+            return evals
+        return report
 
 
 class Recovery:
@@ -340,6 +382,7 @@ class ProcessRecovery(Recovery):
         if self._conn is None or (self.ready and not self.busy):
             return None
         self._ready()
+        interim = None
         try:
             while self._conn.poll():
                 kind, payload = self._conn.recv()
@@ -348,12 +391,14 @@ class ProcessRecovery(Recovery):
                 elif kind == "error":             # that request failed; the worker goes on
                     self._answered += 1
                     self.last_error = str(payload)
+                elif kind == "interim":           # the latest best-so-far of the running search
+                    interim = payload
                 elif kind == "result":
                     self._answered += 1
                     return payload
-        except (OSError, EOFError) as e:
+        except Exception as e:      # OSError/EOFError: gone; anything else: a reply that does not unpickle
             self._fail(e)
-        return None
+        return interim
 
     def _fail(self, why) -> None:
         self.failed = f"recovery worker failed: {why}"
@@ -378,7 +423,7 @@ def serve(address: str, key: bytes) -> int:
             if kind == "stop":
                 return 0
             try:
-                reply = _handle(kind, payload, labeler)
+                reply = _handle(kind, payload, labeler, lambda r: conn.send(("interim", r)))
             except (OSError, EOFError):
                 raise
             except Exception as e:        # report, keep serving: one bad request must not end the worker
@@ -393,7 +438,7 @@ def serve(address: str, key: bytes) -> int:
         return 0
 
 
-def _handle(kind: str, payload, labeler):
+def _handle(kind: str, payload, labeler, send_interim=None):
     if kind == "setup":
         return build_worker_labeler(payload)
     if kind == "settings":
@@ -406,7 +451,9 @@ def _handle(kind: str, payload, labeler):
         return None
     if kind == "recover":
         t0 = time.perf_counter()
-        res = labeler.recover(payload, rng=np.random.default_rng(payload.seed))
+        interim = InterimReporter(payload, send_interim) if send_interim is not None and \
+            payload.kind in INTERIM_KINDS else None
+        res = labeler.recover(payload, rng=np.random.default_rng(payload.seed), interim=interim)
         res.seconds = time.perf_counter() - t0
         return res
     raise ValueError(f"unknown request {kind!r}")
@@ -427,4 +474,7 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # run as the package's module, not as __main__: what the worker sends must unpickle as
+    # dtm_labeler.labeling.recovery classes in the labeler's process
+    from dtm_labeler.labeling.recovery import main as _main
+    sys.exit(_main())

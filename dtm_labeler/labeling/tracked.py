@@ -232,6 +232,7 @@ class TrackedLabeler:
     the hooks; ``result_type`` is the dataclass of :meth:`process`'s result."""
 
     result_type = FrameResult
+    _interim = None              # the InterimReporter of the recovery search running here (a worker's)
 
     def _init_engine(self, engine: Engine, settings: LabelerSettings | None) -> None:
         self.settings = settings or LabelerSettings()
@@ -528,11 +529,19 @@ class TrackedLabeler:
                                seeds, searched, self._search_state(), seed, kind)
 
     def recover(self, request: RecoveryRequest, rng: np.random.Generator | None = None,
-                problems: list[FrameProblem] | None = None) -> RecoveryResult:
+                problems: list[FrameProblem] | None = None, interim=None) -> RecoveryResult:
         """Run a recovery search (what :class:`~.recovery.Recovery` executors call): a warm GA
         from the request's seeds; a full GA with restarts when there are none or the warm
         result falls short of the level. Inline it runs on this labeler's own state and random
-        stream; in a worker, on the request's."""
+        stream; in a worker, on the request's. ``interim`` (a worker's
+        :class:`~.recovery.InterimReporter`) sends the GA's best so far while it runs."""
+        self._interim = interim
+        try:
+            return self._recover(request, rng, problems)
+        finally:
+            self._interim = None
+
+    def _recover(self, request: RecoveryRequest, rng, problems) -> RecoveryResult:
         s = self.settings
         if rng is not None:                       # a worker: the asking labeler's state
             self.rng = rng
@@ -627,9 +636,12 @@ class TrackedLabeler:
         """One search over the searched models: a GA with one island per model (migration
         between them, :meth:`_migration`), or a deterministic search per model."""
         if isinstance(search, GASearch):
+            hook = self._migration(problems, searched)
+            if self._interim is not None:
+                hook = self._interim.hook(searched, hook)
             out = search.search_models([problems[m] for m in searched],
                                        self._island_sizes(search.settings.population, searched),
-                                       self.rng, seeds, self._migration(problems, searched))
+                                       self.rng, seeds, hook)
             self._after_ga(searched, out)
             return FrameSearch({searched[i]: Candidate(a, f) for i, (a, f) in out.per_model.items()},
                                full=True, generations=out.generations, evaluations=out.evaluations)

@@ -222,23 +222,26 @@ class Scorer:
     ghosts_rejected: int = 0
     ghosts: int = 0
     frames_scored: int = 0
+    #: (stamp ns, correct, true markers) of every scored frame, in scoring order
+    per_frame: list = field(default_factory=list)
     _gt: dict = field(default_factory=dict)
     _out: dict = field(default_factory=dict)
 
     def add_truth(self, stamp_ns: int, xyz: np.ndarray, labels: Sequence[str]) -> None:
         if stamp_ns in self._out:
-            self._score(self._out.pop(stamp_ns), (xyz, labels))
+            self._score(stamp_ns, self._out.pop(stamp_ns), (xyz, labels))
         else:
             self._gt[stamp_ns] = (xyz, labels)
 
     def add_output(self, stamp_ns: int, xyz: np.ndarray, labels: Sequence[str]) -> None:
         if stamp_ns in self._gt:
-            self._score((xyz, labels), self._gt.pop(stamp_ns))
+            self._score(stamp_ns, (xyz, labels), self._gt.pop(stamp_ns))
         else:
             self._out[stamp_ns] = (xyz, labels)
 
-    def _score(self, out, gt) -> None:
+    def _score(self, stamp_ns: int, out, gt) -> None:
         c, t, r, g = score_by_position(gt[0], gt[1], out[0], out[1], self.known)
+        self.per_frame.append((stamp_ns, c, t))
         self.correct += c
         self.total += t
         self.ghosts_rejected += r
