@@ -464,8 +464,11 @@ class TrackedLabeler:
     def _while_recovering(self, problems, inp, searched, seeds, fast) -> FrameSearch:
         """Background mode, the frame needs a search: ask for one (unless one runs) and publish
         the best labeling known meanwhile -- the hill-climbed carried one, else the carried one,
-        else none -- flagged doubtful (confidence 0, not learnt from)."""
-        if not self.recovery.busy and not self._provisional:
+        else none -- flagged doubtful (confidence 0, not learnt from). A frame without velocities
+        (the stream's first) is searched too when nothing at all is known: its interim results
+        label the next frames a frame period sooner, and the fast path judges them with the
+        velocities those frames have."""
+        if not self.recovery.busy and (not self._provisional or seeds is None):
             self.recovery.submit(self._request(problems, inp, searched, seeds,
                                                "recover" if seeds is not None else "full"))
         self._init_levels(problems, searched)
