@@ -94,7 +94,10 @@ def test_replay_through_the_node(setup):
     skipped = snap["node_skipped"]
     report = (f"sent {sent}, received {received}, published {published}, skipped {skipped} "
               f"{snap['node_skipped_detail']}, got {snap['labeled']}, resets {diag.get('resets_gap')}; accuracy node {snap['accuracy']:.4f} vs "
-              f"offline {off['accuracy']:.4f}; e2e latency {snap['latency_ms']}")
+              f"offline {off['accuracy']:.4f}; e2e latency {snap['latency_ms']}; node diagnostics "
+              + ", ".join(f"{k} {v}" for k, v in sorted(diag.items()) if k.startswith(("frames_", "full_", "search",
+                                                                                       "reset", "recover", "audit")))
+              + f"\nnode log (end):\n{tail(log, 30)}")
     print(report)
     # (b) every frame accounted for
     assert received == sent, report
