@@ -35,4 +35,6 @@ def test_flicker_stream_is_labelled_frame_after_frame(tmp_path):
     assert d["node_ok"] and d["frames_sent"] >= 1100
     assert d["frames_labelled"] >= 0.95 * d["frames_sent"], d      # searched, or carried by the tracks
     assert d["frames_labelled"] - d["frames_carried"] >= 0.5 * d["frames_sent"], d   # the searches keep up
-    assert d["accuracy"] >= 0.9 and d["ghost_rejection"] >= 0.8, d
+    # anytime recovery: the search's interim results label the start of the stream after a few
+    # frames (before them: the first ~20 frames stayed unlabelled, 97.5 % on a quiet machine)
+    assert d["accuracy"] >= 0.97 and d["ghost_rejection"] >= 0.8, d
