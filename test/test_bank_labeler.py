@@ -136,9 +136,9 @@ def test_node_uses_the_bank(tmp_path, data):
     save_model(bank["walk"], tmp_path / "walk.npz")
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
-    node = LabelerNode(context=ctx, namespace="/t_bank", parameter_overrides=[
+    node = LabelerNode(context=ctx, namespace="/t_bank", parameter_overrides=[    # lock step: searches inline
         Parameter("use_bank", value=True), Parameter("bank_path", value=str(tmp_path / "bank")),
-        Parameter("model_path", value=str(tmp_path / "walk.npz"))])
+        Parameter("model_path", value=str(tmp_path / "walk.npz")), Parameter("recovery", value="inline")])
     core = node.core
     published = []
 

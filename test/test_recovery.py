@@ -151,6 +151,29 @@ def test_worker_sends_interim_results_before_the_final_one(model, walker):
     lab.close()
 
 
+def test_a_request_made_before_the_worker_connects_waits_for_it(model, walker):
+    """Right after start-up the worker process is still importing: a request then is not
+    searched in the frame (that held a live stream for 70-110 ms) but waits and is sent the
+    moment the worker connects; its results come back from the worker."""
+    req = _first_request(model, walker)
+    lab = StreamLabeler(model, LabelerSettings(recovery="background", audit_period_s=0))
+    rec = lab.recovery
+    assert rec._conn is None                                  # still importing
+    rec.submit(req)
+    assert rec.busy and rec._inline is None and not rec.ready
+    deadline = time.monotonic() + 60
+    final = None
+    while final is None:
+        assert time.monotonic() < deadline, rec.failed
+        r = rec.poll()
+        if r is not None and not r.interim:
+            final = r
+        time.sleep(0.005)
+    assert (final.request.frame, final.request.seed) == (req.frame, req.seed)       # came back from the worker
+    assert rec.ready and not rec.busy and not rec.failed
+    lab.close()
+
+
 def test_observed_frames_keep_the_tracks(model, walker):
     """Frames the consumer skips are observed by the tracker: after a skip of 12 frames the
     carried labeling goes on without a search; without observing, the gates widen with the
