@@ -10,7 +10,7 @@ import pytest
 from dtm_labeler.evaluation.metrics import MetricsAccumulator
 from dtm_labeler.labeling.config import LabelerSettings
 from dtm_labeler.labeling.recovery import (DeferredRecovery, InterimReporter, ProcessRecovery, RecoveryRequest,
-                                           RecoveryResult)
+                                           RecoveryResult, keep_spare_worker)
 from dtm_labeler.labeling.stream import StreamLabeler
 from dtm_labeler.labeling.tracker import Tracker, TrackerSettings
 from dtm_labeler.motion.synthetic import synthesize
@@ -156,6 +156,7 @@ def test_a_request_made_before_the_worker_connects_waits_for_it(model, walker):
     searched in the frame (that held a live stream for 70-110 ms) but waits and is sent the
     moment the worker connects; its results come back from the worker."""
     req = _first_request(model, walker)
+    keep_spare_worker(False)            # an in-process node test may have left a spare, already up
     lab = StreamLabeler(model, LabelerSettings(recovery="background", audit_period_s=0))
     rec = lab.recovery
     assert rec._conn is None                                  # still importing

@@ -88,14 +88,47 @@ def load(source: Source) -> Any:
 
 
 def prepare(source: Source, base: Any, noise_mm: float, bank_settings: BankSettings) -> Prepared:
-    """The labeler's engine for ``base`` at ``noise_mm`` (slow, see the module doc)."""
+    """The labeler's engine for ``base`` at ``noise_mm``, warmed up (slow, see the module doc)."""
     if isinstance(base, ModelBank):
         engine = BankLabeler.prepare(base, bank_settings, noise_mm)
         first = base[base.actions[0]]
     else:
         engine, first, bank_settings = Engine.prepare(base, noise_mm), base, None
-    return Prepared(source, base, float(noise_mm), engine, bank_settings, tuple(first.labels),
-                    tuple(sorted(first.structure.edges())))
+    prepared = Prepared(source, base, float(noise_mm), engine, bank_settings, tuple(first.labels),
+                        tuple(sorted(first.structure.edges())))
+    _warm_up(prepared)
+    return prepared
+
+
+#: the throw-away labeler of :func:`_warm_up`: every stage runs, with small searches
+_WARM_UP = LabelerSettings(recovery="inline", restarts=0,
+                           full=replace(LabelerSettings().full, population=16, max_generations=3),
+                           warm=replace(LabelerSettings().warm, population=8, max_generations=2))
+
+
+_warmed = False
+
+
+def _warm_up(prepared: Prepared) -> None:
+    """Once per process, label a few made-up frames with a throw-away labeler on the prepared
+    engine, off the labeling thread: the first frames of a stream otherwise pay the first
+    calls of the tracker, the fast path, the region checks and the confidences (compiled
+    kernels loaded from disk, first allocations) -- 20-30 ms offline, 50-70 ms in a node
+    sharing its cores, which dropped the 3-7 frames behind them as stale. What is per model
+    (its densities, batched terms, bounds) :meth:`Engine.prepare` has built already."""
+    global _warmed
+    if _warmed:
+        return
+    _warmed = True
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(scale=0.4, size=(len(prepared.labels), 3))
+    if prepared.bank_settings is not None:
+        lab = BankLabeler(prepared.base, _WARM_UP, prepared.bank_settings, engine=prepared.engine)
+    else:
+        lab = StreamLabeler(prepared.engine, _WARM_UP)
+    for k in range(4):
+        lab.process(xyz + 0.003 * k, 1.0 + k / 120.0)
+    lab.close()
 
 
 def _labeler_settings(settings: LabelerSettings, prepared: Prepared) -> LabelerSettings:
