@@ -954,8 +954,9 @@ class TrackedLabeler:
                             if t not in seen and t not in lost and lab not in taken}
         self.track_label.update(published)
         order = np.argsort(upd.track_ids, kind="stable")
-        self._carried = (upd.track_ids[order], pub[order].astype(np.int64), np.asarray(conf, dtype=float)[order])
-        self._label_confidence[pub[pub >= 0]] = np.asarray(conf, dtype=float)[pub >= 0]
+        conf_f = np.asarray(conf, dtype=float)
+        self._carried = (upd.track_ids[order], pub[order].astype(np.int64), conf_f[order])
+        self._label_confidence[pub[pub >= 0]] = conf_f[pub >= 0]
         self._since_search += 1
         self._frame_no += 1
         if present.any():

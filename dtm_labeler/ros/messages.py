@@ -4,7 +4,9 @@ Pure functions over numpy and message classes (the style of sensor_msgs_py's poi
 
 * :func:`labeled_marker_array` -- ``markers/labeled`` (dtm_labeler_msgs/LabeledMarkerArray): every
   input point in input order (label, confidence, track id), then one ``occluded`` + ``predicted``
-  marker per model label missing this frame whose track the tracker still predicts;
+  marker per model label missing this frame whose track the tracker still predicts; the node
+  publishes the same message as bytes written straight from the arrays
+  (:func:`labeled_marker_array_cdr`, tested against this one's serialisation);
 * :func:`mocap4r2_markers` -- ``markers/labeled_mocap4r2`` (mocap4r2_msgs/Markers): every input
   point with ``marker_name`` = its label ('' when unlabelled), ``marker_index`` = its track id
   (-1 without one), ``id_type`` USE_BOTH, so mocap4r2 tools (e.g. its marker visualiser) show
