@@ -93,6 +93,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calibrate-labels", choices=("model", "capture"), default="model",
                    help="labels of the calibration frames: the model's own, confirmed by its votes (the take's "
                         "labels are not used), or the take's (an operator-labelled calibration)")
+    p.add_argument("--take-votes", type=float, default=1.0, metavar="SECONDS",
+                   help="offline votes (stream mode): each frame's labels voted over the frames SECONDS before "
+                        "and after it, so a marker's later frames correct its first guess (0: the labels as the "
+                        "live node publishes them, past frames only; the JSON's live_accuracy scores those)")
     p.add_argument("--json", action="store_true", help="print one JSON object with the scores")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -193,12 +197,25 @@ def _main(argv=None) -> int:
     if args.out_points:
         _write_csv(args.out_points, runs, model.labels, multi=len(runs) > 1)
     out = {"method": settings.method, "mode": settings.mode, "model": str(args.model)} | _metrics_json(pooled)
-    out |= {"drop_unlabelled": args.drop_unlabelled, "jobs": args.jobs, "dask": args.dask}
+    out |= {"drop_unlabelled": args.drop_unlabelled, "jobs": args.jobs, "dask": args.dask,
+            "take_votes_s": jobs[0].take_votes_s if jobs else 0.0}
+    live = _live_accuracy(runs)
+    if live is not None:
+        out["live_accuracy"] = live
     if failed:
         out["errors"] = len(failed)
     if _report(args, settings, out, results, []):
         _print_summary(args, settings, model, pooled, runs)
+        if live is not None:
+            print(f"live labels    {_pct(live)} right as published live (votes over past frames only); "
+                  f"the figures above vote over +-{out['take_votes_s']:g} s (--take-votes)")
     return 1 if failed else 0
+
+
+def _live_accuracy(runs: list) -> float | None:
+    """Accuracy of the labels as published live, before the take votes (None without them)."""
+    parts = [r.causal for r in runs if getattr(r, "causal", None) is not None]
+    return MetricsAccumulator.merge(parts).metrics().accuracy if parts else None
 
 
 def _out_paths(args) -> list[tuple[Path, str | None]]:
@@ -230,8 +247,15 @@ def _jobs(args, settings, takes) -> list[LabelJob]:
                      clutter=args.clutter, noise_mm=args.noise_mm, gap_frames=args.gap_frames, seed=settings.seed + i,
                      use_ids=args.track_ids, keep_unlabelled=not args.drop_unlabelled,
                      ignore_names=args.ignore_names, out=out, keep_records=args.out_points is not None, load=load,
-                     calibrate=args.calibrate, calibrate_labels=args.calibrate_labels)
+                     calibrate=args.calibrate, calibrate_labels=args.calibrate_labels,
+                     take_votes_s=_take_votes(args, settings))
             for i, (f, out) in enumerate(takes)]
+
+
+def _take_votes(args, settings) -> float:
+    if args.take_votes < 0:
+        raise CliError("--take-votes must be >= 0 seconds")
+    return args.take_votes if settings.mode == "stream" else 0.0
 
 
 def _run_takes(args, jobs: list[LabelJob], model_bytes: bytes) -> list[TakeResult]:
@@ -303,6 +327,8 @@ def _report(args, settings, out: dict, runs: list, input_keys: list[str]) -> boo
                         {"source": r.source, "frame_range": r.settings["frame_range"]}
                         | {k: r.settings[k] for k in input_keys})
                        | (_metrics_json(r.metrics) if getattr(r, "accumulator", None) is not None else {})
+                       | ({"live_accuracy": r.causal.metrics().accuracy}
+                          if getattr(r, "causal", None) is not None else {})
                        for r in runs]}
     for item in out["inputs"]:
         for k in ("per_label", "label_names", "labels"):

@@ -67,6 +67,7 @@ class LabelJob:
     load: dict = field(default_factory=dict)   # load_clip keywords: up_axis, unit_scale, asf_path
     calibrate: str | None = None       # frames A:B of the take to calibrate the body terms on; label after B
     calibrate_labels: str = "model"    # labels of those frames: "model" (self-labelled) or "capture"
+    take_votes_s: float = 0.0          # votes again over +- this many seconds around each frame (0: as live)
 
 
 @dataclass
@@ -83,6 +84,7 @@ class TakeResult:
     note: str = ""
     out: str | None = None
     accumulator: MetricsAccumulator | None = None
+    causal: MetricsAccumulator | None = None    # take votes: the labels as published live, scored
     records: list = field(default_factory=list)
     wall_s: float = 0.0
     rate: float = 0.0
@@ -144,7 +146,7 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
         run = label_clip_run(model, mi.clip, job.settings, occlude=job.occlude, clutter=job.clutter,
                              noise_mm=job.noise_mm, seed=job.seed, progress=progress, use_ids=job.use_ids,
                              gap_frames=job.gap_frames, keep_records=job.keep_records or job.out is not None,
-                             extra=mi.extra, named=mi.named)
+                             extra=mi.extra, named=mi.named, take_votes_s=job.take_votes_s)
         if job.out:
             cap = from_records(run.records, model.labels, clip.n_frames, CaptureFormat.of(clip, a))
             res.out = str(cap.write(job.out))
@@ -154,7 +156,7 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
         res.unlabelled_points, res.copies_left_out = mi.n_extra, (len(dup) if job.keep_unlabelled else 0)
         res.unlabelled_samples = int(run.settings.get("unlabelled_samples", 0))
         res.up_axis = f"{clip.meta.get('up_axis', 'Z')} ({clip.meta.get('up_axis_source', 'format')})"
-        res.accumulator, res.rate = run.accumulator, clip.rate
+        res.accumulator, res.causal, res.rate = run.accumulator, run.causal, clip.rate
         res.records = run.records if job.keep_records else []
     except (ValueError, KeyError, OSError, CalibrationError) as e:
         res.error = str(e).strip("'\"")

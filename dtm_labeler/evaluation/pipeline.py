@@ -28,6 +28,7 @@ import numpy as np
 from .corruption import CorruptedStream, corrupt_clip
 from .metrics import Metrics, MetricsAccumulator
 from ..labeling.stream import LabelerSettings, StreamLabeler
+from ..labeling.take_votes import take_votes
 from ..model.dtm import TriangulatedModel
 from ..motion.clip import MotionClip
 from ..motion.pointsets import model_points
@@ -54,6 +55,7 @@ class FrameRecord:
     generations: int
     evaluations: int
     reset: str = ""
+    doubtful: bool = False        # published before a search vouched for it
 
 
 @dataclass
@@ -65,6 +67,7 @@ class ClipRun:
     accumulator: MetricsAccumulator
     records: list[FrameRecord] = field(default_factory=list)
     settings: dict = field(default_factory=dict)
+    causal: MetricsAccumulator | None = None   # with take votes: the labels as published live, scored
 
 
 def model_clip(model: TriangulatedModel | Sequence[str], clip: MotionClip) -> MotionClip:
@@ -80,43 +83,70 @@ def model_clip(model: TriangulatedModel | Sequence[str], clip: MotionClip) -> Mo
 
 def run_stream(model: TriangulatedModel, stream: CorruptedStream, settings: LabelerSettings | None = None,
                use_ids: bool = False, keep_records: bool = True, progress: Progress | None = None,
-               done: int = 0, total: int | None = None, scored: bool = True) -> ClipRun:
-    """Feed a corrupted stream (label index = model label index) to a fresh labeler."""
+               done: int = 0, total: int | None = None, scored: bool = True, take_votes_s: float = 0.0) -> ClipRun:
+    """Feed a corrupted stream (label index = model label index) to a fresh labeler
+    (``take_votes_s``: see :func:`run_labeler`)."""
     if tuple(stream.names) != tuple(model.labels):
         raise ValueError("stream label names differ from the model's labels")
     return run_labeler(StreamLabeler(model, settings or LabelerSettings()), model.labels, stream, use_ids,
-                       keep_records, progress, done, total, scored=scored)
+                       keep_records, progress, done, total, scored=scored, take_votes_s=take_votes_s)
 
 
 def run_labeler(labeler, labels: Sequence[str], stream: CorruptedStream, use_ids: bool = False,
                 keep_records: bool = True, progress: Progress | None = None, done: int = 0,
-                total: int | None = None, on_frame=None, scored: bool = True) -> ClipRun:
+                total: int | None = None, on_frame=None, scored: bool = True,
+                take_votes_s: float = 0.0) -> ClipRun:
     """Run any labeler with the ``process`` interface (StreamLabeler, BankLabeler) over a
     corrupted stream and score it (``scored=False``: a take without names, nothing to score
     against; frames and latencies are still counted); ``on_frame(result)`` sees every frame's
-    result."""
+    result. ``take_votes_s`` > 0 (offline only): the published labels are voted again over
+    the frames +- that many seconds around each frame (:mod:`~dtm_labeler.labeling.take_votes`);
+    the run's metrics score those, :attr:`ClipRun.causal` the labels as published live."""
     acc = MetricsAccumulator(labels, stream.rate)
     records: list[FrameRecord] = []
     total = len(stream) if total is None else total
     t_wall = time.perf_counter()
+    revote = take_votes_s > 0
     for i, f in enumerate(stream):
         res = labeler.process(f.xyz, f.stamp, ids=f.ids if use_ids else None,
                               truth=f.label_to_index if scored else None)
         acc.add_result(f.truth, res, valid=np.isfinite(f.xyz).all(1) & scored)
         if on_frame is not None:
             on_frame(res)
-        if keep_records:
+        if keep_records or revote:
             records.append(FrameRecord(
                 index=f.index, stamp=f.stamp, xyz=f.xyz, truth=f.truth, labels=res.labels,
                 confidence=res.confidence, track_ids=res.track_ids, search_labels=res.search_labels,
                 log_likelihood=res.log_likelihood, truth_fitness=res.truth_fitness, latency_ms=res.latency_ms,
                 full_search=res.full_search, generations=res.generations, evaluations=res.evaluations,
-                reset=res.reset))
+                reset=res.reset, doubtful=bool(getattr(res, "doubtful", False))))
         if progress is not None:
             progress(done + i + 1, total)
+    causal = None
+    if revote:
+        causal = acc
+        acc = revoted(records, labels, stream.rate, take_votes_s, scored)
     wall = time.perf_counter() - t_wall
-    return ClipRun(source=stream.source, metrics=acc.metrics(), accumulator=acc, records=records,
-                   settings=dict(stream.settings, use_ids=use_ids, wall_s=wall, scored=scored))
+    return ClipRun(source=stream.source, metrics=acc.metrics(), accumulator=acc,
+                   records=records if keep_records else [],
+                   settings=dict(stream.settings, use_ids=use_ids, wall_s=wall, scored=scored,
+                                 take_votes_s=take_votes_s), causal=causal)
+
+
+def revoted(records: list[FrameRecord], labels: Sequence[str], rate: float, take_votes_s: float,
+            scored: bool = True) -> MetricsAccumulator:
+    """The records' labels and confidences voted again over +- ``take_votes_s`` around each
+    frame (:func:`~dtm_labeler.labeling.take_votes.take_votes`; in place) and scored afresh."""
+    half = max(0, int(round(take_votes_s * rate)))
+    new_labels, new_conf = take_votes([r.track_ids for r in records], [r.search_labels for r in records],
+                                      len(labels), half, [r.doubtful for r in records])
+    acc = MetricsAccumulator(labels, rate)
+    for r, lab, conf in zip(records, new_labels, new_conf):
+        r.labels, r.confidence = lab, conf
+        acc.add(r.truth, lab, latency_ms=r.latency_ms, log_likelihood=r.log_likelihood,
+                truth_fitness=r.truth_fitness, search_labels=r.search_labels, full_search=r.full_search,
+                valid=np.isfinite(r.xyz).all(1) & scored, confidence=conf)
+    return acc
 
 
 def label_clip(model: TriangulatedModel, clip: MotionClip, settings: LabelerSettings | None = None,
@@ -134,14 +164,14 @@ def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: Labeler
                    occlude: int = 0, clutter: int = 0, noise_mm: float = 0.0, seed: int = 0,
                    progress: Progress | None = None, use_ids: bool = False, gap_frames: float = 1.0,
                    keep_records: bool = True, done: int = 0, total: int | None = None,
-                   extra: np.ndarray | None = None, named: bool = True) -> ClipRun:
+                   extra: np.ndarray | None = None, named: bool = True, take_votes_s: float = 0.0) -> ClipRun:
     """:func:`label_clip` returning the full :class:`ClipRun`; ``extra`` (F, K, 3): the take's
     unlabelled points; ``named=False``: ``clip`` holds no truth (labelled, not scored)."""
     mc = clip if not named else model_clip(model, clip)
     stream = corrupt_clip(mc, occlude=occlude, clutter=clutter, noise_mm=noise_mm, seed=seed,
                           gap_frames=gap_frames, extra=extra)
     return run_stream(model, stream, settings, use_ids=use_ids, keep_records=keep_records, progress=progress,
-                      done=done, total=total, scored=named)
+                      done=done, total=total, scored=named, take_votes_s=take_votes_s)
 
 
 def label_clips(model: TriangulatedModel, clips: Sequence[MotionClip], settings: LabelerSettings | None = None,
