@@ -10,7 +10,7 @@ def test_window_keeps_confirmed_labels_and_closes_after_its_seconds():
     w = CalibrationWindow(0.1, n_labels=3)
     xyz = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]])
     labels = np.array([2, -1, 0, 1])
-    conf = np.array([0.9, 0.9, 0.2, 0.5])              # label 0 not confirmed (0.2 < 0.3)
+    conf = np.array([0.9, 0.9, 0.4, 0.5])              # label 0 not confirmed (0.4 < 0.5)
     out = None
     for k in range(20):                                # 120 Hz: 0.1 s after 12 or 13 frames (rounding)
         out = w.add(10.0 + k / 120, labels, conf, xyz)

@@ -18,12 +18,13 @@ from typing import Optional
 
 import numpy as np
 
+from ..labeling.confidence import CONFIRMED
 from ..training.calibrate import confirmed_positions
 
 __all__ = ["CalibrationWindow", "MIN_CONFIDENCE"]
 
 #: confidence a published label needs to count as confirmed (as the offline self-calibration)
-MIN_CONFIDENCE = 0.3
+MIN_CONFIDENCE = CONFIRMED
 
 
 class CalibrationWindow:

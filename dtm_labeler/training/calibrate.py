@@ -61,6 +61,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..labeling.confidence import CONFIRMED
 from ..labeling.stream import LabelerSettings, StreamLabeler
 from ..model.body import SEGMENT, BodyModel
 from ..model.dtm import TriangulatedModel
@@ -76,7 +77,7 @@ class CalibrationSettings:
                                      # range: its labels are not one segment (an arm labelled wrist-for-elbow)
     within_factor: float = 1.5
     scale_clip: tuple = (0.75, 1.33)
-    min_confidence: float = 0.3      # self-labelling: confidence a label needs to count as confirmed
+    min_confidence: float = CONFIRMED    # self-labelling: confidence a label needs to count as confirmed
     volume_m3: float = 1000.0        # self-labelling: clutter density (larger: a point that fits the generic
                                      # body poorly is still labelled; the medians are robust to a few wrong ones)
     open_between_rel: float = 0.3    # self-labelling, first round: between-person spread of the generic body
@@ -229,7 +230,7 @@ def calibrate(model: TriangulatedModel, source: MotionClip | np.ndarray,
 
 
 def confirmed_positions(labels: np.ndarray, confidence: np.ndarray, xyz: np.ndarray, n_labels: int,
-                        min_confidence: float = 0.3) -> np.ndarray:
+                        min_confidence: float = CONFIRMED) -> np.ndarray:
     """(M, 3) positions of one labelled frame in label order: the points labelled with at least
     ``min_confidence`` (NaN for the other labels) -- what a calibration takes as confirmed."""
     out = np.full((n_labels, 3), np.nan)
@@ -239,7 +240,7 @@ def confirmed_positions(labels: np.ndarray, confidence: np.ndarray, xyz: np.ndar
 
 
 def self_label(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.ndarray, rate: float,
-               settings: LabelerSettings | None = None, min_confidence: float = 0.3) -> np.ndarray:
+               settings: LabelerSettings | None = None, min_confidence: float = CONFIRMED) -> np.ndarray:
     """Label unlabelled clouds (one (n, 3) array per frame, or (F, N, 3)) with ``model`` in
     stream mode and return the confirmed labels as (F, M, 3) positions (NaN where a label
     was not given with at least ``min_confidence``)."""
