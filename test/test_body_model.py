@@ -11,7 +11,7 @@ import json
 import numpy as np
 import pytest
 
-from dtm_labeler.model.body import REACH, SEGMENT, BodyModel, EdgeTerms
+from dtm_labeler.model.body import REACH, SEGMENT, BodyModel, CrossSegments, EdgeTerms
 from dtm_labeler.model.io import FORMAT_VERSION, ModelFileError, load_model, model_from_arrays, save_model
 from dtm_labeler.model.mixture import GaussianMixture
 from dtm_labeler.model.structure import BODY14_GIVEN, Structure
@@ -354,3 +354,60 @@ def test_model_file_v2_round_trip_and_v1_files(models, tmp_path, walker):
         arrays = {k: z[k] for k in z.files if not k.startswith("body_")}
     with pytest.raises(ModelFileError, match="body"):
         model_from_arrays(arrays, "v2")
+
+
+def test_cross_segments_formula_and_marginalisation():
+    """Calibrated rigid pairs that are not edges of the triangulation (model/body.py,
+    CrossSegments): the same dead-zone quadratic, dropped when an end is missing, and
+    nothing for reach pairs or edges."""
+    body = BodyModel(n_labels=4, pairs=[[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]],
+                     kind=[SEGMENT, SEGMENT, SEGMENT, SEGMENT, SEGMENT, SEGMENT],
+                     lo=[0.3] * 6, hi=[0.3] * 6, within_sd=[0.01] * 6, between_sd=[0] * 6,
+                     calibration={"source": "test"})
+    cs = CrossSegments(body, np.array([[0, 1, 2], [3, 0, 1]]))
+    assert cs.active and cs.pairs.tolist() == [[2, 3]]              # the one pair no triangle holds
+    n = 4
+    dist = np.zeros((n + 1, n + 1))
+    dist[2, 3] = dist[3, 2] = 0.33                                   # 3 sd beyond the calibrated length
+    pop = np.array([[0, 1, 2, 3], [0, 1, 3, 2], [0, 1, 2, n]])
+    assert cs(pop, dist, n) == pytest.approx([-4.5, -4.5, 0.0])
+    reach = BodyModel(n_labels=4, pairs=[[2, 3]], kind=[REACH], lo=[0.0], hi=[1.0], within_sd=[0.03],
+                      between_sd=[0.0], calibration={"source": "test"})
+    assert not CrossSegments(reach, np.array([[0, 1, 2], [3, 0, 1]])).active
+
+
+def test_cross_segments_join_the_fitness_once_calibrated(models, person, walker):
+    """A calibrated rigid pair off the DTM's edges (the walker's most rigid pair that no
+    triangle holds, made a segment at its own length) adds its factor to every labeling's fitness: nothing while the pair
+    keeps its length, the quadratic when it does not; a generic body has none."""
+    from dataclasses import replace
+    assert models[0].body_cross is None and person.body_cross is None     # 14 points: every bone is an edge
+    b = person.body
+    edge = np.zeros((14, 14), bool)
+    for t in person.triangles:
+        edge[np.ix_(t, t)] = True
+    iu, ju = np.triu_indices(14, 1)
+    off = ~edge[iu, ju]
+    spread = np.std(np.linalg.norm(walker.positions[:, iu] - walker.positions[:, ju], axis=-1), axis=0)
+    k = np.flatnonzero(off)[np.argmin(spread[off])]
+    u, v = int(iu[k]), int(ju[k])
+    r = int(b.pair_index()[u, v])
+    width = float(np.median(np.linalg.norm(walker.positions[:, u] - walker.positions[:, v], axis=1)))
+    kind, lo, hi = b.kind.copy(), b.lo.copy(), b.hi.copy()
+    kind[r], lo[r], hi[r] = SEGMENT, width - 0.005, width + 0.005
+    model = person.replace(body=replace(b, kind=kind, lo=lo, hi=hi))
+    assert model.body_cross is not None and [u, v] in model.body_cross.pairs.tolist()
+    ind = np.arange(14)[None]
+    P = walker.positions[40:42].copy()
+    for length in (width, width + 0.05):
+        Q = P.copy()
+        Q[1, v] = Q[1, u] + (Q[1, v] - Q[1, u]) * length / np.linalg.norm(Q[1, v] - Q[1, u])
+        states = point_states(Q, walker.rate)[1]
+        got = FrameProblem(model, states, Background()).fitness(ind) - FrameProblem(person, states, Background()).fitness(ind)
+        z = max(0.0, length - hi[r]) / model.body.sd[r]
+        assert got[0] == pytest.approx(-0.5 * z * z, abs=1e-9)
+        assert (z == 0.0) == (length == width)                        # 5 cm longer costs, its own length does not
+        missing = ind.copy()
+        missing[0, v] = 14
+        gm = FrameProblem(model, states, Background()).fitness(missing) - FrameProblem(person, states, Background()).fitness(missing)
+        assert gm[0] == pytest.approx(0.0, abs=1e-9)                 # a missing end drops the factor

@@ -225,6 +225,51 @@ class EdgeTerms:
         return out
 
 
+class CrossSegments:
+    """Body factors of the rigid pairs the triangulation does not hold as an edge.
+
+    A DTM keeps ``2M - 3`` of the ``M (M - 1) / 2`` pairs as edges; a marker cluster on one
+    segment (a wrist bar, the forearm marker, the hand marker) is rigid in every pair, but only
+    some of those pairs are edges, and the ones that tell two neighbouring markers apart may
+    not be. Once the body is calibrated to a person (segments applied, module doc), every
+    calibrated segment pair that is not an edge of any triangle gets the same dead-zone
+    quadratic ``b_uv`` as an edge, as one more factor of the product of experts:
+
+        log P(X | G) = sum_t [ ... eq. 14 + edge factors ... ] + sum_{(u,v) cross} b_uv(|x_u - x_v|)
+
+    A missing end drops the factor (exact where the motion density of the missing point lies
+    within the calibrated length, as for the edges; eq. 30-31 unchanged). The factor is not a
+    term of any triangle, so it is added to a labeling's fitness after the triangle terms
+    (:meth:`dtm_labeler.search.problem.FrameProblem.fitness`): the CBGA, the hill-climb and the
+    confidences see it; the max-product DP of the region checks does not (its relabelling is
+    re-scored by the full fitness and kept only when that rises). Measured (HDM05 41 markers,
+    model of the take's first 70 % calibrated on it, the last 30 % with 3 hidden + 2 ghosts +
+    1 mm, 1000 frames flicker / 250 gaps): 94.9 -> 97.2 % and 95.3 -> 96.9 % (search errors 28 -> 4);
+    the wrist bars' exchange that remains is the take's own: its left forearm marker sits 6 mm
+    differently in the last 30 % (LWRA-LFRM 131 -> 125 mm, LWRB-LFRM 124 -> 130 mm).
+    """
+
+    def __init__(self, body: BodyModel, triangles: np.ndarray):
+        tri = np.asarray(triangles, dtype=np.int64)
+        M = body.n_labels
+        edge = np.zeros((M, M), dtype=bool)
+        for i, j in EdgeTerms.SLOTS:
+            edge[tri[:, i], tri[:, j]] = edge[tri[:, j], tri[:, i]] = True
+        keep = (body.kind == SEGMENT) & ~edge[body.pairs[:, 0], body.pairs[:, 1]]
+        self.pairs = body.pairs[keep]
+        self.lo, self.hi = body.lo[keep], body.hi[keep]
+        self.inv_sd = 1.0 / body.sd[keep]
+        self.active = bool(keep.any())
+
+    def __call__(self, pop: np.ndarray, dist: np.ndarray, n: int) -> np.ndarray:
+        """(P,) summed factors of (P, M) assignments (``n`` = missing) given the frame's (n+1, n+1)
+        point distances."""
+        a, b = pop[:, self.pairs[:, 0]], pop[:, self.pairs[:, 1]]
+        d = dist[a, b]
+        x = np.maximum(np.maximum(self.lo - d, d - self.hi), 0.0) * self.inv_sd
+        return -0.5 * np.where((a < n) & (b < n), x * x, 0.0).sum(axis=1)
+
+
 def slot_distances(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Distances (F, T, 3) of every triangle's edge slots in (F, N, 3) labelled positions and
     whether both end points are seen (F, T, 3)."""

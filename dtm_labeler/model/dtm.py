@@ -30,7 +30,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import numpy as np
 
-from .body import BodyModel, BroadMotion, EdgeTerms, slot_distances
+from .body import SEGMENT, BodyModel, BroadMotion, CrossSegments, EdgeTerms, slot_distances
 from .features import (FEATURE_DIM, MISSING, N_PATTERNS, STATE_DIM, TRIPLE_DIM, feature_map_for, observation_state,
                        observed_map, pattern_codes, pattern_id)
 from .mixture import GaussianMixture
@@ -278,6 +278,9 @@ class TriangulatedModel:
             raise ValueError(f"body terms for {self.body.n_labels} labels, model has {len(self.labels)}")
         edges = EdgeTerms(self.body, self.triangles, self.body.applied_kinds) if self.body is not None else None
         self.body_edges = edges if edges is not None and edges.active else None
+        cross = CrossSegments(self.body, self.triangles) if self.body is not None and \
+            SEGMENT in self.body.applied_kinds else None
+        self.body_cross = cross if cross is not None and cross.active else None     # rigid pairs off the edges
         if self.broad is not None and len(self.broad.gaussians) != len(self.mixtures):
             raise ValueError(f"{len(self.broad.gaussians)} broad components for {len(self.mixtures)} triangles")
         # the broad part applies once the body is calibrated to a person (model/body.py, "Whose lengths")

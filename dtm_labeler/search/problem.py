@@ -179,6 +179,8 @@ class FrameProblem:
             pop = pop[None]
         bins = self.candidate_bins(pop)
         f = self.triangle_table(pop, bins).sum(1) + self.label_gain[pop].sum(1)
+        if self.model.body_cross is not None:      # calibrated rigid pairs that are not edges (model/body.py)
+            f = f + self.model.body_cross(pop, self.dist, self.n)
         return (f, bins) if return_bins else f
 
     def plausible(self, pop: np.ndarray, labels: np.ndarray, points: np.ndarray) -> np.ndarray:

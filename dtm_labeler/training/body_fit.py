@@ -41,6 +41,8 @@ Broad components by EM on held-out frames
 """
 from __future__ import annotations
 
+import warnings
+
 from dataclasses import asdict, dataclass
 from typing import Callable, Sequence
 
@@ -96,7 +98,8 @@ def pair_statistics(clips: Sequence[np.ndarray], max_frames: int = 3000) -> dict
         P = c[np.linspace(0, c.shape[0] - 1, min(c.shape[0], max_frames)).astype(np.int64)]
         v = P[:, :, None, :] - P[:, None, :, :]
         d = np.linalg.norm(v, axis=-1)                                                  # (F, M, M)
-        with np.errstate(invalid="ignore", all="ignore"):
+        with np.errstate(all="ignore"), warnings.catch_warnings():    # pairs seen < 2 times: NaN, no warning
+            warnings.simplefilter("ignore", RuntimeWarning)
             seen = np.isfinite(d).sum(0)
             mu = np.nanmean(np.where(seen >= 2, d, np.nan), axis=0) if d.shape[0] else d[0]
             means.append(np.where(seen >= 2, mu, np.nan))
@@ -126,7 +129,8 @@ def fit_body(stats: dict[str, np.ndarray], parents: np.ndarray, settings: BodySe
     between_rel = s.between_rel if s.between_rel is not None else (0.05 if joint_centres else 0.3)
     st = stats
     M = st["mean"].shape[1]
-    with np.errstate(invalid="ignore", all="ignore"):
+    with np.errstate(all="ignore"), warnings.catch_warnings():   # pairs never seen together (gappy takes): NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
         length = np.nanmean(st["mean"], axis=0)
         sd_max = np.nanmax(st["sd"], axis=0)
         vec_max = np.nanmax(st["vec"], axis=0)
