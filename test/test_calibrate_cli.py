@@ -82,3 +82,23 @@ def test_v1_model_cannot_be_calibrated(models, data_dir, run):
     assert "no body terms" in p.stderr
     p = run("dtm-label", v1_path, data_dir / PIROUETTE, "--frames", "0:60", "--calibrate", "0:60", rc=2)
     assert "leaves no frames" in p.stderr
+
+
+def test_dtm_train_calibrate_makes_the_takes_person_model(data_dir, tmp_path, capsys):
+    """``dtm-train --calibrate``: the model comes out calibrated to the training takes' person
+    (segment terms applied), with lengths measured on those takes."""
+    from dtm_labeler.cli.train import main as train_main
+    out = tmp_path / "m.npz"
+    args = [str(data_dir / LAMBADA), "--frames", "0:360", "--mixture", "fixed", "--k-fixed", "2",
+            "--structure", "given", "--quiet"]
+    assert train_main(args + ["--out", str(out), "--calibrate", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    cal = summary["calibration"]
+    assert cal["source"] == "training takes" and cal["frames"] == 360 and cal["segments"] > 0
+    model = load_model(out)
+    assert model.body.calibration and model.provenance["calibration"]["source"] == "training takes"
+    assert SEGMENT in model.body.applied_kinds
+    assert train_main(args + ["--out", str(tmp_path / "g.npz")]) == 0
+    generic = load_model(tmp_path / "g.npz")
+    assert not generic.body.calibration and SEGMENT not in generic.body.applied_kinds
+    capsys.readouterr()

@@ -91,6 +91,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "pose the training never showed is not vetoed; applied once the body is calibrated "
                         "(dtm-calibrate, dtm-label --calibrate, ~/calibrate): with a generic body it would make "
                         "ghosts near the body cheap to label")
+    g.add_argument("--calibrate", action="store_true",
+                   help="the takes are one person: calibrate the body terms to them (their segment lengths from "
+                        "the takes' own labels, as dtm-calibrate on a labelled capture), so the model is that "
+                        "person's from the start")
     p.add_argument("--seed", type=int, default=0)
     b = p.add_argument_group("model bank (one model per action, Ukita sections 4.1-4.4)")
     b.add_argument("--action", default=None, metavar="NAME",
@@ -149,8 +153,11 @@ def _main(argv=None) -> int:
     finally:
         if bar is not None:
             bar.close()
+    calibration = None
+    if args.calibrate:
+        model, calibration = _calibrated(model, clips)
     save_model(model, args.out)
-    s = summary.as_dict() | {"out": str(args.out)}
+    s = summary.as_dict() | {"out": str(args.out)} | ({"calibration": calibration} if calibration else {})
     if args.json:
         print(json.dumps(s, indent=1))
         return 0
@@ -174,8 +181,27 @@ def _main(argv=None) -> int:
     print(f"augment   {aug['copies']} cop{'y' if aug['copies'] == 1 else 'ies'}" + (
         f": scale sd {aug['scale_sd']:g}, proportion sd {aug['proportion_sd']:g}, tempo sd {aug['tempo_sd']:g}, "
         f"yaw +-{aug['yaw_jitter_deg']:g} deg" if aug["copies"] else ""))
+    if calibration:
+        print(f"calibrated to the takes' person: {calibration['segments']} of {calibration['segments_total']} "
+              f"segment lengths from {calibration['frames']} frames (scale {calibration['scale']:.3f})")
     print(f"time      {s['seconds']:.1f} s")
     return 0
+
+
+def _calibrated(model, clips):
+    """``model`` calibrated to the person of the training takes, on their own labels
+    (:func:`~dtm_labeler.training.calibrate.calibrate`, labels trusted as an operator's)."""
+    from ..motion.pointsets import model_points
+    from ..training.calibrate import CalibrationError, calibrate
+    try:
+        P = np.concatenate([model_points(c, model.labels).positions for c in clips])
+        out = calibrate(model, P, check_labels=False)
+    except (CalibrationError, KeyError, ValueError) as e:
+        raise CliError(f"--calibrate: {e}") from None
+    summary = dict(out.provenance["calibration"], source="training takes",
+                   captures=[c.source for c in clips])
+    out.provenance["calibration"] = summary
+    return out, {k: v for k, v in summary.items() if not isinstance(v, (dict, list))}
 
 
 def _bank_sources(args):
