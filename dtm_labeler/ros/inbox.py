@@ -70,15 +70,20 @@ class Inbox:
         self._context = context
         self._gc = GuardCondition(None, None, context=context)    # no node's: no executor sees it
         self._ws = _rclpy.WaitSet(1, 1, 0, 0, 0, 0, context.handle)
-        self._lock = threading.Lock()
+        self._cond = threading.Condition()
         self._sub: Optional[Subscription] = None
         self._depth = 1
+        self._waiting_on: Optional[Subscription] = None     # the subscription poll() holds
 
     def attach(self, sub: Optional[Subscription], depth: int = 1) -> None:
-        """Read ``sub`` from now on (None: no input); detach before destroying a subscription."""
-        with self._lock:
+        """Read ``sub`` from now on (None: no input). Returns when the worker no longer waits on
+        the previous one: detach before destroying a subscription, so that it is gone from DDS
+        when it returns (a new one of another type on the topic is refused while it lives)."""
+        with self._cond:
             self._sub, self._depth = sub, int(depth)
         self.wake()
+        with self._cond:
+            self._cond.wait_for(lambda: self._waiting_on is None or self._waiting_on is sub, timeout=1.0)
 
     def wake(self) -> None:
         """Make the current or next :meth:`poll` return."""
@@ -91,8 +96,9 @@ class Inbox:
         """Wait up to ``timeout_s`` (None: until a message or :meth:`wake`; 0: just look), then
         take every message there. Returns (the subscription they came from, [(msg, info)],
         whether the history was full -- older messages may have been pushed out of it)."""
-        with self._lock:
+        with self._cond:
             sub, depth = self._sub, self._depth
+            self._waiting_on = sub
         try:
             with self._gc.handle:
                 self._ws.clear_entities()
@@ -115,6 +121,10 @@ class Inbox:
                 raise
             time.sleep(0.01)            # the context is shutting down: the worker is stopped next
             return None, [], False
+        finally:
+            with self._cond:
+                self._waiting_on = None
+                self._cond.notify_all()
 
     def close(self) -> None:
         self.attach(None)
