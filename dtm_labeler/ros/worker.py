@@ -1,6 +1,6 @@
 """The node's worker thread: owns the labeler, labels the newest frame, never queues.
 
-* Frames arrive in a ONE-SLOT buffer (:meth:`LabelWorker.submit`, executor thread): a frame still
+* Frames arrive in a ONE-SLOT buffer (:meth:`LabelWorker.submit`): a frame still
   waiting there is replaced by the newer one -- there is no other queue of searches in the node
   (DDS history is keep-last), so latency cannot build up: when labeling is slower than the input,
   the node searches the newest frame only. The replaced frames are not dropped: the newest
@@ -13,6 +13,10 @@
   list or replaced while a reset is pending (a gap, a loop: the tracks are about to be
   forgotten) is dropped; those count ``stale``. A reset a dropped frame asked for is carried
   over to the frame that replaces it.
+* With an ``inbox`` (:class:`~.inbox.Inbox`, the node's case) the worker reads the input itself:
+  it waits on the inbox when it has nothing to do, else takes what arrived during the last frame,
+  and hands the messages to ``receive(sub, messages, full)`` (the node decodes them and submits,
+  in this thread); :meth:`submit` from another thread (tests) and every request below wake it.
 * Between two frames the worker swaps in what the loader prepared (:meth:`install`), applies the
   newest settings (:meth:`settings`; older ones waiting are dropped) and runs a requested reset
   (:meth:`request_reset`) -- all fast: the slow part (reading files, widening the model) was done
