@@ -2,16 +2,18 @@
 
 Threads -- none of them waits for another's slow work:
 
-* executor (``rclpy.spin``, single-threaded): the input callback only decodes (tens of us for
-  PointCloud2), follows one source (:class:`~.stamps.SourceLock`), gives the frame its labeler time
-  (:class:`~.stamps.StampGuard`) and puts it in the worker's one-slot buffer; parameter callbacks
-  validate the whole configuration (a model file by its headers only, ~1 ms:
-  :mod:`.model_check`) and hand changes on; the ``~/reset`` and ``~/reload`` services; the
-  ``/diagnostics`` timer (steady clock).
+* executor (``rclpy.spin``, single-threaded): parameter callbacks validate the whole
+  configuration (a model file by its headers only, ~1 ms: :mod:`.model_check`) and hand changes
+  on; the ``~/reset``, ``~/reload`` and ``~/calibrate`` services; the ``/diagnostics`` timer
+  (steady clock); it creates the input subscription but does not take its messages.
 * loader (:class:`~.loader.EngineLoader`): reads model files and widens models by ``noise_mm``;
   requests coalesce (the last wins) and superseded ones are dropped.
-* worker (:class:`~.worker.LabelWorker`): the only thread touching the labeler; swaps prepared
-  engines in and applies settings between frames, labels the newest frame, publishes
+* worker (:class:`~.worker.LabelWorker`): reads the input itself (:mod:`.inbox`: the executor and
+  the worker taking turns on the GIL per cloud cost more than the labelling) -- decodes each cloud
+  (tens of us for PointCloud2), follows one source (:class:`~.stamps.SourceLock`), gives the frame
+  its labeler time (:class:`~.stamps.StampGuard`) and puts it in the one-slot buffer
+  (:meth:`_on_input`); the only thread touching the labeler: swaps prepared engines in and
+  applies settings between frames, labels the newest frame, publishes
   (:class:`~.output.FrameHandler`).
 
 Stamps come from the message headers (``use_sim_time`` works) and fall back to receive time
@@ -34,6 +36,7 @@ from . import params as P
 from .calibration import CalibrationWindow
 from .diagnostics import DiagnosticsBuilder, NodeState, NodeStats
 from .engine import NodeSettings, Source
+from .inbox import Inbox, NotExecuted, arrival_age_s, history_depth
 from .inputs import InputUnavailable, decode, message_class
 from .loader import EngineLoader, LoadResult
 from .messages import output_header
@@ -41,7 +44,7 @@ from .model_check import check_model_file
 from .output import FrameHandler, Outputs, reset_kind
 from .pointcloud import PointCloudError, looks_like_millimetres
 from .stamps import SourceLock, StampGuard
-from .worker import Frame, LabelWorker
+from .worker import OBSERVED_SKIPS, Frame, LabelWorker
 
 __all__ = ["LabelerCore", "declare_parameters", "stamp_seconds"]
 
@@ -114,7 +117,10 @@ class LabelerCore:
         self.handler = FrameHandler(node, self.stats, self.lock, lambda: self.values, lambda: self.worker.stopping)
         self.handler.resize(self.values["latency_window"])
         self.handler.on_calibration = self._calibration_collected
-        self.worker = LabelWorker(self.handler, self._on_worker_event, self.settings)
+        self.inbox = Inbox(node.context)
+        self._input_lock = threading.Lock()    # input state: the worker reads, the executor (re)configures
+        self.worker = LabelWorker(self.handler, self._on_worker_event, self.settings, inbox=self.inbox,
+                                  receive=self._on_messages)
         self.loader = EngineLoader(self.worker.install)
         self.diag = DiagnosticsBuilder()
         self.sub = None
@@ -313,7 +319,8 @@ class LabelerCore:
         if old["latency_window"] != values["latency_window"]:
             self.handler.resize(values["latency_window"])
         if (old["max_gap_s"], old["stamp_source"]) != (values["max_gap_s"], values["stamp_source"]):
-            self.guard.configure(values["max_gap_s"], values["stamp_source"])
+            with self._input_lock:
+                self.guard.configure(values["max_gap_s"], values["stamp_source"])
         if changed:
             self.log.info("parameters set: " + ", ".join(f"{n}={P.format_value(values[n])}" for n in changed))
 
@@ -369,17 +376,23 @@ class LabelerCore:
             self.log.error(self.input_error)
             return
         self.input_error = ""
-        qos = P.qos_profile(self.values["input_qos"], self.values["input_depth"])
-        self.sub = self.node.create_subscription(cls, "markers/unlabeled", self._on_input, qos)
-        self.sources.reset()
+        depth = history_depth(self.values["input_depth"], OBSERVED_SKIPS)
+        qos = P.qos_profile(self.values["input_qos"], depth)
+        # the worker takes its messages (ros/inbox.py); the callback is never called by the executor
+        self.sub = self.node.create_subscription(cls, "markers/unlabeled", self._on_input, qos,
+                                                 callback_group=NotExecuted())
+        with self._input_lock:
+            self.sources.reset()
         self.active = True
+        self.inbox.attach(self.sub, depth)
         if recreated:
             self.log.info(f"input subscription recreated ({self.values['input_qos']}, depth "
                           f"{self.values['input_depth']}) for {self.values['input_type']}")
 
     def close_input(self) -> None:
         if self.sub is not None:
-            self.node.destroy_subscription(self.sub)
+            self.inbox.attach(None)
+            self.node.destroy_subscription(self.sub)     # (after the worker's wait on it, if any)
             self.sub = None
         self.active = False
         for _ in range(self.worker.discard()):
@@ -404,14 +417,36 @@ class LabelerCore:
             if detail:
                 self.stats.last_bad_input = detail
 
+    def _on_messages(self, sub, messages: List[tuple], full: bool) -> None:
+        """Worker thread: the messages the inbox took from ``sub``, oldest first. ``full``: the
+        subscription's history was full, so sequence gaps before the first message are frames
+        pushed out while the worker was busy -- stale (too old to carry), not lost before the node."""
+        if sub is not self.sub:          # the subscription was closed or replaced meanwhile
+            for _ in messages:
+                self._skip("inactive")
+            return
+        for k, (msg, info) in enumerate(messages):
+            lost = self.sources.lost
+            self._on_input(msg, info)
+            if k == 0 and full and self.sources.lost > lost:
+                with self._input_lock:
+                    n, self.sources.lost = self.sources.lost - lost, lost
+                with self.lock:
+                    self.stats.skipped["stale"] += n
+                    self.stats.lost_before_node = self.sources.lost
+
     def _on_input(self, msg, info: Optional[dict] = None) -> None:
+        """One input message (``info``: rclpy's message info, with its DDS reception time);
+        called by the worker (:meth:`_on_messages`), or directly by tests."""
         t0 = time.perf_counter()
-        now = time.monotonic()
+        age = arrival_age_s(info)
+        now = time.monotonic() - age
         with self.lock:
             self.stats.received += 1
         self._t_input = now
         seq = info.get("publication_sequence_number") if info else None
-        take, event = self.sources.accept(seq, now, self._publishers)
+        with self._input_lock:
+            take, event = self.sources.accept(seq, now, self._publishers)
         if not take:
             return self._skip("other_source")
         try:
@@ -421,7 +456,8 @@ class LabelerCore:
             self._skip("bad_cloud", reason)
             self.log.warning(f"bad cloud skipped: {reason}", throttle_duration_sec=2.0)
             return
-        frame = self._frame(msg.header, dec, t0, now, seq)
+        with self._input_lock:
+            frame = self._frame(msg.header, dec, t0, t0 - age, now, seq)
         if event == "switched":
             frame.resets.append("source switched (the followed publisher went silent)")
             self._note_reset(frame.resets[-1])
@@ -431,14 +467,14 @@ class LabelerCore:
     def _publishers(self) -> int:
         return self.sub.get_publisher_count() if self.sub is not None else 0
 
-    def _frame(self, header, dec, t0: float, now: float, seq) -> Frame:
+    def _frame(self, header, dec, t0: float, t_recv: float, now: float, seq) -> Frame:
         h_stamp = stamp_seconds(header)
         v = self.values
         ids, partial = dec.ids, False
         if ids is not None and ids.size and ids.min() < 0:
             ids, partial = None, True        # the tracker takes ids for all points or none
         out_header = output_header(header, v["frame_id"], v["override_frame_id"])
-        frame = Frame(dec.xyz, ids, out_header, h_stamp, h_stamp, t0, 0.0, dec.frame_number)
+        frame = Frame(dec.xyz, ids, out_header, h_stamp, h_stamp, t_recv, 0.0, dec.frame_number)
         xyz = dec.xyz
         if xyz.size and not np.isfinite(xyz).all():
             xyz = xyz[np.isfinite(xyz).all(1)]
@@ -553,6 +589,8 @@ class LabelerCore:
         thread has let go of it); True when the worker thread ended within ``timeout``."""
         done = self.worker.stop(timeout)
         self.loader.stop(0.05)
+        if done:
+            self.inbox.close()
         if done and self.worker.engine is not None:
             self.worker.engine.close()
         return done

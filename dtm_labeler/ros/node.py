@@ -21,7 +21,8 @@ file again). Parameters: :mod:`dtm_labeler.ros.params` (all changeable at runtim
 output_qos/output_depth).
 
 The node is wiring only (:class:`~.core.LabelerCore`): the labeler runs on a worker thread that
-labels the newest frame and never queues (:mod:`.worker`), model files are read and widened on a
+reads the input subscription itself (:mod:`.inbox`), labels the newest frame and never queues
+(:mod:`.worker`), model files are read and widened on a
 loader thread (:mod:`.loader`), stamps are checked and, when unusable, replaced by receive time
 (:mod:`.stamps`), messages and diagnostics are built by pure modules (:mod:`.messages`,
 :mod:`.diagnostics`). SIGINT and SIGTERM end the process with status 0 within a second in every

@@ -1,6 +1,6 @@
 """The node's worker thread: owns the labeler, labels the newest frame, never queues.
 
-* Frames arrive in a ONE-SLOT buffer (:meth:`LabelWorker.submit`, executor thread): a frame still
+* Frames arrive in a ONE-SLOT buffer (:meth:`LabelWorker.submit`): a frame still
   waiting there is replaced by the newer one -- there is no other queue of searches in the node
   (DDS history is keep-last), so latency cannot build up: when labeling is slower than the input,
   the node searches the newest frame only. The replaced frames are not dropped: the newest
@@ -13,6 +13,10 @@
   list or replaced while a reset is pending (a gap, a loop: the tracks are about to be
   forgotten) is dropped; those count ``stale``. A reset a dropped frame asked for is carried
   over to the frame that replaces it.
+* With an ``inbox`` (:class:`~.inbox.Inbox`, the node's case) the worker reads the input itself:
+  it waits on the inbox when it has nothing to do, else takes what arrived during the last frame,
+  and hands the messages to ``receive(sub, messages, full)`` (the node decodes them and submits,
+  in this thread); :meth:`submit` from another thread (tests) and every request below wake it.
 * Between two frames the worker swaps in what the loader prepared (:meth:`install`), applies the
   newest settings (:meth:`settings`; older ones waiting are dropped) and runs a requested reset
   (:meth:`request_reset`) -- all fast: the slow part (reading files, widening the model) was done
@@ -56,8 +60,10 @@ class Frame:
 
 class LabelWorker:
     def __init__(self, label: Callable[..., None],
-                 on_event: Callable[[str, Any], None], settings: Any, name: str = "dtm_labeler_worker"):
+                 on_event: Callable[[str, Any], None], settings: Any, name: str = "dtm_labeler_worker",
+                 inbox: Any = None, receive: Optional[Callable[[Any, list, bool], None]] = None):
         self._label = label
+        self._inbox, self._receive = inbox, receive
         self.current_settings = settings      # what engines are built with (newest applied)
         self._on_event = on_event
         self._cond = threading.Condition()
@@ -84,6 +90,7 @@ class LabelWorker:
         with self._cond:
             self._stop = True
             self._cond.notify_all()
+        self._wake()
         if self._thread.is_alive():
             self._thread.join(timeout)
         return not self._thread.is_alive()
@@ -101,22 +108,27 @@ class LabelWorker:
                 if len(self._skipped) > OBSERVED_SKIPS:
                     dropped = self._skipped.pop(0)
             self._cond.notify()
-            return dropped
+        if threading.current_thread() is not self._thread:
+            self._wake()
+        return dropped
 
     def install(self, result: LoadResult) -> None:
         with self._cond:
             self._result = result
             self._cond.notify()
+        self._wake()
 
     def settings(self, settings: Any) -> None:
         with self._cond:
             self._settings = settings
             self._cond.notify()
+        self._wake()
 
     def request_reset(self, reason: str) -> None:
         with self._cond:
             self._reset.append(reason)
             self._cond.notify()
+        self._wake()
 
     def discard(self) -> int:
         """Drop the waiting frame and the frames to carry (input closed); returns how many."""
@@ -133,11 +145,29 @@ class LabelWorker:
             old.close()
 
     # -- worker thread -------------------------------------------------------------------------
+    def _wake(self) -> None:
+        if self._inbox is not None:
+            self._inbox.wake()
+
+    def _idle(self) -> bool:
+        return self._slot is None and self._result is None and self._settings is None and not self._reset
+
     def _run(self) -> None:
         while True:
+            if self._inbox is not None:          # read the input here (ros/inbox.py)
+                with self._cond:
+                    idle = self._idle()
+                if self._stop:
+                    return
+                # wait only with nothing to do; else just take what came during the last frame
+                sub, messages, full = self._inbox.poll(None if idle else 0.0)
+                if messages:
+                    try:
+                        self._receive(sub, messages, full)
+                    except Exception as e:     # never let the worker die
+                        self._on_event("error", f"input: {type(e).__name__}: {e}")
             with self._cond:
-                while (self._slot is None and self._result is None and self._settings is None
-                       and not self._reset and not self._stop):
+                while self._inbox is None and self._idle() and not self._stop:
                     self._cond.wait()
                 if self._stop:
                     return
