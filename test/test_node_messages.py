@@ -114,6 +114,8 @@ def stats(received, published, **kw):
     (stats(120, 119, resets={"gap": 3}), state(), D.WARN, ["3 resets"]),
     (stats(120, 119, full_searches=40), state(), D.WARN, ["full searches on 40"]),
     (stats(0, 0), state(publishers=1, since_input_s=2.5), D.WARN, ["no input for 2.5 s"]),
+    (stats(0, 0), state(publishers=1, since_input_s=0.5, incompatible_qos="1 publisher(s) offer best-effort"),
+     D.WARN, ["best-effort"]),
     (stats(120, 119, frames_millimetres=3), state(), D.WARN, ["millimetres"]),
     (stats(120, 0, skipped={"error": 120}, last_error="boom"), state(failing_s=1.5), D.ERROR, ["failing", "boom"]),
     (stats(120, 0), D.NodeState(name="n", hardware_id="/n"), D.ERROR, ["no model"]),

@@ -107,6 +107,10 @@ def test_descriptors_and_qos():
     assert P.qos_profile("reliable", 3).depth == 3
     with pytest.raises(ValueError):
         P.qos_profile("x", 1)
+    # a reliable input never hears a best-effort publisher: /diagnostics says so
+    be, rel = P.qos_profile("sensor_data", 5), P.qos_profile("reliable", 5)
+    assert "1 publisher(s) offer best-effort" in P.incompatible_publishers(rel, [be, rel])
+    assert P.incompatible_publishers(rel, [rel]) == "" and P.incompatible_publishers(be, [be, rel]) == ""
 
 
 def test_launch_file_compiles(tmp_path):

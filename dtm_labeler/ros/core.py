@@ -467,6 +467,16 @@ class LabelerCore:
     def _publishers(self) -> int:
         return self.sub.get_publisher_count() if self.sub is not None else 0
 
+    def _incompatible_qos(self) -> str:
+        """Publishers on the input topic whose QoS cannot reach the subscription ('' if none)."""
+        if self.sub is None:
+            return ""
+        try:
+            infos = self.node.get_publishers_info_by_topic(self.sub.topic_name)
+        except Exception:            # pragma: no cover - graph queries fail only at shutdown
+            return ""
+        return P.incompatible_publishers(self.sub.qos_profile, [i.qos_profile for i in infos])
+
     def _frame(self, header, dec, t0: float, t_recv: float, now: float, seq) -> Frame:
         h_stamp = stamp_seconds(header)
         v = self.values
@@ -560,6 +570,7 @@ class LabelerCore:
             actions=engine.actions if engine else (), active=self.active, input_error=self.input_error,
             recovery_error=engine.recovery_failed if engine else "",
             time_base=self.guard.time_base, publishers=self._publishers(),
+            incompatible_qos=self._incompatible_qos(),
             since_input_s=now - self._t_input if self._t_input is not None else float("inf"),
             failing_s=now - h.t_failing if h.t_failing is not None else 0.0,
             latency_ms=lat, labeling_ms=labt, overhead_ms=ovh, stall_ms=stall,

@@ -99,6 +99,7 @@ class NodeState:
     recovery_error: str = ""          # why the background recovery worker is not used (searches run inline)
     time_base: str = "header"         # header stamps, or receive time after stamp faults
     publishers: int = 0               # publishers matched on the input topic
+    incompatible_qos: str = ""        # publishers whose QoS cannot reach the input (params.incompatible_publishers)
     since_input_s: float = float("inf")
     since_published_s: float = float("inf")
     failing_s: float = 0.0            # labeler errors without a published frame for this long
@@ -153,6 +154,8 @@ def assess(cur: NodeStats, prev: NodeStats, dt: float, st: NodeState) -> Tuple[i
         warn.append(st.recovery_error + " (searches run in the labelling thread)")
     if st.publishers > 0 and st.since_input_s > _SILENT_S:
         warn.append(f"no input for {st.since_input_s:.1f} s from {st.publishers} matched publisher(s)")
+    if st.incompatible_qos:
+        warn.append(st.incompatible_qos)
     bad, err = (cur.skipped[k] - prev.skipped[k] for k in ("bad_cloud", "error"))
     if bad or err:
         warn.append(f"skipped {bad} bad inputs, {err} labeler errors")

@@ -9,8 +9,9 @@ frame from one thread to the other waited for the GIL and a wake-up): the node's
 (receive -> published) was ~1.3x the labeler's, with p99 tails well above it.
 
 How: the subscription is an ordinary one of the node (in the graph, remappable, counting its
-publishers, QoS events handled by the executor) but in a callback group whose subscriptions no
-executor takes (:class:`NotExecuted`). The worker waits on a wait set of its own -- the
+publishers) but in a callback group whose subscriptions no executor takes (:class:`NotExecuted`;
+its QoS event handlers do not run either: a publisher whose QoS cannot reach it is named in
+``/diagnostics`` instead, :func:`~.params.incompatible_publishers`). The worker waits on a wait set of its own -- the
 subscription and a guard condition (:meth:`Inbox.wake`: a model installed, settings, a reset,
 stop) -- as ``rclpy.wait_for_message`` does, and when it looks takes every message there
 (:meth:`Inbox.poll`): the newest is searched, the older ones carried (ros/worker.py). The

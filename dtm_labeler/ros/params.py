@@ -66,3 +66,18 @@ def qos_profile(kind: str, depth: int):
     rel = ReliabilityPolicy.BEST_EFFORT if kind == "sensor_data" else ReliabilityPolicy.RELIABLE
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(depth), reliability=rel,
                       durability=DurabilityPolicy.VOLATILE)
+
+
+def incompatible_publishers(requested, offered) -> str:
+    """Why publishers offering the QoS profiles ``offered`` cannot reach a subscription that
+    requests ``requested`` ('' when they all can): a reliable subscription never hears a
+    best-effort publisher. (The input subscription's QoS event handlers do not run -- the worker
+    reads it, ros/inbox.py -- so /diagnostics names the mismatch.)"""
+    from rclpy.qos import ReliabilityPolicy
+    if requested.reliability != ReliabilityPolicy.RELIABLE:
+        return ""
+    bad = sum(1 for q in offered if q.reliability == ReliabilityPolicy.BEST_EFFORT)
+    if not bad:
+        return ""
+    return (f"{bad} publisher(s) offer best-effort QoS to this reliable input: they are never heard "
+            "(set input_qos:=sensor_data)")
