@@ -119,6 +119,60 @@ class FrameFeed:
         return x[perm].copy(), perm, self.stamp
 
 
+def stamped_cloud(xyz: np.ndarray, stamp: float, frame_id: str = "m"):
+    """A PointCloud2 of ``xyz`` whose header is stamped ``stamp`` seconds (what a driver sends)."""
+    from std_msgs.msg import Header
+
+    from dtm_labeler.ros.pointcloud import make_xyz_cloud
+    sec = int(stamp)
+    hdr = Header(frame_id=frame_id)
+    hdr.stamp.sec, hdr.stamp.nanosec = sec, int((stamp - sec) * 1e9)
+    return make_xyz_cloud(xyz, header=hdr)
+
+
+class HeldSearch:
+    """A slow search without timing: after :meth:`hold`, the labeler's next ``process`` call
+    sets ``entered`` and waits at a gate until :meth:`release`."""
+
+    def __init__(self, labeler, timeout: float):
+        self.entered, self.gate = threading.Event(), threading.Event()
+        self._labeler, self._real, self._timeout = labeler, labeler.process, timeout
+
+    def _held(self, *a, **k):
+        if not self.gate.is_set():
+            self.entered.set()
+            assert self.gate.wait(self._timeout)
+        return self._real(*a, **k)
+
+    def hold(self) -> None:
+        self._labeler.process = self._held
+
+    def release(self) -> None:
+        self.gate.set()
+
+
+def send_one_by_one(send, published: list, frames: int, deadline: float) -> None:
+    """``send`` ``frames`` frames, each after the previous one was published (tracks and
+    labels established before a test starts holding searches)."""
+    for _ in range(frames):
+        n0 = len(published)
+        send()
+        while len(published) == n0 and time.monotonic() < deadline:
+            time.sleep(0.002)
+
+
+def assert_in_order_with_own_labels(out: list, truths: list, sent: list) -> None:
+    """Published ``LabeledMarkerArray`` messages ``out`` come in stamp order, one per frame, and
+    each carries its own points' labels (>= 90 % right; ``sent[i]``: the index in ``truths`` of
+    the frame ``out[i]`` is)."""
+    stamps = [m.header.stamp.sec * 10 ** 9 + m.header.stamp.nanosec for m in out]
+    assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
+    for m, k in zip(out, sent):
+        got = np.array([x.label_index for x in m.markers if not x.occluded])
+        truth = truths[k]
+        assert np.mean(got[truth >= 0] == truth[truth >= 0]) >= 0.9
+
+
 # ----------------------------------------------------------------------------- processes
 def node_env(extra: Optional[Dict[str, str]] = None) -> Dict[str, str]:
     env = dict(os.environ)

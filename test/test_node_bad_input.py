@@ -263,10 +263,8 @@ def test_labeler_exception_skips_the_frame_in_process():
 
     import rclpy
     from rclpy.parameter import Parameter
-    from std_msgs.msg import Header
 
     from dtm_labeler.ros.node import LabelerNode
-    from dtm_labeler.ros.pointcloud import make_xyz_cloud
     wm = H.walk_model()
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
@@ -292,10 +290,7 @@ def test_labeler_exception_skips_the_frame_in_process():
         feed = H.FrameFeed(wm, seed=4)
         for i in range(2):
             xyz, truth, stamp = feed.next()
-            sec = int(stamp)
-            hdr = Header(frame_id="m")
-            hdr.stamp.sec, hdr.stamp.nanosec = sec, int((stamp - sec) * 1e9)
-            node.core._on_input(make_xyz_cloud(xyz, header=hdr))
+            node.core._on_input(H.stamped_cloud(xyz, stamp))
             end = time.monotonic() + 10
             while len(published) + node.core.stats.skipped["error"] < i + 1 and time.monotonic() < end:
                 time.sleep(0.002)

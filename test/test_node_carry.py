@@ -9,10 +9,8 @@ tracks carry, and searches the newest: six frames out, ``frames_carried`` 4. Wit
 """
 from __future__ import annotations
 
-import threading
 import time
 
-import numpy as np
 import pytest
 from rclpy.serialization import deserialize_message
 
@@ -23,10 +21,8 @@ import node_helpers as H
 def test_frames_replaced_during_a_search_are_carried(carry_max_ms, published_n, carried_n, stale_n):
     import rclpy
     from rclpy.parameter import Parameter
-    from std_msgs.msg import Header
 
     from dtm_labeler.ros.node import LabelerNode
-    from dtm_labeler.ros.pointcloud import make_xyz_cloud
     from dtm_labeler_msgs.msg import LabeledMarkerArray
     wm = H.walk_model()
     ctx = rclpy.Context()
@@ -42,51 +38,30 @@ def test_frames_replaced_during_a_search_are_carried(carry_max_ms, published_n, 
         end = time.monotonic() + 20
         while core.worker.engine is None and time.monotonic() < end:     # loaded off the executor
             time.sleep(0.01)
-        lab = core.worker.engine
-        real = lab.process
-        entered, gate = threading.Event(), threading.Event()
-
-        def held(*a, **k):
-            if not gate.is_set():
-                entered.set()
-                assert gate.wait(20)
-            return real(*a, **k)
+        search = H.HeldSearch(core.worker.engine, timeout=20)
         feed = H.FrameFeed(wm, seed=5)
         truths = []
 
         def send():
             xyz, truth, stamp = feed.next()
             truths.append(truth)
-            sec = int(stamp)
-            hdr = Header(frame_id="m")
-            hdr.stamp.sec, hdr.stamp.nanosec = sec, int((stamp - sec) * 1e9)
-            core._on_input(make_xyz_cloud(xyz, header=hdr))
-        for _ in range(10):                    # warm: tracks and labels established
-            n0 = len(published)
-            send()
-            while len(published) == n0 and time.monotonic() < end + 20:
-                time.sleep(0.002)
+            core._on_input(H.stamped_cloud(xyz, stamp))
+        H.send_one_by_one(send, published, 10, end + 20)     # warm: tracks and labels established
         base = len(published)
         truths.clear()
-        lab.process = held
+        search.hold()
         send()
-        assert entered.wait(20)
+        assert search.entered.wait(20)
         for _ in range(5):
             send()
-        gate.set()
+        search.release()
         end = time.monotonic() + 20
         while len(published) - base + core.stats.skipped["stale"] < 6 and time.monotonic() < end:
             time.sleep(0.002)
         out = [deserialize_message(b, LabeledMarkerArray) for b in published[base:]]
         assert len(out) == published_n and core.stats.skipped["stale"] == stale_n
         assert core.stats.frames_carried == carried_n
-        stamps = [m.header.stamp.sec * 10 ** 9 + m.header.stamp.nanosec for m in out]
-        assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
-        sent = [0, 1, 2, 3, 4, 5] if published_n == 6 else [0, 5]
-        for m, k in zip(out, sent):            # every frame out carries its own points' labels
-            got = np.array([x.label_index for x in m.markers if not x.occluded])
-            truth = truths[k]
-            assert np.mean(got[truth >= 0] == truth[truth >= 0]) >= 0.9
+        H.assert_in_order_with_own_labels(out, truths, [0, 1, 2, 3, 4, 5] if published_n == 6 else [0, 5])
     finally:
         node.destroy_node()
         ctx.try_shutdown()

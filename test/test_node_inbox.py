@@ -13,7 +13,6 @@ from __future__ import annotations
 import threading
 import time
 
-import numpy as np
 from rclpy.serialization import deserialize_message
 
 import node_helpers as H
@@ -27,10 +26,8 @@ def test_clouds_arriving_during_a_search_wait_in_dds_and_are_carried():
     from rclpy.parameter import Parameter
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
-    from std_msgs.msg import Header
 
     from dtm_labeler.ros.node import LabelerNode
-    from dtm_labeler.ros.pointcloud import make_xyz_cloud
     from dtm_labeler.ros.worker import OBSERVED_SKIPS
     from dtm_labeler_msgs.msg import LabeledMarkerArray
     wm = H.walk_model()
@@ -59,41 +56,26 @@ def test_clouds_arriving_during_a_search_wait_in_dds_and_are_carried():
         while (core.worker.engine is None or pub.get_subscription_count() == 0) and time.monotonic() < end:
             time.sleep(0.01)
         assert core.worker.engine is not None and pub.get_subscription_count() == 1
-        lab = core.worker.engine
-        real = lab.process
-        entered, gate = threading.Event(), threading.Event()
-
-        def held(*a, **k):
-            if not gate.is_set():
-                entered.set()
-                assert gate.wait(30)
-            return real(*a, **k)
+        search = H.HeldSearch(core.worker.engine, timeout=30)
         feed = H.FrameFeed(wm, seed=5)
         truths = []
 
         def send():
             xyz, truth, stamp = feed.next()
             truths.append(truth)
-            sec = int(stamp)
-            hdr = Header(frame_id="m")
-            hdr.stamp.sec, hdr.stamp.nanosec = sec, int((stamp - sec) * 1e9)
-            pub.publish(make_xyz_cloud(xyz, header=hdr))
-        for _ in range(10):                    # warm: tracks and labels established
-            n0 = len(published)
-            send()
-            while len(published) == n0 and time.monotonic() < end + 30:
-                time.sleep(0.002)
+            pub.publish(H.stamped_cloud(xyz, stamp))
+        H.send_one_by_one(send, published, 10, end + 30)     # warm: tracks and labels established
         base = len(published)
         truths.clear()
-        lab.process = held
+        search.hold()
         send()
-        assert entered.wait(30)                # frame 0 is being searched
+        assert search.entered.wait(30)                # frame 0 is being searched
         for _ in range(SENT_WHILE_HELD):
             send()
         assert pub.wait_for_all_acked(rclpy.duration.Duration(seconds=30))    # all in the node's history
         # the executor is free while the worker searches: a parameter request is answered
         assert node.get_parameter("carry_max_ms").value == 10000.0
-        gate.set()
+        search.release()
         kept = OBSERVED_SKIPS + 1                # the subscription's history: the newest 17 clouds
         pushed_out = SENT_WHILE_HELD - kept
         end = time.monotonic() + 30
@@ -104,15 +86,9 @@ def test_clouds_arriving_during_a_search_wait_in_dds_and_are_carried():
         assert core.stats.frames_carried == kept - 1
         assert core.stats.skipped["stale"] == pushed_out and core.stats.lost_before_node == 0
         assert not called_by_executor
-        stamps = [m.header.stamp.sec * 10 ** 9 + m.header.stamp.nanosec for m in out]
-        assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
-        sent = [0] + list(range(1 + pushed_out, 1 + SENT_WHILE_HELD))
-        for m, k in zip(out, sent):            # every frame out carries its own points' labels
-            got = np.array([x.label_index for x in m.markers if not x.occluded])
-            truth = truths[k]
-            assert np.mean(got[truth >= 0] == truth[truth >= 0]) >= 0.9
+        H.assert_in_order_with_own_labels(out, truths, [0] + list(range(1 + pushed_out, 1 + SENT_WHILE_HELD)))
     finally:
-        gate.set() if "gate" in locals() else None
+        search.release() if "search" in locals() else None
         ex.shutdown(timeout_sec=1.0)
         node.destroy_node()
         pub_node.destroy_node()
