@@ -97,9 +97,7 @@ def published_confidence(posterior_of_point: np.ndarray, search_labels: np.ndarr
     fit = float(np.exp(-max(fit_deficit - FIT_SLACK, 0.0) / FIT_SCALE)) if np.isfinite(fit_deficit) else 1.0
     conf = np.clip(np.where(agree, p, 1.0 - p) * vote_share * fit, 0.0, 1.0) ** CONFIDENCE_POWER
     conf = np.where(published >= 0, conf, 0.0)
-    if doubtful:
-        conf = conf * DOUBTFUL_FACTOR
-    return np.clip(conf, 0.0, 1.0)
+    return conf * DOUBTFUL_FACTOR if doubtful else conf
 
 
 __all__ = ["label_posteriors", "published_confidence", "CONFIDENCE_POWER", "CONFIRMED", "DOUBTFUL_FACTOR",

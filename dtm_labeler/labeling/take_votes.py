@@ -62,51 +62,39 @@ def take_votes(track_ids: Sequence[np.ndarray], search_labels: Sequence[np.ndarr
         silent = np.repeat(np.asarray(abstain, dtype=bool), sizes) & (lab < 0)
     else:
         silent = np.zeros(lab.size, dtype=bool)
-    tracked = tid >= 0
-    # track ids -> dense 0..K-1
-    keys, track = np.unique(tid[tracked], return_inverse=True)
+    pts = np.flatnonzero(tid >= 0)                           # the tracked points, in frame order
+    _, track = np.unique(tid[pts], return_inverse=True)      # track ids -> 0..K-1
     C = n_labels + 1
     span = np.int64(F + 2 * half_window + 2)
-
-    def key(k, c, f):                                        # (track, class, frame) as one sortable int
-        return (k * C + c) * span + (f + half_window + 1)
-
-    # every vote cast, sorted by (track, class, frame)
-    cast = ~silent[tracked]
-    vk = np.sort(key(track[cast], votes[tracked][cast], frame[tracked][cast]))
-    # frames each track was seen in, sorted by (track, frame)
-    sk = np.sort(track * span + frame[tracked] + half_window + 1)
+    at = frame[pts] + half_window + 1                        # each point's frame, offset: > 0, < span
+    v_pts = votes[pts]
+    # keys (track * C + class) * span + offset frame of every vote cast, and track * span + offset
+    # frame of every sighting: a window is one searchsorted range in each
+    cast = ~silent[pts]
+    vk = np.sort((track[cast] * C + v_pts[cast]) * span + at[cast])
+    sk = np.sort(track * span + at)
     # the classes each track ever voted for: candidate (point, class) pairs
     pair_track = np.unique(vk // span)                       # track * C + class, sorted
     first = np.searchsorted(pair_track, track * C)
-    last = np.searchsorted(pair_track, track * C + C)
-    n_cand = last - first
+    n_cand = np.searchsorted(pair_track, track * C + C) - first
     occ = np.repeat(np.arange(track.size), n_cand)
-    cand = pair_track[np.repeat(first, n_cand) + (np.arange(n_cand.sum()) - np.repeat(np.cumsum(n_cand) - n_cand,
-                                                                                       n_cand))]
-    f_occ = frame[tracked][occ]
-    lo = np.searchsorted(vk, cand * span + f_occ + 1, side="left")
-    hi = np.searchsorted(vk, cand * span + f_occ + 2 * half_window + 1, side="right")
-    own = votes[tracked][occ] == cand % C          # the frame's own search result breaks ties (half a vote)
-    count = (hi - lo) + 0.5 * own
-    seen_lo = np.searchsorted(sk, track * span + frame[tracked] + 1, side="left")
-    seen_hi = np.searchsorted(sk, track * span + frame[tracked] + 2 * half_window + 1, side="right")
-    seen = (seen_hi - seen_lo).astype(np.float64)
+    cand = pair_track[np.repeat(first, n_cand) + np.arange(n_cand.sum()) - np.repeat(np.cumsum(n_cand) - n_cand,
+                                                                                     n_cand)]
     cls = cand % C
-    # per point (in frame order): votes per label and "no label" votes
-    point = np.flatnonzero(tracked)[occ]
+    lo = np.searchsorted(vk, cand * span + at[occ] - half_window, side="left")
+    hi = np.searchsorted(vk, cand * span + at[occ] + half_window, side="right")
+    count = (hi - lo) + 0.5 * (v_pts[occ] == cls)            # the frame's own search result: half a vote
+    seen = np.zeros(lab.size)
+    seen[pts] = (np.searchsorted(sk, track * span + at + half_window, side="right")
+                 - np.searchsorted(sk, track * span + at - half_window, side="left"))
+    # per point: "no label" votes, and (point, label, votes) rows in frame order
+    point = pts[occ]
     starts = np.concatenate([[0], np.cumsum(sizes)])
     n_none = np.zeros(lab.size)
     is_none = cls == none
     n_none[point[is_none]] = count[is_none]
-    seen_all = np.zeros(lab.size)
-    seen_all[np.flatnonzero(tracked)] = seen
-    real = ~is_none
-    p_real, c_real, v_real = point[real], cls[real], count[real]
-    fr_real = frame[p_real]
-    order = np.argsort(fr_real, kind="stable")
-    p_real, c_real, v_real, fr_real = p_real[order], c_real[order], v_real[order], fr_real[order]
-    bounds = np.searchsorted(fr_real, np.arange(F + 1))
+    p_real, c_real, v_real = point[~is_none], cls[~is_none], count[~is_none]
+    bounds = np.searchsorted(frame[p_real], np.arange(F + 1))
     for f in range(F):
         a, b = bounds[f], bounds[f + 1]
         if a == b:
@@ -119,5 +107,5 @@ def take_votes(track_ids: Sequence[np.ndarray], search_labels: Sequence[np.ndarr
         ok = (V[r, c] > 0) & (V[r, c] > n_none[g])
         labels_out[f][r[ok]] = c[ok]
         whole = np.floor(V[r[ok], c[ok]])                   # without the tie-break half vote
-        conf_out[f][r[ok]] = np.minimum(whole / np.maximum(seen_all[g[ok]], 1.0), 1.0)
+        conf_out[f][r[ok]] = np.minimum(whole / np.maximum(seen[g[ok]], 1.0), 1.0)
     return labels_out, conf_out
