@@ -85,9 +85,8 @@ def model_for(case: dict, work: Path, structure: str) -> tuple[Path, object]:
         clip = load_inputs([str(DATA / case["path"])], case["points"], case["train"])[0]
         model, _ = train_model([clip], TrainConfig(structure=structure, seed=0))
         if case.get("calibrate"):        # dtm-train --calibrate: the body terms of the training take's person
-            from dtm_labeler.motion.pointsets import model_points
-            from dtm_labeler.training.calibrate import calibrate
-            model = calibrate(model, model_points(clip, model.labels).positions, check_labels=False)
+            from dtm_labeler.training.calibrate import calibrate_on_takes
+            model = calibrate_on_takes(model, [clip])
         save_model(model, path)
         print(f"  trained {path.name} on {clip.n_frames} frames in {time.perf_counter() - t:.1f} s", flush=True)
     return path, load_model(path)

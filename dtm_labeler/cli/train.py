@@ -189,18 +189,13 @@ def _main(argv=None) -> int:
 
 
 def _calibrated(model, clips):
-    """``model`` calibrated to the person of the training takes, on their own labels
-    (:func:`~dtm_labeler.training.calibrate.calibrate`, labels trusted as an operator's)."""
-    from ..motion.pointsets import model_points
-    from ..training.calibrate import CalibrationError, calibrate
+    """``model`` calibrated to the training takes' person and the JSON-ready summary."""
+    from ..training.calibrate import CalibrationError, calibrate_on_takes
     try:
-        P = np.concatenate([model_points(c, model.labels).positions for c in clips])
-        out = calibrate(model, P, check_labels=False)
-    except (CalibrationError, KeyError, ValueError) as e:
+        out = calibrate_on_takes(model, clips)
+    except CalibrationError as e:
         raise CliError(f"--calibrate: {e}") from None
-    summary = dict(out.provenance["calibration"], source="training takes",
-                   captures=[c.source for c in clips])
-    out.provenance["calibration"] = summary
+    summary = out.provenance["calibration"]
     return out, {k: v for k, v in summary.items() if not isinstance(v, (dict, list))}
 
 

@@ -229,6 +229,16 @@ def calibrate(model: TriangulatedModel, source: MotionClip | np.ndarray,
     return model.replace(body=body, provenance=dict(model.provenance, calibration=summary))
 
 
+def calibrate_on_takes(model: TriangulatedModel, clips: Sequence[MotionClip]) -> TriangulatedModel:
+    """``model`` calibrated to the one person of its labelled training ``clips`` (``dtm-train
+    --calibrate``): :func:`calibrate` on all their frames, the labels trusted as an operator's."""
+    P = np.concatenate([labelled_positions(model, c) for c in clips])
+    out = calibrate(model, P, check_labels=False)
+    out.provenance["calibration"] = dict(out.provenance["calibration"], source="training takes",
+                                         captures=[c.source for c in clips])
+    return out
+
+
 def confirmed_positions(labels: np.ndarray, confidence: np.ndarray, xyz: np.ndarray, n_labels: int,
                         min_confidence: float = CONFIRMED) -> np.ndarray:
     """(M, 3) positions of one labelled frame in label order: the points labelled with at least
@@ -313,5 +323,5 @@ def calibrate_from_clip(model: TriangulatedModel, clip: MotionClip, labels: str 
     return out, dict(out.provenance["calibration"])
 
 
-__all__ = ["LABEL_SOURCES", "calibrate_from_clip", "confirmed_positions", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "mirror_rows", "wrong_side", "self_label",
+__all__ = ["LABEL_SOURCES", "calibrate_from_clip", "calibrate_on_takes", "confirmed_positions", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "mirror_rows", "wrong_side", "self_label",
            "self_calibrate", "labelled_positions"]
