@@ -20,7 +20,7 @@ from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search import structure_search as ss
 from dtm_labeler.search.problem import Background, FrameProblem
 from dtm_labeler.training.body_fit import broad_weight, reach_limits
-from dtm_labeler.training.calibrate import (CalibrationError, calibrate, calibrated_body, self_calibrate,
+from dtm_labeler.training.calibrate import (CalibrationError, calibrate, calibrated_body, fit_per_label, self_calibrate,
                                            wrong_side)
 from dtm_labeler.training.train import TrainConfig, canonical_states, train_model
 from dtm_labeler.model.features import point_states
@@ -371,6 +371,10 @@ def test_cross_segments_formula_and_marginalisation():
     dist[2, 3] = dist[3, 2] = 0.33                                   # 3 sd beyond the calibrated length
     pop = np.array([[0, 1, 2, 3], [0, 1, 3, 2], [0, 1, 2, n]])
     assert cs(pop, dist, n) == pytest.approx([-4.5, -4.5, 0.0])
+    P = np.array([[[0, 0, 0], [1, 0, 0], [0, 0, 0], [0.33, 0, 0]]], float)   # labelled frames: the same factor
+    assert cs.labelled(np.concatenate([P, P])).tolist() == pytest.approx([-4.5, -4.5])
+    P[0, 3] = np.nan
+    assert cs.labelled(P)[0] == 0.0                                  # an unseen end drops it
     reach = BodyModel(n_labels=4, pairs=[[2, 3]], kind=[REACH], lo=[0.0], hi=[1.0], within_sd=[0.03],
                       between_sd=[0.0], calibration={"source": "test"})
     assert not CrossSegments(reach, np.array([[0, 1, 2], [3, 0, 1]])).active
@@ -378,8 +382,9 @@ def test_cross_segments_formula_and_marginalisation():
 
 def test_cross_segments_join_the_fitness_once_calibrated(models, person, walker):
     """A calibrated rigid pair off the DTM's edges (the walker's most rigid pair that no
-    triangle holds, made a segment at its own length) adds its factor to every labeling's fitness: nothing while the pair
-    keeps its length, the quadratic when it does not; a generic body has none."""
+    triangle holds, made a segment at its own length) adds its factor to every labeling's fitness
+    and to the frame log-likelihood of labelled frames: nothing while the pair keeps its length,
+    the quadratic when it does not; a generic body has none."""
     from dataclasses import replace
     assert models[0].body_cross is None and person.body_cross is None     # 14 points: every bone is an edge
     b = person.body
@@ -407,7 +412,30 @@ def test_cross_segments_join_the_fitness_once_calibrated(models, person, walker)
         z = max(0.0, length - hi[r]) / model.body.sd[r]
         assert got[0] == pytest.approx(-0.5 * z * z, abs=1e-9)
         assert (z == 0.0) == (length == width)                        # 5 cm longer costs, its own length does not
+        ll = model.frame_log_likelihood(states[None]) - person.frame_log_likelihood(states[None])
+        assert ll[0] == pytest.approx(-0.5 * z * z, abs=1e-9)          # log P(X|G) of labelled frames: the same
         missing = ind.copy()
         missing[0, v] = 14
         gm = FrameProblem(model, states, Background()).fitness(missing) - FrameProblem(person, states, Background()).fitness(missing)
         assert gm[0] == pytest.approx(0.0, abs=1e-9)                 # a missing end drops the factor
+
+
+def test_calibration_measures_its_fit_reference(models):
+    """A calibrated model's fit reference (``loglik_per_label``: the labeler's starting level
+    and the yardstick of the confidence's fit factor) is the median fitness per label of the
+    calibration frames under the calibrated body, not the training people's: a clip gives the
+    rate for the velocities, an array needs ``rate`` (without it the training reference stays)."""
+    model = models[0]
+    other = synthesize(duration=2.0, seed=5, height=1.9, heading=0.7)       # another, taller person
+    cal = calibrate(model, other)
+    ref = cal.settings["loglik_per_label"]
+    states = canonical_states(other, model.heading_pairs)[1:]                # frame 0 has no velocities
+    assert ref == pytest.approx(float(np.median(cal.frame_log_likelihood(states) / 14)))
+    assert ref == pytest.approx(fit_per_label(cal, other.positions, other.rate))
+    info = cal.provenance["calibration"]["fit_per_label"]
+    assert info["training"] == model.settings["loglik_per_label"] and info["calibrated"] == ref
+    assert abs(ref - model.settings["loglik_per_label"]) > 0.1               # the person's motion and body
+    assert calibrate(model, other.positions).settings["loglik_per_label"] == model.settings["loglik_per_label"]
+    assert calibrate(model, other.positions, rate=other.rate).settings["loglik_per_label"] == pytest.approx(ref)
+    assert model.settings["loglik_per_label"] == info["training"]             # the generic model is untouched
+

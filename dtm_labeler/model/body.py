@@ -269,6 +269,12 @@ class CrossSegments:
         x = np.maximum(np.maximum(self.lo - d, d - self.hi), 0.0) * self.inv_sd
         return -0.5 * np.where((a < n) & (b < n), x * x, 0.0).sum(axis=1)
 
+    def labelled(self, positions: np.ndarray) -> np.ndarray:
+        """(F,) summed factors of labelled frames (F, M, 3) (NaN = unseen: the factor drops)."""
+        d = np.linalg.norm(positions[:, self.pairs[:, 0]] - positions[:, self.pairs[:, 1]], axis=-1)
+        x = np.maximum(np.maximum(self.lo - d, d - self.hi), 0.0) * self.inv_sd
+        return -0.5 * np.where(np.isfinite(d), x * x, 0.0).sum(axis=1)
+
 
 def slot_distances(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Distances (F, T, 3) of every triangle's edge slots in (F, N, 3) labelled positions and

@@ -417,7 +417,8 @@ class TriangulatedModel:
 
         Missing points (NaN) are marginalised; every root adds ``background_position``
         (the log density of an unmodelled absolute position; 0 gives the pure model term).
-        Body terms (if any) included.
+        Body terms (if any) included: the edge factors and a calibrated body's rigid pairs off
+        the edges (:class:`~dtm_labeler.model.body.CrossSegments`), as the frame fitness has them.
         """
         states = np.asarray(states, dtype=np.float64)
         codes = observation_state(states)
@@ -430,6 +431,8 @@ class TriangulatedModel:
             d, ok = slot_distances(states[..., :3], self.triangles)
             F, T = d.shape[:2]
             total += self.body_edges(np.tile(np.arange(T), F), d.reshape(F * T, 3), ok.reshape(F * T, 3)).reshape(F, T).sum(1)
+        if self.body_cross is not None:
+            total += self.body_cross.labelled(states[..., :3])
         return total
 
     def components_per_triangle(self) -> list[int]:

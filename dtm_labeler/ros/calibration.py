@@ -4,9 +4,11 @@ A call to ``~/calibrate`` opens a :class:`CalibrationWindow` of ``calibration_s`
 the node's own time base. Every frame labelled in it adds the positions of the labels
 published with confidence >= ``min_confidence``
 (:func:`~dtm_labeler.training.calibrate.confirmed_positions`, the confirmation the offline
-self-calibration uses); when the window is full, :meth:`CalibrationWindow.add` hands back the
-(F, M, 3) positions. The node's loader thread then computes the calibrated model
-(:func:`~dtm_labeler.training.calibrate.calibrate`: medians over the window -- milliseconds)
+self-calibration uses); when the window is full, :meth:`CalibrationWindow.add` hands back a
+labelled clip of them (NaN where a label was not confirmed) at the window's own frame rate (the
+velocities the calibrated model's fit reference needs). The node's loader thread then computes
+the calibrated model (:func:`~dtm_labeler.training.calibrate.calibrate`: medians over the window
+-- milliseconds)
 and the worker swaps it in between two frames, keeping tracks and votes, like a new
 ``noise_mm``. Nothing here runs a search: collecting costs one (M, 3) copy per frame.
 
@@ -14,11 +16,12 @@ Pure numpy, no ROS: tested without a node.
 """
 from __future__ import annotations
 
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 
 from ..labeling.confidence import CONFIRMED
+from ..motion.clip import MotionClip
 from ..training.calibrate import confirmed_positions
 
 __all__ = ["CalibrationWindow", "MIN_CONFIDENCE"]
@@ -30,10 +33,11 @@ MIN_CONFIDENCE = CONFIRMED
 class CalibrationWindow:
     """Confirmed labels of ``seconds`` of stream (module doc); ``status`` says where it is."""
 
-    def __init__(self, seconds: float, n_labels: int, min_confidence: float = MIN_CONFIDENCE):
-        if seconds <= 0 or n_labels < 1:
+    def __init__(self, seconds: float, labels: Sequence[str], min_confidence: float = MIN_CONFIDENCE):
+        if seconds <= 0 or len(labels) < 1:
             raise ValueError("a calibration window needs a positive length and at least one label")
-        self.seconds, self.n_labels, self.min_confidence = float(seconds), int(n_labels), float(min_confidence)
+        self.seconds, self.labels, self.min_confidence = float(seconds), tuple(labels), float(min_confidence)
+        self.n_labels = len(self.labels)
         self._frames: list[np.ndarray] = []
         self._t0: Optional[float] = None
         self._last = 0.0
@@ -48,8 +52,9 @@ class CalibrationWindow:
         return f"collecting ({min(done, self.seconds):.1f} of {self.seconds:g} s, {self.frames} frames)"
 
     def add(self, stamp: float, labels: np.ndarray, confidence: np.ndarray, xyz: np.ndarray
-            ) -> Optional[np.ndarray]:
-        """Add one labelled frame; the (F, M, 3) positions once ``seconds`` are covered, else None."""
+            ) -> Optional[MotionClip]:
+        """Add one labelled frame; once ``seconds`` are covered, the window's confirmed positions
+        as a clip (F frames of the labels, at F - 1 frames over the window's span), else None."""
         if self._t0 is None:
             self._t0 = stamp
         if stamp < self._t0:                     # the time base went back (a reset): start again
@@ -57,5 +62,6 @@ class CalibrationWindow:
         self._last = stamp
         self._frames.append(confirmed_positions(labels, confidence, xyz, self.n_labels, self.min_confidence))
         if stamp - self._t0 >= self.seconds:
-            return np.stack(self._frames)
+            rate = (len(self._frames) - 1) / (stamp - self._t0)
+            return MotionClip(np.stack(self._frames), rate, self.labels, source="live stream (~/calibrate)")
         return None

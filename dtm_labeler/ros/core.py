@@ -539,7 +539,7 @@ class LabelerCore:
         if why_not:
             response.success, response.message = False, f"not calibrating: {why_not}"
             return response
-        window = CalibrationWindow(self.values["calibration_s"], len(engine.labels))
+        window = CalibrationWindow(self.values["calibration_s"], engine.labels)
         self.handler.calibration = window
         self._set_model(calibration=window.status)
         response.success = True
@@ -547,11 +547,12 @@ class LabelerCore:
                             "'calibration' says when the calibrated model runs")
         return response
 
-    def _calibration_collected(self, positions) -> None:
-        """Worker thread: the window is full; the loader calibrates and the worker swaps."""
-        self._set_model(calibration=f"calibrating on {positions.shape[0]} frames")
+    def _calibration_collected(self, frames) -> None:
+        """Worker thread: the window is full (a clip of its confirmed labels); the loader
+        calibrates and the worker swaps."""
+        self._set_model(calibration=f"calibrating on {frames.n_frames} frames")
         self.loader.request(self.source(), self.settings.labeler.noise_mm, self.settings.bank,
-                            why="calibration", calibration=positions)
+                            why="calibration", calibration=frames)
 
     # ------------------------------------------------------------------ diagnostics
     def state(self) -> NodeState:

@@ -35,7 +35,7 @@ class LoadRequest:
     reload: bool = False       # read the file again even when the source is the loaded one
     generation: int = 0
     why: str = ""
-    calibration: Optional[Any] = None    # (F, M, 3) confirmed positions: calibrate the loaded model to them
+    calibration: Optional[Any] = None    # a clip of confirmed labels: calibrate the loaded model to them
 
 
 @dataclass(frozen=True)
@@ -71,7 +71,7 @@ class EngineLoader:
     def request(self, source: Source, noise_mm: float, bank_settings: BankSettings, reload: bool = False,
                 why: str = "", calibration: Optional[Any] = None) -> int:
         """Queue a request (replacing any waiting one); returns its generation. ``calibration``:
-        (F, M, 3) confirmed positions to calibrate the loaded model's body terms to (``why``
+        a clip of confirmed labels to calibrate the loaded model's body terms to (``why``
         should say so); the calibrated model then serves every later request of the same
         source until the file is read again."""
         with self._cond:
