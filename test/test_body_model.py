@@ -421,21 +421,49 @@ def test_cross_segments_join_the_fitness_once_calibrated(models, person, walker)
 
 
 def test_calibration_measures_its_fit_reference(models):
-    """A calibrated model's fit reference (``loglik_per_label``: the labeler's starting level
-    and the yardstick of the confidence's fit factor) is the median fitness per label of the
-    calibration frames under the calibrated body, not the training people's: a clip gives the
-    rate for the velocities, an array needs ``rate`` (without it the training reference stays)."""
+    """A calibrated model's fit reference for the confidence (``fit_reference_per_label``) is
+    the lower of the training people's fit per label and that of the calibration frames under
+    the calibrated body (a clip gives the rate for the velocities; an array needs ``rate``,
+    without it there is none); the labeler's starting level (``loglik_per_label``) is kept."""
     model = models[0]
+    train = model.settings["loglik_per_label"]
     other = synthesize(duration=2.0, seed=5, height=1.9, heading=0.7)       # another, taller person
     cal = calibrate(model, other)
-    ref = cal.settings["loglik_per_label"]
+    ref = fit_per_label(cal, other.positions, other.rate)
     states = canonical_states(other, model.heading_pairs)[1:]                # frame 0 has no velocities
     assert ref == pytest.approx(float(np.median(cal.frame_log_likelihood(states) / 14)))
-    assert ref == pytest.approx(fit_per_label(cal, other.positions, other.rate))
-    info = cal.provenance["calibration"]["fit_per_label"]
-    assert info["training"] == model.settings["loglik_per_label"] and info["calibrated"] == ref
-    assert abs(ref - model.settings["loglik_per_label"]) > 0.1               # the person's motion and body
-    assert calibrate(model, other.positions).settings["loglik_per_label"] == model.settings["loglik_per_label"]
-    assert calibrate(model, other.positions, rate=other.rate).settings["loglik_per_label"] == pytest.approx(ref)
-    assert model.settings["loglik_per_label"] == info["training"]             # the generic model is untouched
+    assert cal.settings["fit_reference_per_label"] == pytest.approx(min(train, ref))
+    assert cal.provenance["calibration"]["fit_per_label"] == {"training": train, "calibration_frames": ref}
+    assert cal.settings["loglik_per_label"] == train and "fit_reference_per_label" not in model.settings
+    assert "fit_reference_per_label" not in calibrate(model, other.positions).settings
+    assert calibrate(model, other.positions, rate=other.rate).settings["fit_reference_per_label"] == \
+        pytest.approx(min(train, ref))
+    # a labeling of frames the body does not fit (the person's arms 25 % longer than calibrated)
+    # lowers the reference below the training one; calibrations do not compound
+    long = other.positions.copy()
+    for s_, e in (("lshoulder", "lelbow"), ("rshoulder", "relbow")):
+        long[:, I[e]] = long[:, I[s_]] + 1.25 * (long[:, I[e]] - long[:, I[s_]])
+    worse = fit_per_label(cal, long, other.rate)
+    assert worse < ref
+    again = calibrate(cal.replace(settings=dict(cal.settings, fit_reference_per_label=-1e9)), other)
+    assert again.settings["fit_reference_per_label"] == pytest.approx(min(train, ref))
 
+
+def test_fit_reference_moves_confidences_not_labels(person):
+    """The confidence's fit factor reads ``fit_reference_per_label``: a reference 40 nats per
+    label above the frames' fit lowers every confidence (the frames look unlike the model), one
+    far below leaves the factor at 1; the labels stay the same."""
+    from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
+    clip = synthesize(duration=0.5, seed=7, heading=0.4)
+    runs = {}
+    for shift in (None, 40.0, -40.0):
+        m = person if shift is None else person.replace(
+            settings=dict(person.settings, fit_reference_per_label=person.settings["loglik_per_label"] + shift))
+        lab = StreamLabeler(m, LabelerSettings(seed=0))
+        runs[shift] = [lab.process(x, k / clip.rate) for k, x in enumerate(clip.positions)]
+    base, high, low = (np.array([r.confidence for r in runs[k][5:]]) for k in (None, 40.0, -40.0))
+    for k in (40.0, -40.0):
+        assert all(np.array_equal(a.labels, b.labels) for a, b in zip(runs[None], runs[k]))
+    labelled = np.array([r.labels for r in runs[None][5:]]) >= 0
+    assert (high[labelled] < 0.5 * base[labelled]).all()
+    assert (low[labelled] >= base[labelled] - 1e-12).all() and base[labelled].mean() > 0.9

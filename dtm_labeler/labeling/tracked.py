@@ -711,10 +711,12 @@ class TrackedLabeler:
             rate = (LEVEL_RATE_FIT if fits else LEVEL_RATE_MISFIT) * weight
             self.level[m] = (1 - rate) * self.level[m] + rate * c.fitness / label_weight(c.assignment, p)
 
-    def _initial_level(self, problem: FrameProblem) -> float:
-        """Typical fitness per labelled point: the model's training log-likelihood per label
-        plus the per-label gain of the background model (see FrameProblem)."""
-        ll = float(problem.model.settings.get("loglik_per_label", 0.0))
+    def _initial_level(self, problem: FrameProblem, setting: str = "loglik_per_label") -> float:
+        """Typical fitness per labelled point: the model's ``setting`` -- its training
+        log-likelihood per label; ``fit_reference_per_label``, the confidence's yardstick, which
+        a calibration may lower (:func:`~dtm_labeler.training.calibrate.calibrate`) -- plus the
+        per-label gain of the background model (see FrameProblem)."""
+        ll = float(problem.model.settings.get(setting, problem.model.settings.get("loglik_per_label", 0.0)))
         gains = problem.label_gain[:-1]
         if gains.size == 0:                        # no points this frame: nothing to calibrate on
             return ll
@@ -940,7 +942,8 @@ class TrackedLabeler:
         post = label_posteriors(problem, assignment, best.fitness, alt, self.settings.confidence_temperature, f_alt)
         post_point = np.full(n, np.nan)
         post_point[assign[present]] = post[present]
-        deficit = self._initial_level(problem) - best.fitness / label_weight(assignment, problem) \
+        deficit = self._initial_level(problem, "fit_reference_per_label") - \
+            best.fitness / label_weight(assignment, problem) \
             if present.any() else 0.0
         conf = published_confidence(post_point, search_labels, pub, share, doubtful, deficit)
         # the next frame starts from this frame's search result, not from the votes: a
