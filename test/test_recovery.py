@@ -3,6 +3,7 @@ the track ids, skipped frames observed by the tracker, and confidences that mean
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -63,6 +64,25 @@ def test_deferred_recovery_publishes_doubtful_frames_then_joins(model, walker):
     assert np.mean(acc[first:]) >= 0.97
 
 
+def test_first_frame_gets_one_short_search(model, walker):
+    """The stream's first frame (no velocities, nothing carried) asks for one short GA
+    (``first``: the warm GA's generations, no restarts), the next one for the search with
+    velocities, and the stream is labelled right from there (inline, so the searches run in
+    the frames: what each asked for is seen in the order asked)."""
+    lab = StreamLabeler(model, LabelerSettings(recovery="inline"))
+    kinds, recover = [], lab.recover
+    lab.recover = lambda request, **kw: kinds.append(request.kind) or recover(request, **kw)
+    rng = np.random.default_rng(3)
+    res, acc = [], []
+    for k in range(12):
+        xyz, truth = shuffled(walker, k, rng)
+        res.append(lab.process(xyz, k / walker.rate))
+        acc.append(float(np.mean(res[-1].labels[truth >= 0] == truth[truth >= 0])))
+    assert kinds[:2] == ["first", "full"] and len(kinds) == 2          # then the fast path carries it
+    assert res[0].full_search and res[0].generations <= lab.settings.warm.max_generations
+    assert res[1].full_search and min(acc[1:]) >= 0.9 and np.mean(acc[1:]) >= 0.97
+
+
 def test_process_recovery_worker_joins_and_stops(model, walker):
     """The real worker process: the first frames go on while it searches, its result joins, and
     close() ends it."""
@@ -90,7 +110,8 @@ def test_process_recovery_worker_joins_and_stops(model, walker):
 
 
 def _first_request(model, walker) -> RecoveryRequest:
-    """The full search a stream asks for in its first frame with velocities."""
+    """A full search of the stream's first frame (what it asks for is a short one, ``first``;
+    the full GA has the generations these tests watch)."""
     lab = StreamLabeler(model, LabelerSettings(recovery="background", audit_period_s=0))
     lab.recovery.close()
     lab.recovery = DeferredRecovery(lab, delay_frames=100)
@@ -98,7 +119,9 @@ def _first_request(model, walker) -> RecoveryRequest:
     for k in range(2):
         xyz, _ = shuffled(walker, k, rng, ghosts=2)
         lab.process(xyz, k / walker.rate)
-    return lab.recovery._result.request
+    req = lab.recovery._result.request
+    assert req.kind == "first"
+    return replace(req, kind="full")
 
 
 def test_interim_results_report_the_best_so_far(model, walker):
