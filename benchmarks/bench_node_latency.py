@@ -159,6 +159,9 @@ def run_once(mon, bag: Path, env: dict, n_frames: int, rate: float) -> dict:
                 node_skipped={k: int(v) - int(d0.get(k, 0)) for k, v in d1.items() if k.startswith("frames_skipped_")},
                 node_resets=sum(int(v) - int(d0.get(k, 0)) for k, v in d1.items()
                                 if k.startswith("resets_") and k != "resets_service"),
+                node_reset_kinds={k[len("resets_"):]: int(v) - int(d0.get(k, 0)) for k, v in d1.items()
+                                  if k.startswith("resets_") and k != "resets_service"
+                                  and int(v) - int(d0.get(k, 0)) > 0},
                 skipped=int(sent - lab.size), skipped_after_warmup=int((late & ~done).sum()),
                 latency_ms=dict(p50=pct(lat, 50), p90=pct(lat, 90), p99=pct(lat, 99),
                                 max=float(lat.max()) if lat.size else float("nan")),
@@ -237,6 +240,13 @@ def bench_case(name: str, case: dict, rates, ramp, work: Path, env: dict, args) 
     return out
 
 
+def _resets(r: dict) -> str:
+    """The node's stream resets in a run, with their kinds (``gap 1, source_switch 1``)."""
+    kinds = r.get("node_reset_kinds") or {}
+    n = r.get("node_resets", "")
+    return f"{n} ({', '.join(f'{k} {v}' for k, v in kinds.items())})" if kinds else str(n)
+
+
 def markdown(res: dict) -> str:
     lines = ["# Node end-to-end latency", "",
              f"{res['when']}, {res['machine']}; load average at start {res['load_average']}.", "",
@@ -257,7 +267,7 @@ def markdown(res: dict) -> str:
             lines.append(f"| {c['case']} | {corrupt} | {c['labels']} | {r.get('variant', '')} | {r['rate_hz']:g} | "
                          f"{r['sent']} | {r['labelled']} ({100 * r['labelled_fraction_after_warmup']:.1f} %) | "
                          f"{100 * r['accuracy']:.1f} % | {100 * r['ghost_rejection']:.1f} % | {l['p50']:.1f} | "
-                         f"{l['p99']:.1f} | {l['max']:.1f} | {skipped or '0'} | {r.get('node_resets', '')} |")
+                         f"{l['p99']:.1f} | {l['max']:.1f} | {skipped or '0'} | {_resets(r)} |")
     ramps = [c for c in res["cases"] if c["ramp"]]
     if ramps:
         lines += ["", "| case | node | highest rate without skips after the first 0.5 s (Hz) | ramp (Hz: skipped after "
