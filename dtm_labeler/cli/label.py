@@ -97,6 +97,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="offline votes (stream mode): each frame's labels voted over the frames SECONDS before "
                         "and after it, so a marker's later frames correct its first guess (0: the labels as the "
                         "live node publishes them, past frames only; the JSON's live_accuracy scores those)")
+    p.add_argument("--no-take-pass", dest="take_pass", action="store_false",
+                   help="skip the second pass over the take (with --take-votes > 0, single model): every frame "
+                        "searched again at the facing the whole take gives it, from the voted labels, and voted "
+                        "again; about as long again as the first pass")
     p.add_argument("--json", action="store_true", help="print one JSON object with the scores")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -198,7 +202,8 @@ def _main(argv=None) -> int:
         _write_csv(args.out_points, runs, model.labels, multi=len(runs) > 1)
     out = {"method": settings.method, "mode": settings.mode, "model": str(args.model)} | _metrics_json(pooled)
     out |= {"drop_unlabelled": args.drop_unlabelled, "jobs": args.jobs, "dask": args.dask,
-            "take_votes_s": jobs[0].take_votes_s if jobs else 0.0}
+            "take_votes_s": jobs[0].take_votes_s if jobs else 0.0,
+            "take_pass": bool(jobs and jobs[0].take_pass and jobs[0].take_votes_s > 0 and not args.bank)}
     live = _live_accuracy(runs)
     if live is not None:
         out["live_accuracy"] = live
@@ -248,7 +253,7 @@ def _jobs(args, settings, takes) -> list[LabelJob]:
                      use_ids=args.track_ids, keep_unlabelled=not args.drop_unlabelled,
                      ignore_names=args.ignore_names, out=out, keep_records=args.out_points is not None, load=load,
                      calibrate=args.calibrate, calibrate_labels=args.calibrate_labels,
-                     take_votes_s=_take_votes(args, settings))
+                     take_votes_s=_take_votes(args, settings), take_pass=args.take_pass)
             for i, (f, out) in enumerate(takes)]
 
 

@@ -68,6 +68,7 @@ class LabelJob:
     calibrate: str | None = None       # frames A:B of the take to calibrate the body terms on; label after B
     calibrate_labels: str = "model"    # labels of those frames: "model" (self-labelled) or "capture"
     take_votes_s: float = 0.0          # votes again over +- this many seconds around each frame (0: as live)
+    take_pass: bool = False            # with take votes: each frame searched again at the take's heading
 
 
 @dataclass
@@ -146,7 +147,8 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
         run = label_clip_run(model, mi.clip, job.settings, occlude=job.occlude, clutter=job.clutter,
                              noise_mm=job.noise_mm, seed=job.seed, progress=progress, use_ids=job.use_ids,
                              gap_frames=job.gap_frames, keep_records=job.keep_records or job.out is not None,
-                             extra=mi.extra, named=mi.named, take_votes_s=job.take_votes_s)
+                             extra=mi.extra, named=mi.named, take_votes_s=job.take_votes_s,
+                             take_pass=job.take_pass)
         if job.out:
             cap = from_records(run.records, model.labels, clip.n_frames, CaptureFormat.of(clip, a))
             res.out = str(cap.write(job.out))

@@ -28,6 +28,7 @@ import numpy as np
 from .corruption import CorruptedStream, corrupt_clip
 from .metrics import Metrics, MetricsAccumulator
 from ..labeling.stream import LabelerSettings, StreamLabeler
+from ..labeling.take_pass import take_pass as second_pass
 from ..labeling.take_votes import take_votes
 from ..model.dtm import TriangulatedModel
 from ..motion.clip import MotionClip
@@ -83,30 +84,36 @@ def model_clip(model: TriangulatedModel | Sequence[str], clip: MotionClip) -> Mo
 
 def run_stream(model: TriangulatedModel, stream: CorruptedStream, settings: LabelerSettings | None = None,
                use_ids: bool = False, keep_records: bool = True, progress: Progress | None = None,
-               done: int = 0, total: int | None = None, scored: bool = True, take_votes_s: float = 0.0) -> ClipRun:
+               done: int = 0, total: int | None = None, scored: bool = True, take_votes_s: float = 0.0,
+               take_pass: bool = False) -> ClipRun:
     """Feed a corrupted stream (label index = model label index) to a fresh labeler
-    (``take_votes_s``: see :func:`run_labeler`)."""
+    (``take_votes_s``, ``take_pass``: see :func:`run_labeler`)."""
     if tuple(stream.names) != tuple(model.labels):
         raise ValueError("stream label names differ from the model's labels")
     return run_labeler(StreamLabeler(model, settings or LabelerSettings()), model.labels, stream, use_ids,
-                       keep_records, progress, done, total, scored=scored, take_votes_s=take_votes_s)
+                       keep_records, progress, done, total, scored=scored, take_votes_s=take_votes_s,
+                       take_pass=take_pass)
 
 
 def run_labeler(labeler, labels: Sequence[str], stream: CorruptedStream, use_ids: bool = False,
                 keep_records: bool = True, progress: Progress | None = None, done: int = 0,
                 total: int | None = None, on_frame=None, scored: bool = True,
-                take_votes_s: float = 0.0) -> ClipRun:
+                take_votes_s: float = 0.0, take_pass: bool = False) -> ClipRun:
     """Run any labeler with the ``process`` interface (StreamLabeler, BankLabeler) over a
     corrupted stream and score it (``scored=False``: a take without names, nothing to score
     against; frames and latencies are still counted); ``on_frame(result)`` sees every frame's
     result. ``take_votes_s`` > 0 (offline only): the published labels are voted again over
     the frames +- that many seconds around each frame (:mod:`~dtm_labeler.labeling.take_votes`);
-    the run's metrics score those, :attr:`ClipRun.causal` the labels as published live."""
+    the run's metrics score those, :attr:`ClipRun.causal` the labels as published live.
+    ``take_pass`` (with take votes, single-model labelers): then every frame searched again at
+    the take's heading and voted again (:mod:`~dtm_labeler.labeling.take_pass`); progress
+    counts its frames after the labeler's."""
     acc = MetricsAccumulator(labels, stream.rate)
     records: list[FrameRecord] = []
-    total = len(stream) if total is None else total
-    t_wall = time.perf_counter()
     revote = take_votes_s > 0
+    passing = revote and take_pass and len(getattr(labeler, "models", ())) == 1
+    total = len(stream) * (2 if passing else 1) if total is None else total
+    t_wall = time.perf_counter()
     for i, f in enumerate(stream):
         res = labeler.process(f.xyz, f.stamp, ids=f.ids if use_ids else None,
                               truth=f.label_to_index if scored else None)
@@ -125,21 +132,35 @@ def run_labeler(labeler, labels: Sequence[str], stream: CorruptedStream, use_ids
     causal = None
     if revote:
         causal = acc
-        acc = revoted(records, labels, stream.rate, take_votes_s, scored)
+        if passing:
+            n = len(stream)
+            acc = revoted(records, labels, stream.rate, take_votes_s, scored,
+                          pass_with=(labeler.models[0], labeler.settings),
+                          progress=None if progress is None else (lambda k, _: progress(done + n + k, total)))
+        else:
+            acc = revoted(records, labels, stream.rate, take_votes_s, scored)
     wall = time.perf_counter() - t_wall
     return ClipRun(source=stream.source, metrics=acc.metrics(), accumulator=acc,
                    records=records if keep_records else [],
                    settings=dict(stream.settings, use_ids=use_ids, wall_s=wall, scored=scored,
-                                 take_votes_s=take_votes_s), causal=causal)
+                                 take_votes_s=take_votes_s, take_pass=passing), causal=causal)
 
 
 def revoted(records: list[FrameRecord], labels: Sequence[str], rate: float, take_votes_s: float,
-            scored: bool = True) -> MetricsAccumulator:
+            scored: bool = True, pass_with=None, progress: Progress | None = None) -> MetricsAccumulator:
     """The records' labels and confidences voted again over +- ``take_votes_s`` around each
-    frame (:func:`~dtm_labeler.labeling.take_votes.take_votes`; in place) and scored afresh."""
+    frame (:func:`~dtm_labeler.labeling.take_votes.take_votes`; in place) and scored afresh;
+    ``pass_with`` = (model, settings): then the take's second pass
+    (:func:`~dtm_labeler.labeling.take_pass.take_pass`) from those labels."""
     half = max(0, int(round(take_votes_s * rate)))
     new_labels, new_conf = take_votes([r.track_ids for r in records], [r.search_labels for r in records],
                                       len(labels), half, [r.doubtful for r in records])
+    if pass_with is not None:
+        model, s = pass_with
+        new_labels, new_conf = second_pass(model, s.background, [r.xyz for r in records],
+                                           [r.track_ids for r in records], new_labels, rate, half,
+                                           region_size=s.full.region_size, polish_rounds=s.full.polish_rounds,
+                                           progress=progress)
     acc = MetricsAccumulator(labels, rate)
     for r, lab, conf in zip(records, new_labels, new_conf):
         r.labels, r.confidence = lab, conf
@@ -164,14 +185,15 @@ def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: Labeler
                    occlude: int = 0, clutter: int = 0, noise_mm: float = 0.0, seed: int = 0,
                    progress: Progress | None = None, use_ids: bool = False, gap_frames: float = 1.0,
                    keep_records: bool = True, done: int = 0, total: int | None = None,
-                   extra: np.ndarray | None = None, named: bool = True, take_votes_s: float = 0.0) -> ClipRun:
+                   extra: np.ndarray | None = None, named: bool = True, take_votes_s: float = 0.0,
+                   take_pass: bool = False) -> ClipRun:
     """:func:`label_clip` returning the full :class:`ClipRun`; ``extra`` (F, K, 3): the take's
     unlabelled points; ``named=False``: ``clip`` holds no truth (labelled, not scored)."""
     mc = clip if not named else model_clip(model, clip)
     stream = corrupt_clip(mc, occlude=occlude, clutter=clutter, noise_mm=noise_mm, seed=seed,
                           gap_frames=gap_frames, extra=extra)
     return run_stream(model, stream, settings, use_ids=use_ids, keep_records=keep_records, progress=progress,
-                      done=done, total=total, scored=named, take_votes_s=take_votes_s)
+                      done=done, total=total, scored=named, take_votes_s=take_votes_s, take_pass=take_pass)
 
 
 def label_clips(model: TriangulatedModel, clips: Sequence[MotionClip], settings: LabelerSettings | None = None,
