@@ -138,6 +138,8 @@ def test_dtm_label_votes_over_the_take(gappy_upper, tmp_path, capsys):
                            "--take-votes", votes]) == 0
         out[votes] = json.loads(capsys.readouterr().out)
     assert out["1"]["take_votes_s"] == 1.0 and out["0"]["take_votes_s"] == 0.0
+    assert out["1"]["take_pass"] and not out["0"]["take_pass"] and "voted_accuracy" not in out["0"]
+    assert 0.0 < out["1"]["voted_accuracy"] <= 1.0                      # the take votes before the take pass
     assert "live_accuracy" not in out["0"]
     assert out["1"]["live_accuracy"] == pytest.approx(out["0"]["accuracy"])
     assert out["1"]["accuracy"] > out["0"]["accuracy"]

@@ -207,19 +207,24 @@ def _main(argv=None) -> int:
     live = _live_accuracy(runs)
     if live is not None:
         out["live_accuracy"] = live
+    voted = _live_accuracy(runs, "voted")
+    if voted is not None:
+        out["voted_accuracy"] = voted
     if failed:
         out["errors"] = len(failed)
     if _report(args, settings, out, results, []):
         _print_summary(args, settings, model, pooled, runs)
         if live is not None:
             print(f"live labels    {_pct(live)} right as published live (votes over past frames only); "
-                  f"the figures above vote over +-{out['take_votes_s']:g} s (--take-votes)")
+                  f"the figures above vote over +-{out['take_votes_s']:g} s (--take-votes)"
+                  + (f", {_pct(voted)} before the take pass" if voted is not None else ""))
     return 1 if failed else 0
 
 
-def _live_accuracy(runs: list) -> float | None:
-    """Accuracy of the labels as published live, before the take votes (None without them)."""
-    parts = [r.causal for r in runs if getattr(r, "causal", None) is not None]
+def _live_accuracy(runs: list, stage: str = "causal") -> float | None:
+    """Accuracy of the labels as published live, before the take votes (None without them);
+    ``stage="voted"``: after the take votes, before the take pass (None without it)."""
+    parts = [getattr(r, stage) for r in runs if getattr(r, stage, None) is not None]
     return MetricsAccumulator.merge(parts).metrics().accuracy if parts else None
 
 

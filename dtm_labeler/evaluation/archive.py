@@ -68,7 +68,7 @@ class LabelJob:
     calibrate: str | None = None       # frames A:B of the take to calibrate the body terms on; label after B
     calibrate_labels: str = "model"    # labels of those frames: "model" (self-labelled) or "capture"
     take_votes_s: float = 0.0          # votes again over +- this many seconds around each frame (0: as live)
-    take_pass: bool = False            # with take votes: each frame searched again at the take's heading
+    take_pass: bool = True             # with take votes: each frame searched again at the take's heading
 
 
 @dataclass
@@ -86,6 +86,7 @@ class TakeResult:
     out: str | None = None
     accumulator: MetricsAccumulator | None = None
     causal: MetricsAccumulator | None = None    # take votes: the labels as published live, scored
+    voted: MetricsAccumulator | None = None     # take pass: the take-voted labels before it, scored
     records: list = field(default_factory=list)
     wall_s: float = 0.0
     rate: float = 0.0
@@ -158,7 +159,7 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
         res.unlabelled_points, res.copies_left_out = mi.n_extra, (len(dup) if job.keep_unlabelled else 0)
         res.unlabelled_samples = int(run.settings.get("unlabelled_samples", 0))
         res.up_axis = f"{clip.meta.get('up_axis', 'Z')} ({clip.meta.get('up_axis_source', 'format')})"
-        res.accumulator, res.causal, res.rate = run.accumulator, run.causal, clip.rate
+        res.accumulator, res.causal, res.voted, res.rate = run.accumulator, run.causal, run.voted, clip.rate
         res.records = run.records if job.keep_records else []
     except (ValueError, KeyError, OSError, CalibrationError) as e:
         res.error = str(e).strip("'\"")

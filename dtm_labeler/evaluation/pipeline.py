@@ -69,6 +69,7 @@ class ClipRun:
     records: list[FrameRecord] = field(default_factory=list)
     settings: dict = field(default_factory=dict)
     causal: MetricsAccumulator | None = None   # with take votes: the labels as published live, scored
+    voted: MetricsAccumulator | None = None    # with the take pass: the take-voted labels before it, scored
 
 
 def model_clip(model: TriangulatedModel | Sequence[str], clip: MotionClip) -> MotionClip:
@@ -129,38 +130,44 @@ def run_labeler(labeler, labels: Sequence[str], stream: CorruptedStream, use_ids
                 reset=res.reset, doubtful=bool(getattr(res, "doubtful", False))))
         if progress is not None:
             progress(done + i + 1, total)
-    causal = None
+    causal = voted = None
     if revote:
         causal = acc
+        acc = revoted(records, labels, stream.rate, take_votes_s, scored)
         if passing:
-            n = len(stream)
-            acc = revoted(records, labels, stream.rate, take_votes_s, scored,
-                          pass_with=(labeler.models[0], labeler.settings),
-                          progress=None if progress is None else (lambda k, _: progress(done + n + k, total)))
-        else:
-            acc = revoted(records, labels, stream.rate, take_votes_s, scored)
+            voted, n = acc, len(stream)
+            acc = passed(records, labels, stream.rate, take_votes_s, labeler.models[0], labeler.settings, scored,
+                         progress=None if progress is None else (lambda k, _: progress(done + n + k, total)))
     wall = time.perf_counter() - t_wall
     return ClipRun(source=stream.source, metrics=acc.metrics(), accumulator=acc,
                    records=records if keep_records else [],
                    settings=dict(stream.settings, use_ids=use_ids, wall_s=wall, scored=scored,
-                                 take_votes_s=take_votes_s, take_pass=passing), causal=causal)
+                                 take_votes_s=take_votes_s, take_pass=passing), causal=causal, voted=voted)
 
 
 def revoted(records: list[FrameRecord], labels: Sequence[str], rate: float, take_votes_s: float,
-            scored: bool = True, pass_with=None, progress: Progress | None = None) -> MetricsAccumulator:
+            scored: bool = True) -> MetricsAccumulator:
     """The records' labels and confidences voted again over +- ``take_votes_s`` around each
-    frame (:func:`~dtm_labeler.labeling.take_votes.take_votes`; in place) and scored afresh;
-    ``pass_with`` = (model, settings): then the take's second pass
-    (:func:`~dtm_labeler.labeling.take_pass.take_pass`) from those labels."""
+    frame (:func:`~dtm_labeler.labeling.take_votes.take_votes`; in place) and scored afresh."""
     half = max(0, int(round(take_votes_s * rate)))
     new_labels, new_conf = take_votes([r.track_ids for r in records], [r.search_labels for r in records],
                                       len(labels), half, [r.doubtful for r in records])
-    if pass_with is not None:
-        model, s = pass_with
-        new_labels, new_conf = second_pass(model, s.background, [r.xyz for r in records],
-                                           [r.track_ids for r in records], new_labels, rate, half,
-                                           region_size=s.full.region_size, polish_rounds=s.full.polish_rounds,
-                                           progress=progress)
+    return _rescored(records, labels, rate, new_labels, new_conf, scored)
+
+
+def passed(records: list[FrameRecord], labels: Sequence[str], rate: float, take_votes_s: float, model, settings,
+           scored: bool = True, progress: Progress | None = None) -> MetricsAccumulator:
+    """The take's second pass (:func:`~dtm_labeler.labeling.take_pass.take_pass`) from the
+    records' (voted) labels, votes over +- ``take_votes_s``; in place, scored afresh."""
+    half = max(0, int(round(take_votes_s * rate)))
+    new_labels, new_conf = second_pass(model, settings.background, [r.xyz for r in records],
+                                       [r.track_ids for r in records], [r.labels for r in records], rate, half,
+                                       region_size=settings.full.region_size,
+                                       polish_rounds=settings.full.polish_rounds, progress=progress)
+    return _rescored(records, labels, rate, new_labels, new_conf, scored)
+
+
+def _rescored(records, labels, rate, new_labels, new_conf, scored) -> MetricsAccumulator:
     acc = MetricsAccumulator(labels, rate)
     for r, lab, conf in zip(records, new_labels, new_conf):
         r.labels, r.confidence = lab, conf
