@@ -107,7 +107,9 @@ def label(model, path: Path, **kw):
         raise RuntimeError(r.error)
     m = r.metrics
     live = r.causal.metrics().accuracy if r.causal is not None else m.accuracy
-    return {"frames": m.frames, "accuracy": m.accuracy, "live_accuracy": live, "take_votes_s": job.take_votes_s,
+    voted = r.voted.metrics().accuracy if r.voted is not None else None
+    return {"frames": m.frames, "accuracy": m.accuracy, "live_accuracy": live, "voted_accuracy": voted,
+            "take_votes_s": job.take_votes_s, "take_pass": r.voted is not None,
             "ghosts": m.ghosts, "ghost_rejection": m.ghost_rejection,
             "search_errors": m.search_errors, "full_search_rate": m.full_search_rate,
             "p50_ms": m.latency_ms["p50"], "p99_ms": m.latency_ms["p99"], "wall_s": r.wall_s,
@@ -296,8 +298,9 @@ def write_md(res: dict, meta: dict) -> str:
               f"{TRAIN_FRAMES} frames), label the second half (its first {LABEL_FRAMES} frames), stream mode, "
               "default settings. *capture ids*: the trajectories' continuity as track ids (what a C3D's "
               "trajectories carry; `--track-ids`); *own tracker*: no ids. Each cell: the labels as published "
-              f"live (votes over past frames) → `dtm-label`'s default, votes over ±{TAKE_VOTES_S:g} s around each "
-              "frame (`--take-votes`).", "",
+              f"live (votes over past frames) → votes over ±{TAKE_VOTES_S:g} s around each frame (`--take-votes`) "
+              "→ `dtm-label`'s default, the second pass over the take (every frame searched again at the take's "
+              "facing, voted again).", "",
               "| take | hidden (train / test) | complete train frames | model | train s | structure on | "
               "coverage min / median | gappy, capture ids % | gappy, own tracker % | gap-free % |",
               "|---|---|---:|---|---:|---|---|---:|---:|---:|"]
@@ -308,7 +311,9 @@ def write_md(res: dict, meta: dict) -> str:
                          f"{r['complete_train_frames']} of {r['train_frames'][1] - r['train_frames'][0]} | "
                          f"{'gapped' if mk == 'gappy' else 'gap-free'} first half | {m['train_s']:.0f} | "
                          f"{m['scored_on']} | {100 * m['coverage_min']:.0f} / {100 * m['coverage_median']:.0f} % | "
-                         + " | ".join(f"{pct(m[t].get('live_accuracy', m[t]['accuracy']))} → {pct(m[t]['accuracy'])} "
+                         + " | ".join(f"{pct(m[t].get('live_accuracy', m[t]['accuracy']))} → "
+                                      + (f"{pct(m[t]['voted_accuracy'])} → " if m[t].get('voted_accuracy') else "")
+                                      + f"{pct(m[t]['accuracy'])} "
                                       f"({m[t]['search_errors']} err)"
                                       for t in ("gappy, capture ids", "gappy, own tracker", "gap-free")) + " |")
         L += ["", "err = frames where the model scores the true labeling above the published one (search errors).", ""]

@@ -100,7 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-take-pass", dest="take_pass", action="store_false",
                    help="skip the second pass over the take (with --take-votes > 0, single model): every frame "
                         "searched again at the facing the whole take gives it, from the voted labels, and voted "
-                        "again; about as long again as the first pass")
+                        "again; takes one to two times as long again as the first pass")
     p.add_argument("--json", action="store_true", help="print one JSON object with the scores")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p

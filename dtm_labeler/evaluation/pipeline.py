@@ -113,7 +113,7 @@ def run_labeler(labeler, labels: Sequence[str], stream: CorruptedStream, use_ids
     records: list[FrameRecord] = []
     revote = take_votes_s > 0
     passing = revote and take_pass and len(getattr(labeler, "models", ())) == 1
-    total = len(stream) * (2 if passing else 1) if total is None else total
+    total = len(stream) * (3 if passing else 1) if total is None else total       # the pass: two searches per frame
     t_wall = time.perf_counter()
     for i, f in enumerate(stream):
         res = labeler.process(f.xyz, f.stamp, ids=f.ids if use_ids else None,
@@ -163,7 +163,8 @@ def passed(records: list[FrameRecord], labels: Sequence[str], rate: float, take_
     new_labels, new_conf = second_pass(model, settings.background, [r.xyz for r in records],
                                        [r.track_ids for r in records], [r.labels for r in records], rate, half,
                                        region_size=settings.full.region_size,
-                                       polish_rounds=settings.full.polish_rounds, progress=progress)
+                                       polish_rounds=settings.full.polish_rounds,
+                                       heading_snap_deg=settings.heading_snap_deg, progress=progress)
     return _rescored(records, labels, rate, new_labels, new_conf, scored)
 
 

@@ -1,32 +1,37 @@
-"""A second pass over a whole take, offline: each frame searched again at the take's heading.
+"""A second pass over a whole take, offline: every frame searched again from the take's votes.
 
-Live, a frame is labelled from what it shows and from what came before it. With half of 41
-markers hidden at once (a real capture's occlusions) that is often too little, in two ways:
+Live, a frame is labelled from what it shows and from what came before it; the offline votes
+(:mod:`.take_votes`) then relabel each track by the frames around it. With half of the markers
+hidden at once (a real capture's occlusions) many frames are still wrong after the votes, and
+most of them are search errors of the live pass: the model scores the true labeling higher
+(HDM05, 50 % hidden: 274 of 600 frames); the live search started from the tracks' first
+guesses and had a frame's budget. The voted labels are a better start. This pass searches
+every frame again from them with the exact region relabelling of the search's final sweep
+(:func:`~dtm_labeler.search.dtm_dp.relabel_regions`: every label's region relabelled given the
+rest, each improvement polished, at most ``sweeps`` passes), twice:
 
-* **Heading.** The fitness canonicalises each candidate labeling with the yaw of *its own*
-  labelled left/right pairs (:mod:`dtm_labeler.search.problem`). When a frame shows, say, one
-  wrist pair and one hip pair, that yaw can be far from the trunk's -- the sum of a wrist and a
-  hip vector is not the body's lateral axis -- and every triangle of the *true* labeling is
-  then scored rotated (HDM05, 50 % hidden: the truth's own yaw 130 deg off in some frames,
-  scored ~2000 nats below a wrong labeling that happens to give a sensible yaw). Offline the
-  facing of every frame is known much better from the whole take: each label's trajectory,
-  its gaps filled linearly in time between the frames around them (:func:`filled_trajectories`),
-  gives all heading pairs in every frame, as on the gap-free frames the model was trained on
-  (:func:`take_heading`; within 6 deg of the true facing at 50 % hidden where the labels it
-  starts from are 94 % right). In this pass every candidate of a frame is scored at that
-  heading (the anchor of :meth:`~dtm_labeler.search.problem.FrameProblem.anchor_heading`
-  with a snap radius of 180 deg): a left/right mirror is then scored as the mirror it is.
-* **Search.** Each frame's labeling is searched again by the exact region relabelling of the
-  search's final sweep (:func:`~dtm_labeler.search.dtm_dp.relabel_regions`: every label's
-  region relabelled given the rest, each improvement polished, at most ``sweeps`` passes),
-  starting from the take-voted labels; the frames' results are then voted over the take again
-  (:mod:`.take_votes`, eq. 32 over +- the same window): one frame's new labels count as one
-  vote among the frames around it, so a frame the region sweep sends astray is outvoted.
+* **at each candidate's own facing**, anchored on the start as live (the fitness of
+  :mod:`dtm_labeler.search.problem`);
+* **at the facing of the take**: every candidate scored at the frame's yaw read from the whole
+  take -- each label's trajectory, its gaps filled linearly in time between the frames around
+  them (:func:`filled_trajectories`), gives all heading pairs in every frame, as on the frames
+  the model was trained on (:func:`take_heading`). A frame that shows few left/right pairs can
+  give the true labeling a facing 100+ deg off (one wrist and one hip pair: their sum is not
+  the trunk's lateral axis), and it is then scored below a wrong labeling whose pairs happen
+  to give a sensible yaw; at the take's facing it is not (HDM05, 50 % hidden: within 6 deg of
+  the true facing where the frames' own pairs were up to 95 deg off).
+
+Both frames' results are voted over the take (eq. 32 over +- the same window, each frame's two
+results one vote each): a frame one of the searches sends astray is outvoted. Neither search
+alone is best everywhere (``benchmarks/bench_captures.py`` and the stored runs behind it,
+votes -> own facing / take's facing / both voted): HDM05 41 markers, 50 % hidden, 93.8 ->
+96.5 / 96.5 / 96.5 %; the Qualisys walk 92.8 -> 94.1 / 92.4 / 94.0 %; 12 HDM05 upper-body
+markers, three 3-s parts: 43.1 -> 50.5 / 60.0 / 61.6 %, 58.8 -> 56.7 / 60.2 / 59.9 %, 85.9 ->
+86.9 / 86.2 / 86.1 %. Tried and not kept: iterating the pass (96.5, 96.1, 96.4 %), regions
+of 8 labels (96.2 %).
 
 States: positions and backward-difference velocities along the labeler's tracks (a point
-without a previous frame on its track has no velocity, as live). Measured on the 50 %-gapped
-HDM05 second half (model of the gapped first half, calibrated on it): 95.8 % with the take
-votes alone, 97.9 % after this pass; Qualisys walk 93.4 -> 94.9 %. Single-model labelers only
+without a previous frame on its track has no velocity, as live). Single-model labelers only
 (a bank's frames were scored by different models).
 """
 from __future__ import annotations
@@ -67,7 +72,7 @@ def take_heading(model: TriangulatedModel, xyz: Sequence[np.ndarray], labels: Se
                  smooth_frames: int = 6) -> np.ndarray:
     """(F,) facing yaw of every frame from the model's heading pairs over the labels' filled
     trajectories (module doc), averaged on the circle over +- ``smooth_frames``; frames
-    without any pair: the nearest frame's."""
+    without any pair: interpolated from the nearest frames that have one."""
     P = filled_trajectories(xyz, labels, model.n_labels)
     yaw = lateral_yaw(P, model.heading_pairs)
     ok = np.isfinite(yaw)
@@ -102,25 +107,50 @@ def track_states(xyz: Sequence[np.ndarray], track_ids: Sequence[np.ndarray], rat
 
 def take_pass(model: TriangulatedModel, background: Background, xyz: Sequence[np.ndarray],
               track_ids: Sequence[np.ndarray], labels: Sequence[np.ndarray], rate: float, half_window: int,
-              region_size: int = 6, polish_rounds: int = 4, sweeps: int = 2,
+              region_size: int = 6, polish_rounds: int = 4, sweeps: int = 2, heading_snap_deg: float = 4.0,
               progress: Callable[[int, int], None] | None = None) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Per frame, the labels and confidences of its points after the second pass (module doc).
     ``labels``: the take-voted labels the pass starts from (-1 none); ``track_ids``: the
-    labeler's track per point (-1 untracked: left unlabelled by the votes)."""
+    labeler's track per point (-1 untracked: left unlabelled by the votes); ``progress(done,
+    total)`` after every frame of each of the two searches."""
     F = len(xyz)
-    yaw = take_heading(model, xyz, labels)
     states = track_states(xyz, track_ids, rate)
+    yaw = take_heading(model, xyz, labels)
+    total = 2 * F
+
+    def counted(k: int, _: int) -> None:
+        if progress is not None:
+            progress(k, total)
+    own = _searched(model, background, states, labels, region_size, polish_rounds, sweeps, heading_snap_deg,
+                    None, counted)
+    take = _searched(model, background, states, labels, region_size, polish_rounds, sweeps, heading_snap_deg,
+                     yaw, lambda k, _: counted(F + k, total))
+    # both searches' frames voted together: interleaved as frames 2f and 2f + 1, the window doubled
+    # (+1: the last frame of each side keeps both of its results)
+    tracks2 = [t for t in track_ids for _ in (0, 1)]
+    both = [x for pair in zip(own, take) for x in pair]
+    lab2, conf2 = take_votes(tracks2, both, model.n_labels, 2 * half_window + 1)
+    return lab2[0::2], conf2[0::2]
+
+
+def _searched(model, background, states, labels, region_size, polish_rounds, sweeps, heading_snap_deg,
+              yaw: np.ndarray | None, progress) -> list[np.ndarray]:
+    """Per frame, the labels (-1 none) of its points after the region sweeps from ``labels``:
+    at each candidate's own facing (``yaw`` None), else every candidate at ``yaw[f]``."""
     regions = regions_of(model, region_size)
     M = model.n_labels
-    searched = []
-    for f in range(F):
+    out = []
+    for f, st in enumerate(states):
         lab = np.asarray(labels[f], dtype=np.int64)
-        problem = FrameProblem(model, states[f], background)
-        problem.anchor, problem.snap = float(yaw[f]), np.pi       # every candidate at the take's heading
+        problem = FrameProblem(model, st, background, heading_snap_deg=heading_snap_deg)
         ind = problem.empty_assignment()
         ok = lab >= 0
         ind[lab[ok]] = np.flatnonzero(ok)
         if problem.n and M > 3:
+            if yaw is None:
+                problem.anchor_heading(ind)
+            else:
+                problem.anchor, problem.snap = float(yaw[f]), np.pi      # every candidate at the take's facing
             fit = float(problem.fitness(ind)[0])
             for _ in range(sweeps):
                 before = fit
@@ -128,10 +158,9 @@ def take_pass(model: TriangulatedModel, background: Background, xyz: Sequence[np
                                               lambda x, fx: polish(problem, x, fx, polish_rounds)[:3])
                 if fit <= before + 1e-9:
                     break
-        out = np.full(problem.n, -1, dtype=np.int64)
+        res = np.full(problem.n, -1, dtype=np.int64)
         held = ind < problem.n
-        out[ind[held]] = np.flatnonzero(held)
-        searched.append(out)
-        if progress is not None:
-            progress(f + 1, F)
-    return take_votes(track_ids, searched, M, half_window)
+        res[ind[held]] = np.flatnonzero(held)
+        out.append(res)
+        progress(f + 1, len(states))
+    return out
