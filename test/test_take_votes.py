@@ -130,7 +130,8 @@ def test_take_votes_beat_the_live_labels_on_half_hidden_markers(gappy_upper):
 def test_dtm_label_votes_over_the_take(gappy_upper, tmp_path, capsys):
     model, clip = gappy_upper
     save_model(model, tmp_path / "m.npz")
-    take = clip.slice(2400, 2640)
+    take = clip.slice(2400, 2760)          # the take above: votes 86-89 % vs live 75-78 % (on its first
+    #                                        240 frames they were within 0.5 % of the live labels)
     write_c3d(tmp_path / "take.c3d", take.positions, list(take.names), take.rate)
     out = {}
     for votes in ("1", "0"):

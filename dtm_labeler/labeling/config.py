@@ -164,6 +164,10 @@ PARAMS: Tuple[Param, ...] = (
           "took over a hidden marker's track); helps when the model fits every true marker well."),
     Param("swap_radius_m", 0.15, "The fast path also tries swapping the labels of points closer "
           "than this (m): where the tracker may have swapped two markers.", range=(0.0, 10.0)),
+    Param("chain_moves", 3, "The fast path also tries moving a hole (a missing label whose track is "
+          "not coasting) along chains of up to this many neighbouring markers (limb chains from the "
+          "model's mean body): each label takes the next one's point, as when tracking carried a limb's "
+          "labels one marker along. Taken when it gains 10 nats. 0 or 1 = off.", range=(0, 6)),
     Param("region_checks", 1, "Body regions relabelled exactly (max-product DP "
           "given the rest of the body) per frame while checks are due (one pass over the "
           "regions after a GA search, then every region_every frames); repairs a wrong "
@@ -330,6 +334,7 @@ class LabelerSettings:
     fast_rounds: int = DEFAULTS["fast_rounds"]
     swap_radius_m: float = DEFAULTS["swap_radius_m"]
     release_moves: bool = DEFAULTS["release_moves"]
+    chain_moves: int = DEFAULTS["chain_moves"]
     region_checks: int = DEFAULTS["region_checks"]
     region_size: int = DEFAULTS["region_size"]
     region_every: int = DEFAULTS["region_every"]

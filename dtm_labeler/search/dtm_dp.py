@@ -218,3 +218,57 @@ def relabel_regions(problem: FrameProblem, ind: np.ndarray, fit: float, regions:
                 evals += e
             b = int(problem.candidate_bins(ind[None])[0])
     return ind, fit, evals
+
+
+def mean_shape(model) -> np.ndarray:
+    """(M, 3) the model's mean body in its heading-canonical frame: the weighted mean relative
+    positions of each triangle's mixture (eq. 12 rows 9-14) chained along the structure --
+    triangle 0 placed at the origin, every later triangle's new vertex ``A_t`` at the mean of
+    where its edge ``(B_t, C_t)`` puts it. Unlike :func:`mean_separations` it gives a distance
+    between every two labels, not only between those the (learned, not necessarily
+    anatomical) triangles join."""
+    pos = np.zeros((model.n_labels, 3))
+    for t, (tri, mix) in enumerate(zip(model.triangles, model.mixtures)):
+        mu = np.asarray(mix.weights) @ np.asarray(mix.means)
+        rb, rc = mu[[9, 11, 13]], mu[[10, 12, 14]]
+        a, b, c = (int(v) for v in tri)
+        if t == 0:
+            pos[a], pos[b], pos[c] = 0.0, rb, rc
+        else:
+            pos[a] = 0.5 * ((pos[b] - rb) + (pos[c] - rc))
+    return pos
+
+
+def model_chains(model, max_len: int = 3, k_near: int = 4) -> list[np.ndarray]:
+    """Chains of labels a carried labeling may have shifted by one marker (what
+    :func:`~.label_ops.chain_shifts` undoes): every sequence of 2 .. ``max_len`` distinct labels
+    in which each two consecutive labels are neighbours on the model's mean body
+    (:func:`mean_shape`: one is among the ``k_near`` nearest of the other) -- limb chains such as elbow, forearm, wrist, finger, in
+    both orders. One (C, length) array per length."""
+    pos = mean_shape(model)
+    M = model.n_labels
+    if M < 2 or max_len < 2:
+        return []
+    d = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    k = min(k_near, M - 1)
+    adj = np.zeros((M, M), dtype=bool)
+    np.put_along_axis(adj, np.argsort(d, axis=1, kind="stable")[:, :k], True, axis=1)
+    adj |= adj.T                                                       # neighbours either way
+    out = [np.argwhere(adj)]
+    for _ in range(max_len - 2):
+        prev = out[-1]
+        r, nxt = np.nonzero(adj[prev[:, -1]])
+        ext = np.concatenate([prev[r], nxt[:, None]], axis=1)
+        ext = ext[~(ext[:, :-1] == ext[:, -1:]).any(1)]                 # no label twice
+        out.append(ext)
+    return [c.astype(np.int64) for c in out]
+
+
+def chains_of(model, max_len: int, k_near: int = 4) -> list[np.ndarray]:
+    """:func:`model_chains` of ``model``, computed once per model and setting."""
+    cache = model.__dict__.setdefault("_chains", {})
+    key = (max_len, k_near)
+    if key not in cache:
+        cache[key] = model_chains(model, max_len, k_near)
+    return cache[key]

@@ -196,3 +196,43 @@ def is_valid(pop: np.ndarray, n: int) -> np.ndarray:
     s = np.sort(np.where(pop >= n, -1 - np.arange(pop.shape[1]), pop), axis=1)
     distinct = (np.diff(s, axis=1) != 0).all(1)
     return in_range & distinct
+
+
+def chain_shifts(ind: np.ndarray, n: int, chains: list[np.ndarray], allowed: np.ndarray | None = None,
+                 start: np.ndarray | None = None) -> np.ndarray:
+    """Every labeling one *chain shift* away from ``ind`` (M,): for a chain of labels
+    ``(c_0, ..., c_k)`` (``chains``: one (C, k+1) array per chain length), each label takes the
+    point of the next one, ``c_i <- ind[c_{i+1}]``; ``c_0``'s point (if any) is freed and the
+    last label is left missing or takes that freed point (a rotation). A chain whose labels
+    ``c_1 .. c_k`` do not all hold points is skipped (nothing to shift), and so is one whose
+    ``c_0`` is not in ``start`` (M,) bool, if given, or a shift that ``allowed`` (M, n+1), if
+    given, forbids for some step. Chains listed in both orders give the shift forward and
+    backward. Always valid assignments (a permutation of the chain's points, one possibly
+    dropped)."""
+    out = []
+    for ch in chains:
+        if start is not None:
+            ch = ch[start[ch[:, 0]]]
+        if not len(ch):
+            continue
+        nxt = ind[ch[:, 1:]]                                     # (C, k) the points taken
+        ok = (nxt < n).all(1)
+        if allowed is not None:
+            ok &= allowed[ch[:, :-1], nxt].all(1)
+        ch, nxt = ch[ok], nxt[ok]
+        if not len(ch):
+            continue
+        r = np.arange(len(ch))[:, None]
+        shifted = np.repeat(ind[None], len(ch), 0)
+        shifted[r, ch[:, :-1]] = nxt
+        shifted[r[:, 0], ch[:, -1]] = n                          # the last label left missing
+        out.append(shifted)
+        first = ind[ch[:, 0]]
+        rot = first < n
+        if allowed is not None:
+            rot &= allowed[ch[:, -1], first]
+        if rot.any():
+            rotated = shifted[rot]
+            rotated[np.arange(len(rotated)), ch[rot, -1]] = first[rot]
+            out.append(rotated)
+    return np.concatenate(out) if out else np.zeros((0, ind.size), dtype=np.int64)

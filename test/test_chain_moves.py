@@ -1,0 +1,94 @@
+"""Chain shifts: the fast path's move that shifts the labels of a chain of neighbouring markers
+by one marker (a limb's labels carried one marker along by the tracker), on real HDM05 frames."""
+import numpy as np
+import pytest
+
+from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
+from dtm_labeler.motion.load import load_clip
+from dtm_labeler.search import label_ops as ops
+from dtm_labeler.search.dtm_dp import chains_of, mean_shape, model_chains
+from dtm_labeler.training.train import TrainConfig, train_model
+
+HDM = "markers_c3d/hdm05_bd_05-01_01_120.c3d"
+ARM = ["LFHD", "RFHD", "C7", "CLAV", "STRN", "LSHO", "RSHO", "RUPA", "RELB", "RFRM", "RWRA", "RWRB", "RFIN",
+       "LFWT", "RFWT"]
+CHAIN = ["RFRM", "RWRA", "RWRB", "RFIN"]          # elbow side to finger
+
+
+@pytest.fixture(scope="module")
+def hdm(data_dir):
+    return load_clip(data_dir / HDM).select(ARM)
+
+
+@pytest.fixture(scope="module")
+def model(hdm):
+    m, _ = train_model([hdm.slice(1200, 1900)], TrainConfig(seed=0, k_max=2, structure="greedy"))
+    return m
+
+
+def test_chain_shifts_operator():
+    n = 5
+    ind = np.array([0, 1, 2, n, 4])
+    chains = [np.array([[3, 2], [0, 1], [1, 3]]), np.array([[3, 2, 1]])]
+    got = {tuple(c) for c in ops.chain_shifts(ind, n, chains)}
+    assert (0, 1, n, 2, 4) in got                  # hole moved: 3 takes 2's point, 2 left missing
+    assert (1, n, 2, n, 4) in got                  # 0 takes 1's point, 1 left missing
+    assert (1, 0, 2, n, 4) in got                  # ... or takes 0's freed point (rotation)
+    assert (0, n, 1, 2, 4) in got                  # three labels: 3 <- 2's, 2 <- 1's, 1 missing
+    assert len(got) == 4                           # [1, 3] skipped: 3 holds no point to take
+    assert ops.is_valid(ops.chain_shifts(ind, n, chains), n).all()
+    only = {tuple(c) for c in ops.chain_shifts(ind, n, chains, start=ind >= n)}
+    assert only == {(0, 1, n, 2, 4), (0, n, 1, 2, 4)}     # chains that start at a missing label
+    allowed = np.ones((5, n + 1), dtype=bool)
+    allowed[3, 2] = False                          # label 3 may not take point 2
+    assert {tuple(c) for c in ops.chain_shifts(ind, n, chains, allowed, ind >= n)} == set()
+
+
+def test_model_chains_follow_the_body(model, hdm):
+    """The mean body the chains come from matches the take's marker distances, and the arm's
+    chains step between the markers along it, in both orders."""
+    pos = mean_shape(model)
+    d_model = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
+    P = hdm.slice(1200, 1900).positions
+    d_data = np.nanmedian(np.linalg.norm(P[:, :, None] - P[:, None], axis=-1), axis=0)
+    iu = np.triu_indices(len(ARM), 1)
+    assert np.median(np.abs(d_model[iu] - d_data[iu])) < 0.03
+    chains = model_chains(model, max_len=3, k_near=4)
+    assert [c.shape[1] for c in chains] == [2, 3]
+    pairs = {tuple(x) for x in chains[0].tolist()}
+    idx = {name: i for i, name in enumerate(model.labels)}
+    for a, b in zip(CHAIN[:-1], CHAIN[1:]):
+        assert (idx[a], idx[b]) in pairs and (idx[b], idx[a]) in pairs
+    assert all(len(set(c)) == len(c) for c in chains[1].tolist())
+    assert chains_of(model, 3, 4) is chains_of(model, 3, 4)
+
+
+def _stream(model, hdm, chain_moves: int, fast_rounds: int, shift_at: int = 10, frames: int = 40):
+    """Labels of a stream whose tracks carry the arm chain shifted by one marker from frame
+    ``shift_at`` on (the RFRM point labelled RWRA, RWRA's RWRB, RWRB's RFIN; RFIN's point
+    unlabelled): per later frame, whether the search labels are the truth."""
+    clip = hdm.slice(2000, 2000 + frames)
+    lab = StreamLabeler(model, LabelerSettings(chain_moves=chain_moves, fast_rounds=fast_rounds, region_checks=0, accept_drop=1e6,
+                                               refit_drop=1e6, recovery="inline"))
+    idx = {name: i for i, name in enumerate(model.labels)}
+    right = []
+    for f in range(clip.n_frames):
+        r = lab.process(clip.positions[f], f / clip.rate, ids=np.arange(len(ARM)))
+        if f == shift_at:
+            inv = {v: k for k, v in lab.track_label.items()}
+            tracks = [inv[idx[name]] for name in CHAIN]
+            for tr, name in zip(tracks[:-1], CHAIN[1:]):
+                lab.track_label[tr] = idx[name]
+            del lab.track_label[tracks[-1]]
+        if f > shift_at:
+            right.append(np.array_equal(r.search_labels, np.arange(len(ARM))))
+    return np.array(right)
+
+
+def test_chain_moves_put_a_shifted_limb_right(model, hdm):
+    """With one hill-climbing move per frame (and no region checks) single moves walk the hole
+    back one marker a frame; a chain move of the whole chain puts it right in the next frame,
+    and so do two chain moves of three labels with two rounds."""
+    assert not _stream(model, hdm, chain_moves=0, fast_rounds=1)[:2].any()
+    assert _stream(model, hdm, chain_moves=4, fast_rounds=1).all()
+    assert _stream(model, hdm, chain_moves=3, fast_rounds=2).all()
