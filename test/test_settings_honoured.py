@@ -53,7 +53,7 @@ CHANGES = {
     "audit_period_s": 0.05,
     "misfit_nats": 0.01,
     "confidence_temperature": 0.3,
-    "chain_moves": 0,
+    "chain_moves": 3,
     "region_checks": 0,
     "region_size": 2,
     "region_every": 1,
