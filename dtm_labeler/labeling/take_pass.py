@@ -42,8 +42,7 @@ import numpy as np
 
 from ..model.dtm import TriangulatedModel
 from ..model.features import STATE_DIM, lateral_yaw
-from ..search.dtm_dp import regions_of, relabel_regions
-from ..search.label_search import polish
+from ..search.label_search import sweep_regions
 from ..search.problem import Background, FrameProblem
 from .take_votes import take_votes
 
@@ -137,8 +136,6 @@ def _searched(model, background, states, labels, region_size, polish_rounds, swe
               yaw: np.ndarray | None, progress) -> list[np.ndarray]:
     """Per frame, the labels (-1 none) of its points after the region sweeps from ``labels``:
     at each candidate's own facing (``yaw`` None), else every candidate at ``yaw[f]``."""
-    regions = regions_of(model, region_size)
-    M = model.n_labels
     out = []
     for f, st in enumerate(states):
         lab = np.asarray(labels[f], dtype=np.int64)
@@ -146,18 +143,12 @@ def _searched(model, background, states, labels, region_size, polish_rounds, swe
         ind = problem.empty_assignment()
         ok = lab >= 0
         ind[lab[ok]] = np.flatnonzero(ok)
-        if problem.n and M > 3:
+        if problem.n:
             if yaw is None:
                 problem.anchor_heading(ind)
             else:
                 problem.anchor, problem.snap = float(yaw[f]), np.pi      # every candidate at the take's facing
-            fit = float(problem.fitness(ind)[0])
-            for _ in range(sweeps):
-                before = fit
-                ind, fit, _ = relabel_regions(problem, ind, fit, regions, range(M),
-                                              lambda x, fx: polish(problem, x, fx, polish_rounds)[:3])
-                if fit <= before + 1e-9:
-                    break
+            ind, _, _ = sweep_regions(problem, ind, float(problem.fitness(ind)[0]), sweeps, region_size, polish_rounds)
         res = np.full(problem.n, -1, dtype=np.int64)
         held = ind < problem.n
         res[ind[held]] = np.flatnonzero(held)

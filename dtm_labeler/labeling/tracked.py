@@ -840,7 +840,8 @@ class TrackedLabeler:
         tids, labs = self._track_labels()
         pos, hit = _find(tids, track_ids)
         seed[labs[pos[hit]]] = np.flatnonzero(hit)
-        self._coasting[labs[~np.isin(tids, track_ids)]] = True     # labels of tracks not seen this frame
+        if self.settings.chain_moves > 1:          # labels of tracks not seen this frame (chain moves only)
+            self._coasting[labs[~np.isin(tids, track_ids)]] = True
         if 2 * int(hit.sum()) < min(M, n):
             return None                  # most tracks are new (e.g. the input's ids restarted): search afresh
         if self.settings.method == "tracker":

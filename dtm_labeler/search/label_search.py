@@ -341,26 +341,33 @@ class GASearch(LabelSearch):
         return ind, f, evals + e
 
     def _sweep_regions(self, problem, ind, f, deadline):
-        """``region_sweeps`` passes of :func:`relabel_regions` over every label's region,
-        each accepted relabelling polished; stops early when a pass changes nothing. The GA
-        and polish leave labelings that are wrong over a few neighbouring labels at once (a
-        limb shifted along its markers); this settles them exactly."""
-        s, evals = self.settings, 0
-        if s.region_sweeps <= 0 or problem.M <= 3 or problem.n == 0:
-            return ind, f, evals
-        regions = regions_of(problem.model, s.region_size)
+        """:func:`sweep_regions` with this search's settings."""
+        s = self.settings
+        return sweep_regions(problem, ind, f, s.region_sweeps, s.region_size, s.polish_rounds, deadline)
 
-        def refine(x, fx):
-            return polish(problem, x, fx, s.polish_rounds, deadline)
-        for _ in range(s.region_sweeps):
-            if deadline is not None and time.perf_counter() > deadline:
-                break
-            f0 = f
-            ind, f, e = relabel_regions(problem, ind, f, regions, range(problem.M), refine)
-            evals += e
-            if f <= f0 + 1e-9:
-                break
+
+def sweep_regions(problem: FrameProblem, ind: np.ndarray, f: float, sweeps: int, region_size: int,
+                  polish_rounds: int, deadline: float | None = None) -> tuple[np.ndarray, float, int]:
+    """``sweeps`` passes of :func:`relabel_regions` over every label's region, each accepted
+    relabelling polished; stops early when a pass changes nothing. The GA and polish leave
+    labelings that are wrong over a few neighbouring labels at once (a limb shifted along its
+    markers); this settles them exactly. Returns (ind, fitness, evaluations)."""
+    evals = 0
+    if sweeps <= 0 or problem.M <= 3 or problem.n == 0:
         return ind, f, evals
+    regions = regions_of(problem.model, region_size)
+
+    def refine(x, fx):
+        return polish(problem, x, fx, polish_rounds, deadline)
+    for _ in range(sweeps):
+        if deadline is not None and time.perf_counter() > deadline:
+            break
+        f0 = f
+        ind, f, e = relabel_regions(problem, ind, f, regions, range(problem.M), refine)
+        evals += e
+        if f <= f0 + 1e-9:
+            break
+    return ind, f, evals
 
 
 def ruin_and_recreate(problem: FrameProblem, pop: np.ndarray, rng: np.random.Generator,
