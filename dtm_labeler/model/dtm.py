@@ -30,7 +30,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import numpy as np
 
-from .body import SEGMENT, BodyModel, BroadMotion, CrossSegments, EdgeTerms, slot_distances
+from .body import SEGMENT, BodyModel, BroadMotion, CrossSegments, EdgeTerms, Handedness, slot_distances
 from .features import (FEATURE_DIM, MISSING, N_PATTERNS, STATE_DIM, TRIPLE_DIM, feature_map_for, observation_state,
                        observed_map, pattern_codes, pattern_id)
 from .mixture import GaussianMixture
@@ -281,6 +281,8 @@ class TriangulatedModel:
         cross = CrossSegments(self.body, self.triangles) if self.body is not None and \
             SEGMENT in self.body.applied_kinds else None
         self.body_cross = cross if cross is not None and cross.active else None     # rigid pairs off the edges
+        hand = Handedness(self.body) if self.body is not None and self.body.calibration else None
+        self.body_handedness = hand if hand is not None and hand.active else None  # clusters' handedness
         if self.broad is not None and len(self.broad.gaussians) != len(self.mixtures):
             raise ValueError(f"{len(self.broad.gaussians)} broad components for {len(self.mixtures)} triangles")
         # the broad part applies once the body is calibrated to a person (model/body.py, "Whose lengths")
@@ -418,7 +420,8 @@ class TriangulatedModel:
         Missing points (NaN) are marginalised; every root adds ``background_position``
         (the log density of an unmodelled absolute position; 0 gives the pure model term).
         Body terms (if any) included: the edge factors and a calibrated body's rigid pairs off
-        the edges (:class:`~dtm_labeler.model.body.CrossSegments`), as the frame fitness has them.
+        the edges (:class:`~dtm_labeler.model.body.CrossSegments`) and the clusters' handedness
+        (:class:`~dtm_labeler.model.body.Handedness`), as the frame fitness has them.
         """
         states = np.asarray(states, dtype=np.float64)
         codes = observation_state(states)
@@ -433,6 +436,8 @@ class TriangulatedModel:
             total += self.body_edges(np.tile(np.arange(T), F), d.reshape(F * T, 3), ok.reshape(F * T, 3)).reshape(F, T).sum(1)
         if self.body_cross is not None:
             total += self.body_cross.labelled(states[..., :3])
+        if self.body_handedness is not None:
+            total += self.body_handedness.labelled(states[..., :3])
         return total
 
     def components_per_triangle(self) -> list[int]:

@@ -12,12 +12,16 @@ Layout (all entries plain numeric arrays; loaded with ``allow_pickle=False``)::
     body_lo, body_hi  (P,)    float64   reach, allowed distance range (m), within- and
     body_within_sd,   (P,)    float64   between-person spread (m)
     body_between_sd
+    body_quads        (Q,4)   int64     the marker clusters' handedness (version 3): neighbouring
+    body_quad_sign    (Q,)    float64   label quadruples and the sign of their signed volume
     broad_weights     (T,)    float64   broad part of each triangle's conditional (version 2, when
     broad<t>_mean     (15,)   float64   the header's "broad" is true; see dtm_labeler.model.body)
     broad<t>_covariance (15,15) float64
 
-Versions: 2 adds the body terms and the broad components (issue 13). Version 1 files still load, as models without body terms
-(they score exactly as they did; ``provenance["format_version_read"]`` says 1). A file that is
+Versions: 2 adds the body terms and the broad components (issue 13); 3 the clusters' handedness
+(:class:`~dtm_labeler.model.body.Handedness`). Version 1 files still load, as models without body terms,
+version 2 files as bodies without handedness (both score exactly as they did;
+``provenance["format_version_read"]`` says which). A file that is
 not a model, has an unknown format version, or whose arrays disagree with the header raises
 :class:`ModelFileError` naming the file and the problem.
 """
@@ -38,8 +42,8 @@ from .mixture import GaussianMixture
 from .structure import Structure
 
 FORMAT_NAME = "dtm_labeler.model"
-FORMAT_VERSION = 2
-READABLE_VERSIONS = (1, 2)
+FORMAT_VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
 
 
 class ModelFileError(ValueError):

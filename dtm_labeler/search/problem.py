@@ -181,6 +181,8 @@ class FrameProblem:
         f = self.triangle_table(pop, bins).sum(1) + self.label_gain[pop].sum(1)
         if self.model.body_cross is not None:      # calibrated rigid pairs that are not edges (model/body.py)
             f = f + self.model.body_cross(pop, self.dist, self.n)
+        if self.model.body_handedness is not None:  # marker clusters shown mirrored (model/body.py)
+            f = f + self.model.body_handedness(pop, self.states[:, :3])
         return (f, bins) if return_bins else f
 
     def plausible(self, pop: np.ndarray, labels: np.ndarray, points: np.ndarray) -> np.ndarray:

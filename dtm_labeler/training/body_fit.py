@@ -41,6 +41,7 @@ Broad components by EM on held-out frames
 """
 from __future__ import annotations
 
+import itertools
 import warnings
 
 from dataclasses import asdict, dataclass
@@ -50,7 +51,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import shortest_path
 
-from ..model.body import REACH, SEGMENT, BodyModel, BroadMotion, broad_covariance
+from ..model.body import HANDEDNESS_SHARE, REACH, SEGMENT, BodyModel, BroadMotion, Handedness, broad_covariance
 from ..model.features import FULL, MISSING, feature_map_for, observed_map, triangle_features
 from ..model.mixture import GaussianMixture, logsumexp_rows
 from ..model.structure import Structure
@@ -107,6 +108,45 @@ def pair_statistics(clips: Sequence[np.ndarray], max_frames: int = 3000) -> dict
             maxs.append(np.where(seen >= 2, np.nanmax(np.where(np.isfinite(d), d, -np.inf), axis=0), np.nan))
             vecs.append(np.where(seen >= 2, np.sqrt(np.nanvar(v, axis=0).sum(-1)), np.nan))
     return {"mean": np.stack(means), "sd": np.stack(sds), "max": np.stack(maxs), "vec": np.stack(vecs)}
+
+
+def handedness_quads(clips: Sequence[np.ndarray], share: float = HANDEDNESS_SHARE, neighbours: int = 4,
+                     min_frames: int = 20, max_frames: int = 3000) -> tuple[np.ndarray, np.ndarray]:
+    """The marker clusters' handedness (:class:`~dtm_labeler.model.body.Handedness`) from (F, M, 3)
+    labelled positions per clip: for each label and every three of its ``neighbours`` nearest
+    labels (median distance over the clips), the quadruple and the sign of its signed volume
+    where one sign holds in at least ``share`` of the frames that show all four (at least
+    ``min_frames`` of them). Returns ``(quads (Q, 4), signs (Q,))``."""
+    P = np.concatenate([c[np.linspace(0, c.shape[0] - 1, min(c.shape[0], max_frames)).astype(np.int64)]
+                        for c in clips])
+    M = P.shape[1]
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(np.linalg.norm(P[:, :, None] - P[:, None], axis=-1), axis=0)
+    med[~np.isfinite(med)] = np.inf
+    np.fill_diagonal(med, np.inf)
+    near = np.argsort(med, axis=1)[:, :min(neighbours, M - 1)]
+    cand = {tuple(sorted((a, *map(int, trio)))) for a in range(M) if M >= 4
+            for trio in itertools.combinations(near[a], 3) if np.isfinite(med[a, list(trio)]).all()}
+    if not cand:
+        return np.zeros((0, 4), dtype=np.int64), np.zeros(0)
+    return quad_signs(P, np.array(sorted(cand), dtype=np.int64), share, min_frames)
+
+
+def quad_signs(positions: np.ndarray, quads: np.ndarray, share: float = HANDEDNESS_SHARE,
+               min_frames: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """Of label ``quads`` (Q, 4), those whose signed volume shows one sign in at least ``share``
+    of the frames of ``positions`` (F, M, 3) that show all four (at least ``min_frames``), and
+    that sign: ``(quads (K, 4), signs (K,))``."""
+    quads = np.asarray(quads, dtype=np.int64).reshape(-1, 4)
+    v = Handedness._volumes(positions[:, quads])                 # (F, Q)
+    seen = np.isfinite(v)
+    pos = ((v > 0) & seen).sum(0)
+    n = seen.sum(0)
+    sign = np.where(2 * pos >= n, 1.0, -1.0)
+    agree = np.where(sign > 0, pos, n - pos)
+    keep = (n >= min_frames) & (agree >= share * np.maximum(n, 1))
+    return quads[keep], sign[keep]
 
 
 def reach_limits(longest: np.ndarray, parents: np.ndarray) -> np.ndarray:

@@ -81,6 +81,7 @@ import numpy as np
 from ..labeling.confidence import CONFIRMED
 from ..labeling.stream import LabelerSettings, StreamLabeler
 from ..model.body import SEGMENT, BodyModel
+from .body_fit import quad_signs
 from ..model.dtm import TriangulatedModel
 from ..model.features import canonicalise, lateral_yaw, point_states
 from ..motion.clip import MotionClip
@@ -229,7 +230,10 @@ def calibrated_body(body: BodyModel, positions: np.ndarray, settings: Calibratio
                "wrong_side_labels": int(flipped.sum()),
                "median_change_m": float(np.median(np.abs(med[seg] - generic[seg]))),
                "calibrated": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
-    return replace(body, lo=lo, hi=hi, within_sd=within, between_sd=between, calibration=summary), summary
+    quads, signs = quad_signs(positions, body.quads)     # the person's clusters as this session placed them
+    summary["handedness_quads"] = int(quads.shape[0])
+    return replace(body, lo=lo, hi=hi, within_sd=within, between_sd=between, calibration=summary,
+                   quads=quads, quad_sign=signs), summary
 
 
 def fit_per_label(model: TriangulatedModel, positions: np.ndarray, rate: float) -> float | None:

@@ -50,7 +50,7 @@ from .gaps import (MIN_TRIPLE_FRAMES, coverage_report, fill_yaw, fit_rows, fit_t
                    structure_scores, unattachable, usable_structure)
 from ..model.structure import BODY14_GIVEN, Structure
 from ..search import structure_search as ss
-from .body_fit import (BodySettings, broad_components, edge_prior, fit_body, pair_statistics,
+from .body_fit import (BodySettings, broad_components, edge_prior, fit_body, handedness_quads, pair_statistics,
                        validation_rows)
 
 STRUCTURE_METHODS = ("cbga", "greedy", "given", "sga", "body")
@@ -384,9 +384,13 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
                          "frames; the structure cannot hold them (leave them out with --points or add takes)")
     body, prior = None, scores       # body terms; structure search scores with the edge prior
     if config.body_terms:
-        stats = pair_statistics([canonical_states(c, pairs)[..., :3] for c in clips], config.body.max_frames)
-        body = fit_body(stats, parents if parents is not None else rigid_tree(clips), config.body,
-                        joint_centres=set(labels) <= set(BODY14))
+        positions = [canonical_states(c, pairs)[..., :3] for c in clips]
+        joint_centres = set(labels) <= set(BODY14)
+        stats = pair_statistics(positions, config.body.max_frames)
+        body = fit_body(stats, parents if parents is not None else rigid_tree(clips), config.body, joint_centres=joint_centres)
+        if not joint_centres:        # marker clusters: their handedness (model/body.py Handedness)
+            quads, signs = handedness_quads(positions, max_frames=config.body.max_frames)
+            body = replace(body, quads=quads, quad_sign=signs)
         if scores is not None and config.body.segment_edge_prior > 0:
             prior = scores.with_edge_prior(edge_prior(stats, config.body))
     if config.structure == "given":

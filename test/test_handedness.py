@@ -1,0 +1,122 @@
+"""The marker clusters' handedness (model/body.py ``Handedness``): a labeling that shows a cluster
+mirrored pays a fixed factor per quadruple, a missing point drops it, only calibrated bodies
+apply it (measured again on the person's frames), and model files keep it (format 3)."""
+import json
+
+import numpy as np
+import pytest
+
+from dtm_labeler.model.body import HANDEDNESS_NATS, BodyModel, Handedness
+from dtm_labeler.model.features import point_states
+from dtm_labeler.model.io import FORMAT_VERSION, load_model, model_from_arrays, save_model
+from dtm_labeler.motion.load import load_clip
+from dtm_labeler.search.problem import Background, FrameProblem
+from dtm_labeler.training.body_fit import handedness_quads, quad_signs
+from dtm_labeler.training.calibrate import calibrate_on_takes, labelled_positions
+from dtm_labeler.training.train import TrainConfig, train_model
+
+HDM = "markers_c3d/hdm05_bd_05-01_01_120.c3d"
+ARM = ["LFHD", "RFHD", "C7", "CLAV", "STRN", "LSHO", "RSHO", "LELB", "LFRM", "LWRA", "LWRB", "LFIN",
+       "LFWT", "RFWT"]
+TETRA = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.0, 0.0, 0.1], [0.3, 0.3, 0.3]])
+
+
+def _body(quads, signs, n=5):
+    return BodyModel(n_labels=n, pairs=np.zeros((0, 2)), kind=np.zeros(0), lo=np.zeros(0), hi=np.zeros(0),
+                     within_sd=np.zeros(0), between_sd=np.zeros(0), quads=quads, quad_sign=signs)
+
+
+def test_factor_per_mirrored_quadruple_and_missing_points():
+    hand = Handedness(_body([[0, 1, 2, 3]], [1.0]))
+    assert np.linalg.det(TETRA[1:4] - TETRA[0]) > 0                       # right-handed as stored
+    swapped = TETRA[[0, 2, 1, 3, 4]]                                      # labels 1 and 2 exchanged
+    hidden = TETRA.copy()
+    hidden[3] = np.nan
+    got = hand.labelled(np.stack([TETRA, swapped, hidden, TETRA[[0, 1, 2, 4, 3]]]))
+    # the last frame: 3 takes point 4, on the same side of (0, 1, 2): the same handedness
+    assert got.tolist() == [0.0, -HANDEDNESS_NATS, 0.0, 0.0]
+    # assignments over a frame's points (row n = "missing", NaN): the same factors
+    xyz = np.vstack([TETRA, np.full((1, 3), np.nan)])
+    pop = np.array([[0, 1, 2, 3, 4], [0, 2, 1, 3, 4], [0, 1, 2, 5, 4]])
+    assert hand(pop, xyz).tolist() == [0.0, -HANDEDNESS_NATS, 0.0]
+    with pytest.raises(ValueError, match="distinct"):
+        _body([[0, 1, 1, 3]], [1.0])
+    with pytest.raises(ValueError, match="quad_sign"):
+        _body([[0, 1, 2, 3]], [0.5])
+
+
+def test_quad_signs_keep_only_what_holds():
+    rng = np.random.default_rng(0)
+    F = 200
+    P = np.repeat(TETRA[None], F, 0) + rng.normal(0, 0.002, (F, 5, 3))
+    P[:, 4] = P[:, 3] + rng.normal(0, 0.05, (F, 3))       # point 4 wanders around point 3
+    P[:, 4, 2] = np.where(np.arange(F) % 2 == 0, 0.05, -0.05)     # ... to either side of the plane (0, 1, 2)
+    quads, signs = quad_signs(P, np.array([[0, 1, 2, 3], [0, 1, 2, 4]]))
+    assert quads.tolist() == [[0, 1, 2, 3]] and signs.tolist() == [1.0]
+    P[:30, 3] = np.nan                                    # seen in fewer frames than asked: dropped
+    assert quad_signs(P, np.array([[0, 1, 2, 3]]), min_frames=171)[0].shape == (0, 4)
+
+
+@pytest.fixture(scope="module")
+def hdm(data_dir):
+    return load_clip(data_dir / HDM).select(ARM)
+
+
+@pytest.fixture(scope="module")
+def models(hdm):
+    train = hdm.slice(1200, 1900)
+    generic, _ = train_model([train], TrainConfig(seed=0, k_max=2, structure="greedy"))
+    return generic, calibrate_on_takes(generic, [train])
+
+
+def test_real_wrist_cluster_learnt_and_applied_once_calibrated(models, hdm, tmp_path):
+    generic, calibrated = models
+    names = list(generic.labels)
+    bar = {names.index("LWRA"), names.index("LWRB")}
+    quads = generic.body.quads
+    assert len(quads) >= 5 and sum(bar <= set(q) for q in quads.tolist()) >= 2      # both wrist-bar ends
+    again = handedness_quads([labelled_positions(generic, hdm.slice(1200, 1900))])
+    assert {tuple(q) for q in again[0].tolist()} == {tuple(q) for q in quads.tolist()}
+    # a generic body keeps them but does not apply them; the calibrated body does
+    assert generic.body_handedness is None and calibrated.body_handedness is not None
+    assert calibrated.body.calibration["handedness_quads"] == len(calibrated.body.quads) > 0
+
+    # on a real frame the training never saw, whose true labels show every cluster as trained:
+    # the wrist bars exchanged pay exactly the factor of every quadruple the exchange mirrors
+    hand = Handedness(calibrated.body)
+    P = labelled_positions(calibrated, hdm.slice(2400, 2700))
+    frame = int(np.flatnonzero(hand.labelled(P[1:]) == 0)[0]) + 1
+    X = P[frame - 1:frame + 1]
+    states = point_states(X, hdm.rate)[1]
+    problem = FrameProblem(calibrated, states, Background())
+    truth = np.arange(len(names))
+    a, b = names.index("LWRA"), names.index("LWRB")
+    swap = truth.copy()
+    swap[[a, b]] = swap[[b, a]]
+    pop = np.stack([truth, swap])
+    with_hand = problem.fitness(pop)
+    flipped = -hand.labelled(X[1][pop]) / HANDEDNESS_NATS
+    calibrated.body_handedness, saved = None, calibrated.body_handedness
+    try:
+        without = FrameProblem(calibrated, states, Background()).fitness(pop)
+    finally:
+        calibrated.body_handedness = saved
+    assert flipped[0] == 0 and flipped[1] >= 1
+    assert np.allclose(with_hand - without, -HANDEDNESS_NATS * flipped)
+
+    # format 3 keeps them; a format-2 file (no handedness arrays) loads as a body without them
+    path = save_model(calibrated, tmp_path / "m.npz")
+    back = load_model(path)
+    assert FORMAT_VERSION == 3
+    assert np.array_equal(back.body.quads, calibrated.body.quads)
+    assert np.array_equal(back.body.quad_sign, calibrated.body.quad_sign)
+    assert np.array_equal(FrameProblem(back, states, Background()).fitness(pop), with_hand)
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files if k not in ("body_quads", "body_quad_sign")}
+    header = json.loads(bytes(arrays["header"]).decode())
+    header["format_version"] = 2
+    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    v2 = model_from_arrays(arrays, "v2")
+    assert v2.provenance["format_version_read"] == 2 and v2.body.quads.shape == (0, 4)
+    assert v2.body_handedness is None
+    assert np.allclose(FrameProblem(v2, states, Background()).fitness(pop), without)
