@@ -335,7 +335,7 @@ class Handedness:
         self.active = bool(self.quads.shape[0])
 
     @staticmethod
-    def _volumes(x: np.ndarray) -> np.ndarray:
+    def volumes(x: np.ndarray) -> np.ndarray:
         """Signed volumes of (..., 4, 3) points."""
         a = x[..., 0, :]
         return np.einsum("...i,...i->...", np.cross(x[..., 1, :] - a, x[..., 2, :] - a), x[..., 3, :] - a)
@@ -343,13 +343,16 @@ class Handedness:
     def __call__(self, pop: np.ndarray, xyz: np.ndarray) -> np.ndarray:
         """(P,) summed factors of (P, M) assignments given the frame's (n+1, 3) positions
         (row ``n``, "missing", NaN: the factor drops)."""
-        return self.labelled(xyz[pop])
+        return self._factors(xyz[pop[:, self.quads]])
 
     def labelled(self, positions: np.ndarray) -> np.ndarray:
         """(F,) summed factors of labelled frames (F, M, 3) (NaN = unseen: the factor drops)."""
-        v = self._volumes(positions[:, self.quads])                 # (F, Q)
+        return self._factors(positions[:, self.quads])
+
+    def _factors(self, x: np.ndarray) -> np.ndarray:
+        """(F,) summed factors of the quadruples' points (F, Q, 4, 3)."""
         with np.errstate(invalid="ignore"):
-            flipped = v * self.sign < 0                             # NaN compares False
+            flipped = self.volumes(x) * self.sign < 0                # NaN compares False
         return -HANDEDNESS_NATS * flipped.sum(axis=1)
 
 
@@ -426,5 +429,5 @@ class BroadMotion:
         return cls(w, gs)
 
 
-__all__ = ["BodyModel", "BroadMotion", "EdgeTerms", "Handedness", "HANDEDNESS_SHARE", "HANDEDNESS_NATS", "SEGMENT", "REACH", "KIND_NAMES", "slot_distances",
-           "broad_covariance"]
+__all__ = ["BodyModel", "BroadMotion", "EdgeTerms", "Handedness", "HANDEDNESS_SHARE", "HANDEDNESS_NATS", "SEGMENT",
+           "REACH", "KIND_NAMES", "slot_distances", "broad_covariance"]

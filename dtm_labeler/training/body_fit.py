@@ -120,13 +120,15 @@ def handedness_quads(clips: Sequence[np.ndarray], share: float = HANDEDNESS_SHAR
     P = np.concatenate([c[np.linspace(0, c.shape[0] - 1, min(c.shape[0], max_frames)).astype(np.int64)]
                         for c in clips])
     M = P.shape[1]
+    if M < 4:
+        return np.zeros((0, 4), dtype=np.int64), np.zeros(0)
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         med = np.nanmedian(np.linalg.norm(P[:, :, None] - P[:, None], axis=-1), axis=0)
     med[~np.isfinite(med)] = np.inf
     np.fill_diagonal(med, np.inf)
     near = np.argsort(med, axis=1)[:, :min(neighbours, M - 1)]
-    cand = {tuple(sorted((a, *map(int, trio)))) for a in range(M) if M >= 4
+    cand = {tuple(sorted((a, *map(int, trio)))) for a in range(M)
             for trio in itertools.combinations(near[a], 3) if np.isfinite(med[a, list(trio)]).all()}
     if not cand:
         return np.zeros((0, 4), dtype=np.int64), np.zeros(0)
@@ -139,7 +141,7 @@ def quad_signs(positions: np.ndarray, quads: np.ndarray, share: float = HANDEDNE
     of the frames of ``positions`` (F, M, 3) that show all four (at least ``min_frames``), and
     that sign: ``(quads (K, 4), signs (K,))``."""
     quads = np.asarray(quads, dtype=np.int64).reshape(-1, 4)
-    v = Handedness._volumes(positions[:, quads])                 # (F, Q)
+    v = Handedness.volumes(positions[:, quads])                 # (F, Q)
     seen = np.isfinite(v)
     pos = ((v > 0) & seen).sum(0)
     n = seen.sum(0)

@@ -81,12 +81,12 @@ import numpy as np
 from ..labeling.confidence import CONFIRMED
 from ..labeling.stream import LabelerSettings, StreamLabeler
 from ..model.body import SEGMENT, BodyModel
-from .body_fit import quad_signs
 from ..model.dtm import TriangulatedModel
 from ..model.features import canonicalise, lateral_yaw, point_states
 from ..motion.clip import MotionClip
 from ..motion.pointsets import model_points
 from ..search.problem import Background
+from .body_fit import quad_signs
 from .gaps import fill_yaw, loglik_per_label
 
 
