@@ -74,6 +74,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from .body_kernel import mirrored_quads
 from .mixture import GaussianMixture
 
 SEGMENT, REACH = 0, 1
@@ -331,7 +332,8 @@ class Handedness:
     """
 
     def __init__(self, body: BodyModel):
-        self.quads, self.sign = body.quads, body.quad_sign
+        self.quads = np.ascontiguousarray(body.quads, dtype=np.int64).reshape(-1, 4)
+        self.sign = np.ascontiguousarray(body.quad_sign, dtype=np.float64)
         self.active = bool(self.quads.shape[0])
 
     @staticmethod
@@ -343,17 +345,17 @@ class Handedness:
     def __call__(self, pop: np.ndarray, xyz: np.ndarray) -> np.ndarray:
         """(P,) summed factors of (P, M) assignments given the frame's (n+1, 3) positions
         (row ``n``, "missing", NaN: the factor drops)."""
-        return self._factors(xyz[pop[:, self.quads]])
+        return self._factors(np.ascontiguousarray(pop, dtype=np.int64), np.ascontiguousarray(xyz, dtype=np.float64))
 
     def labelled(self, positions: np.ndarray) -> np.ndarray:
         """(F,) summed factors of labelled frames (F, M, 3) (NaN = unseen: the factor drops)."""
-        return self._factors(positions[:, self.quads])
+        F, M = positions.shape[:2]
+        return self._factors(np.arange(F * M, dtype=np.int64).reshape(F, M),
+                             np.ascontiguousarray(positions, dtype=np.float64).reshape(F * M, 3))
 
-    def _factors(self, x: np.ndarray) -> np.ndarray:
-        """(F,) summed factors of the quadruples' points (F, Q, 4, 3)."""
-        with np.errstate(invalid="ignore"):
-            flipped = self.volumes(x) * self.sign < 0                # NaN compares False
-        return -HANDEDNESS_NATS * flipped.sum(axis=1)
+    def _factors(self, idx: np.ndarray, pts: np.ndarray) -> np.ndarray:
+        """(P,) summed factors of the rows of ``idx`` (P, M), label -> row of ``pts`` (N, 3)."""
+        return -HANDEDNESS_NATS * mirrored_quads(idx, pts, self.quads, self.sign)
 
 
 #: a quadruple's handedness is learnt when one sign holds in this share of the training frames

@@ -242,6 +242,51 @@ class MixedBatchedTerms:
         return self.mix.combine(tri, self.motion(s, tri), self.broad(s, tri))
 
 
+class StackedTerms:
+    """Every observation pattern's :class:`BatchedTerms` in one set of padded arrays, indexed
+    by pattern first: ``W[pid]`` is pattern ``pid``'s ``W`` padded to the widest pattern's
+    ``R`` columns, ``off[pid]`` its first parents' column (``kj mj``), ``mj`` / ``mp`` its
+    observed dimensions. What the frame kernel
+    (:func:`~dtm_labeler.search.frame_kernels.frame_terms`) reads, so that one compiled call
+    scores a batch of triples whatever their observation patterns (eq. 30-31: a frame with
+    gaps spreads one batch over ten or more patterns, each a kernel call of its own before).
+    ``empty()``: no terms (the broad part of a model without one)."""
+
+    def __init__(self, patterns: "list[BatchedTerms]"):
+        P = len(patterns)
+        T = patterns[0].W.shape[0] if P else 0
+        R = max((b.W.shape[2] for b in patterns), default=1)
+        kj = max((b.cj.shape[1] for b in patterns), default=1)
+        kp = max((b.cp.shape[1] for b in patterns), default=1)
+        self.W = np.zeros((P, T, TRIPLE_DIM, R))
+        self.c = np.zeros((P, T, R))
+        self.cj = np.full((P, T, kj), -np.inf)
+        self.cp = np.full((P, T, kp), -np.inf)
+        self.nj = np.ones((P, T), dtype=np.int64)
+        self.np_ = np.zeros((P, T), dtype=np.int64)
+        self.mj = np.ones(P, dtype=np.int64)
+        self.mp = np.zeros(P, dtype=np.int64)
+        self.off = np.zeros(P, dtype=np.int64)
+        self.root = np.zeros((P, T), dtype=bool)
+        for p, b in enumerate(patterns):
+            r = b.W.shape[2]
+            self.W[p, :, :, :r] = b.W
+            self.c[p, :, :r] = b.c
+            self.cj[p, :, :b.cj.shape[1]] = b.cj
+            self.cp[p, :, :b.cp.shape[1]] = b.cp
+            self.nj[p], self.np_[p], self.root[p] = b.nj, b.np_, b.root
+            self.mj[p], self.mp[p], self.off[p] = b.mj, b.mp, b.cj.shape[1] * b.mj
+
+    @classmethod
+    def empty(cls) -> "StackedTerms":
+        return cls([])
+
+    @property
+    def arrays(self) -> tuple:
+        """The arrays in the kernel's argument order."""
+        return self.W, self.c, self.cj, self.cp, self.nj, self.np_, self.mj, self.mp, self.off
+
+
 @dataclass
 class TriangulatedModel:
     """Labels, structure, one mixture per triangle (eq. 12 features), settings, provenance."""
@@ -336,8 +381,10 @@ class TriangulatedModel:
         for term in self.terms + (self.broad_terms or []):
             for pid in range(N_PATTERNS):
                 term.pattern(pid)
-        _ = self.batched_full, self.distance_bounds
+        _ = self.batched_full, self.distance_bounds, self.stacked
         self.batched_full(np.zeros((1, TRIPLE_DIM)), np.zeros(1, dtype=np.int64))     # compile (or load) the kernel
+        if self.body_handedness is not None:                                          # and the handedness kernel
+            self.body_handedness(np.zeros((1, self.n_labels), dtype=np.int64), np.zeros((1, 3)))
         return self
 
     @property
@@ -385,6 +432,17 @@ class TriangulatedModel:
         if not self.broad_applied:
             return motion
         return MixedBatchedTerms(motion, BatchedTerms(self.broad_terms, pid), self.broad)
+
+    @property
+    def stacked(self) -> tuple[StackedTerms, StackedTerms]:
+        """Every pattern's batched terms stacked (:class:`StackedTerms`): the motion mixtures'
+        and, for a model whose broad part applies, the broad Gaussians' (else empty)."""
+        if getattr(self, "_stacked", None) is None:
+            motion = StackedTerms([BatchedTerms(self.terms, pid) for pid in range(N_PATTERNS)])
+            broad = StackedTerms([BatchedTerms(self.broad_terms, pid) for pid in range(N_PATTERNS)]) \
+                if self.broad_applied else StackedTerms.empty()
+            self._stacked = (motion, broad)
+        return self._stacked
 
     @property
     def batched_full(self) -> "BatchedTerms | MixedBatchedTerms":
@@ -444,4 +502,4 @@ class TriangulatedModel:
         return [m.n_components for m in self.mixtures]
 
 
-__all__ = ["TriangulatedModel", "TriangleTerms", "LinearMixtureDensity", "N_PATTERNS"]
+__all__ = ["TriangulatedModel", "TriangleTerms", "LinearMixtureDensity", "StackedTerms", "N_PATTERNS"]

@@ -37,31 +37,49 @@ def mixture_terms(s, tri, W, c, cj, cp, nj, np_, mj, mp):  # pragma: no cover - 
     term); joint component ``k`` occupies columns ``[k mj, (k+1) mj)``, parents' component
     ``k`` columns ``[off + k mp, off + (k+1) mp)`` with ``off = kj mj``."""
     n = s.shape[0]
-    R = W.shape[2]
-    off = cj.shape[1] * mj
     out = np.empty(n)
-    z = np.empty(R)
+    z = np.empty(W.shape[2])
     q = np.empty(max(cj.shape[1], cp.shape[1]))
+    off = cj.shape[1] * mj
     for r in range(n):
-        t = tri[r]
-        hi_j = nj[t] * mj
-        lo_p = off
-        hi_p = off + np_[t] * mp
-        for col in range(hi_j):
-            z[col] = -c[t, col]
-        for col in range(lo_p, hi_p):
-            z[col] = -c[t, col]
-        for j in range(s.shape[1]):
-            v = s[r, j]
-            if v != 0.0:
-                for col in range(hi_j):
-                    z[col] += v * W[t, j, col]
-                for col in range(lo_p, hi_p):
-                    z[col] += v * W[t, j, col]
-        out[r] = _lse_block(z, 0, nj[t], mj, cj[t], q)
-        if np_[t] > 0:
-            out[r] -= _lse_block(z, off, np_[t], mp, cp[t], q)
+        out[r] = row_term(s[r], tri[r], W, c, cj, cp, nj, np_, mj, mp, off, z, q)
     return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def row_term(s, t, W, c, cj, cp, nj, np_, mj, mp, off, z, q):  # pragma: no cover - compiled
+    """The term of one (18,) state ``s`` of triangle ``t`` (arrays as :func:`mixture_terms`;
+    ``off`` the first parents' column, ``z`` / ``q`` scratch of ``R`` / ``max(kj, kp)``)."""
+    hi_j = nj[t] * mj
+    hi_p = off + np_[t] * mp
+    for col in range(hi_j):
+        z[col] = -c[t, col]
+    for col in range(off, hi_p):
+        z[col] = -c[t, col]
+    for j in range(s.shape[0]):
+        v = s[j]
+        if v != 0.0:
+            for col in range(hi_j):
+                z[col] += v * W[t, j, col]
+            for col in range(off, hi_p):
+                z[col] += v * W[t, j, col]
+    out = _lse_block(z, 0, nj[t], mj, cj[t], q)
+    if np_[t] > 0:
+        out -= _lse_block(z, off, np_[t], mp, cp[t], q)
+    return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def log_add_exp(a, b):  # pragma: no cover - compiled
+    """``log(exp(a) + exp(b))`` as numpy's ``logaddexp`` computes it."""
+    if a == b:
+        return a + np.log(2.0)
+    d = a - b
+    if d > 0:
+        return a + np.log1p(np.exp(-d))
+    if d <= 0:
+        return b + np.log1p(np.exp(d))
+    return d
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -13,8 +13,9 @@ before the mixture kernel itself). Here each is one compiled loop:
 * :class:`TermTable` -- an open-addressing hash table int64 key -> float64 term for the frame
   (:func:`table_lookup`, :func:`table_insert`), replacing a sorted array with
   ``searchsorted``/``insert``;
-* :func:`triple_states` -- the 18-D canonical state of each new triple, rotated about z by its
-  bin's heading on the fly (no per-bin copies of the frame).
+* :func:`frame_terms` -- the terms of new triples in one loop: each triple's 18-D canonical
+  state rotated about z by its bin's heading on the fly (no per-bin copies of the frame), its
+  observation pattern, that pattern's mixture term, the broad part and the edges' body factor.
 
 All are pure functions of arrays, cached on disk by numba (``cache=True``) and compiled when a
 model is warmed up (:func:`warm_up`), never on a frame.
@@ -23,6 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
+
+from ..model.term_kernel import log_add_exp, row_term
 
 EMPTY = np.int64(-1)              # free slot of the hash table (keys are non-negative)
 
@@ -139,40 +142,6 @@ def table_lookup_keys(tkeys, tvals, keys):  # pragma: no cover - compiled
     return out, np.unique(miss[:m])
 
 
-@njit(cache=True, nogil=True)
-def triple_states(keys, states, n1, T, nbins):  # pragma: no cover - compiled
-    """For each key: the triangle index, the three points, and the (18,) state of the triple
-    rotated by ``-bin * 2 pi / nbins`` about z (unobserved entries 0)."""
-    m = keys.size
-    s = np.zeros((m, 18))
-    tri = np.empty(m, dtype=np.int64)
-    pts = np.empty((m, 3), dtype=np.int64)
-    step = 2.0 * np.pi / nbins
-    for q in range(m):
-        key = keys[q]
-        k = key % n1
-        j = (key // n1) % n1
-        i = (key // (n1 * n1)) % n1
-        rest = key // (n1 * n1 * n1)
-        tri[q] = rest % T
-        b = rest // T
-        c = np.cos(-b * step)
-        sn = np.sin(-b * step)
-        pts[q, 0], pts[q, 1], pts[q, 2] = i, j, k
-        for v in range(3):
-            p = pts[q, v]
-            for blk in range(2):                 # position, velocity
-                x = states[p, 3 * blk]
-                y = states[p, 3 * blk + 1]
-                z = states[p, 3 * blk + 2]
-                if x == x and y == y and z == z:
-                    o = 6 * v + 3 * blk
-                    s[q, o] = c * x - sn * y
-                    s[q, o + 1] = sn * x + c * y
-                    s[q, o + 2] = z
-    return tri, pts, s
-
-
 class TermTable:
     """The frame's term cache: key -> term, an open-addressing table that doubles when half full."""
 
@@ -197,6 +166,83 @@ class TermTable:
         return self.size
 
 
+@njit(cache=True, nogil=True)
+def frame_terms(keys, states, codes, dist, n1, T, nbins, log_position,
+                W, c, cj, cp, nj, np_, mj, mp, off, root,
+                bW, bc, bcj, bcp, bnj, bnp, bmj, bmp, boff, log_1mw, log_w,
+                e_lo, e_hi, e_w):  # pragma: no cover - compiled
+    """Triangle terms of new term-cache keys ``(bin, triangle, i, j, k)``, all in one loop: the
+    triple's state rotated by its bin's heading (as :func:`triple_states`), its observation
+    pattern from the points' ``codes``, the conditional mixture term of that pattern (eq.
+    30-31; ``W ... off`` a :class:`~dtm_labeler.model.dtm.StackedTerms`, indexed by pattern),
+    mixed with the broad Gaussian's where the model has one (``bW ...``, empty otherwise:
+    ``log((1 - w) e^motion + w e^broad)``), the background density of an unmodelled root
+    (``root[pid, t] log_position``) and the body factor of the edges the triangle introduces
+    (``e_lo``, ``e_hi``, ``e_w`` (T, 3) from :class:`~dtm_labeler.model.body.EdgeTerms`, empty
+    without body terms; ``dist`` the frame's (n+1, n+1) point distances, row ``n`` missing).
+    The same arithmetic, in the same order, as the per-pattern batches it replaces."""
+    m = keys.size
+    n = n1 - 1
+    out = np.empty(m)
+    s = np.zeros(18)
+    z = np.empty(W.shape[3])
+    q = np.empty(max(cj.shape[2], cp.shape[2]))
+    broad = bW.shape[0] > 0
+    bz = np.empty(bW.shape[3])
+    bq = np.empty(max(bcj.shape[2], bcp.shape[2]))
+    edges = e_w.shape[0] > 0
+    step = 2.0 * np.pi / nbins
+    pts = np.empty(3, dtype=np.int64)
+    for r in range(m):
+        key = keys[r]
+        pts[2] = key % n1
+        pts[1] = (key // n1) % n1
+        pts[0] = (key // (n1 * n1)) % n1
+        rest = key // (n1 * n1 * n1)
+        t = rest % T
+        b = rest // T
+        co = np.cos(-b * step)
+        sn = np.sin(-b * step)
+        for v in range(3):
+            pt = pts[v]
+            for blk in range(2):                 # position, velocity
+                o = 6 * v + 3 * blk
+                x = states[pt, 3 * blk]
+                y = states[pt, 3 * blk + 1]
+                zz = states[pt, 3 * blk + 2]
+                if x == x and y == y and zz == zz:
+                    s[o] = co * x - sn * y
+                    s[o + 1] = sn * x + co * y
+                    s[o + 2] = zz
+                else:
+                    s[o] = 0.0
+                    s[o + 1] = 0.0
+                    s[o + 2] = 0.0
+        p = codes[pts[0]] + 3 * codes[pts[1]] + 9 * codes[pts[2]]
+        val = row_term(s, t, W[p], c[p], cj[p], cp[p], nj[p], np_[p], mj[p], mp[p], off[p], z, q)
+        if broad:
+            bval = row_term(s, t, bW[p], bc[p], bcj[p], bcp[p], bnj[p], bnp[p], bmj[p], bmp[p], boff[p], bz, bq)
+            val = log_add_exp(log_1mw[t] + val, log_w[t] + bval)
+        if root[p, t]:
+            val = val + log_position
+        else:
+            val = val + 0.0
+        if edges:
+            acc = 0.0
+            for slot in range(3):
+                a = pts[0] if slot < 2 else pts[1]
+                e = pts[1] if slot == 0 else pts[2]
+                d = dist[a, e]
+                g = max(max(e_lo[t, slot] - d, d - e_hi[t, slot]), 0.0) * e_w[t, slot]
+                if a < n and e < n:
+                    acc += g * g
+                else:
+                    acc += 0.0
+            val += -0.5 * acc
+        out[r] = val
+    return out
+
+
 def warm_up() -> None:
     """Compile (or load) every kernel of this module once."""
     pop = np.zeros((1, 3), dtype=np.int64)
@@ -210,8 +256,13 @@ def warm_up() -> None:
     tab.insert(miss, np.zeros(miss.size))
     table_fill(tab.keys, tab.vals, pop, np.zeros(1, dtype=np.int64), tri, ts, 2, 1, out)
     table_lookup_keys(tab.keys, tab.vals, miss)
-    triple_states(miss, np.zeros((2, 6)), 2, 1, 720)
+    stack = (np.zeros((1, 1, 18, 1)), np.zeros((1, 1, 1)), np.zeros((1, 1, 1)), np.zeros((1, 1, 1)),
+             np.ones((1, 1), dtype=np.int64), np.zeros((1, 1), dtype=np.int64), np.ones(1, dtype=np.int64),
+             np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64))
+    frame_terms(np.zeros(1, dtype=np.int64), np.zeros((2, 6)), np.zeros(2, dtype=np.int8), np.zeros((2, 2)), 2, 1,
+                720, 0.0, *stack, np.zeros((1, 1), dtype=bool), *stack, np.zeros(1), np.zeros(1),
+                np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((1, 3)))
 
 
 __all__ = ["facing", "TermTable", "table_lookup", "table_fill", "table_insert", "table_lookup_keys",
-           "triple_states", "warm_up"]
+           "frame_terms", "warm_up"]

@@ -35,8 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..model.dtm import TriangulatedModel
-from ..model.features import STATE_DIM, observation_state, pattern_id
-from .frame_kernels import TermTable, facing, table_fill, table_lookup, table_lookup_keys, triple_states
+from ..model.features import STATE_DIM, observation_state
+from .frame_kernels import TermTable, facing, frame_terms, table_fill, table_lookup, table_lookup_keys
 
 
 @dataclass(frozen=True)
@@ -60,6 +60,26 @@ class Background:
     @property
     def log_velocity(self) -> float:
         return -float(np.log((2.0 * self.max_speed_mps) ** 3))
+
+
+def kernel_tables(model: TriangulatedModel) -> tuple:
+    """The model's arrays in :func:`frame_terms`' argument order after the frame's own: the
+    stacked motion and broad terms, the broad weights and the edges' body factors (empty
+    arrays for what the model lacks). Built once per model."""
+    cached = getattr(model, "_kernel_tables", None)
+    if cached is None:
+        motion, broad = model.stacked
+        if model.broad_applied:
+            log_1mw, log_w = model.broad.log_1mw, model.broad.log_w
+        else:
+            log_1mw = log_w = np.zeros(0)
+        e = model.body_edges
+        edges = (e.lo, e.hi, e.inv_sd) if e is not None else (np.zeros((0, 3)),) * 3
+        cached = (*motion.arrays, motion.root, *broad.arrays, np.ascontiguousarray(log_1mw, dtype=np.float64),
+                  np.ascontiguousarray(log_w, dtype=np.float64), *(np.ascontiguousarray(a, dtype=np.float64)
+                                                                   for a in edges))
+        model._kernel_tables = cached
+    return cached
 
 
 class FrameProblem:
@@ -96,6 +116,7 @@ class FrameProblem:
                                     np.log1p(-b.detection_probability))
         self.cache = TermTable()
         self.evaluations = 0
+        self._kernel_args = kernel_tables(model)
 
     # -- heading -------------------------------------------------------------------------
     def yaw(self, pop: np.ndarray) -> np.ndarray:
@@ -157,18 +178,11 @@ class FrameProblem:
         return (((np.asarray(bins) * self.T + ts) * n1 + i) * n1 + j) * n1 + k
 
     def _compute(self, keys: np.ndarray) -> np.ndarray:
-        """Terms of new keys: the triples' canonical states (:func:`triple_states`), one
-        compiled kernel call per observation pattern (mostly just the fully observed one)."""
-        t, trip, s = triple_states(keys, self.states, self.n + 1, self.T, self.bins)
-        pids = pattern_id(self.codes[trip])
-        out = np.empty(keys.size)
-        for pid in np.unique(pids):
-            sel = np.flatnonzero(pids == pid) if pids.min() != pids.max() else slice(None)
-            terms = self.model.batched(int(pid))
-            out[sel] = terms(s[sel], t[sel]) + terms.root[t[sel]] * self.background.log_position
-        if self.model.body_edges is not None:     # body factor of the edges triangle t introduces
-            a, b = trip[:, [0, 0, 1]], trip[:, [1, 2, 2]]
-            out += self.model.edge_terms(t, self.dist[a, b], (a < self.n) & (b < self.n))
+        """Terms of new keys: one compiled call (:func:`frame_terms`) for the triples' canonical
+        states, whatever their observation patterns, with the broad part and the edges' body
+        factor (:meth:`TriangulatedModel.edge_terms`) folded in."""
+        out = frame_terms(np.ascontiguousarray(keys, dtype=np.int64), self.states, self.codes, self.dist,
+                          self.n + 1, self.T, self.bins, self.background.log_position, *self._kernel_args)
         self.evaluations += keys.size
         return out
 
