@@ -11,7 +11,7 @@ import pytest
 from dtm_labeler.model.features import observation_state, pattern_id, point_states
 from dtm_labeler.motion.load import load_clip
 from dtm_labeler.search.frame_kernels import frame_terms
-from dtm_labeler.search.problem import Background, FrameProblem, kernel_tables
+from dtm_labeler.search.problem import Background, FrameProblem
 from dtm_labeler.training.calibrate import calibrate_on_takes, labelled_positions
 from dtm_labeler.training.train import TrainConfig, train_model
 
@@ -91,15 +91,15 @@ def test_frame_kernel_arrays_are_the_models_own(models):
     """Empty broad and edge tables where the model has none; one set of tables per model."""
     generic, calibrated, _ = models
     bare = generic.replace(body=None)
-    args = kernel_tables(bare)
-    assert args is kernel_tables(bare)
+    args = bare.kernel_tables
+    assert args is bare.kernel_tables
     assert args[10].shape[0] == 0 and args[-1].shape[0] == 0          # broad stack, edge weights
-    assert kernel_tables(calibrated)[10].shape[0] == 27
+    assert calibrated.kernel_tables[10].shape[0] == 27
     p = FrameProblem(bare, point_states(np.zeros((1, 4, 3)) + np.arange(4)[:, None] * 0.1, 120.0)[0],
                      Background())
     keys = p.term_key(0, 0, 0, 1, 2)[None]
     stacked, _ = bare.stacked
     pid = int(pattern_id(observation_state(p.states)[[0, 1, 2]]))
-    got = frame_terms(keys, p.states, p.codes, p.dist, p.n + 1, p.T, p.bins, 0.0, *kernel_tables(bare))
+    got = frame_terms(keys, p.states, p.codes, p.dist, p.n + 1, p.T, p.bins, 0.0, *bare.kernel_tables)
     assert got.shape == (1,) and np.isfinite(got[0])
     assert stacked.W.shape[0] == 27 and pid == 9 * 1 + 3 * 1 + 1      # positions only (no velocities)

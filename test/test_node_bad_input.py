@@ -194,8 +194,11 @@ def test_burst_keeps_only_the_newest_frame(running):
     proc, cl, feed, wm = running
     # a max_gap_s shorter than the stamp gaps between the frames the node gets to label:
     # stale-skipped frames must not count as an input gap (no reset spiral). Reliable deep
-    # input, so DDS itself drops nothing (a real gap) when the node's callback is starved.
-    assert all(r.successful for r in cl.set(input_qos="reliable", input_depth=100, max_gap_s=0.02))
+    # input, so DDS itself drops nothing (a real gap) when the node's callback is starved;
+    # carry_max_ms 0, the newest cloud only: a frame replaced before it was labelled is stale
+    # (with the default 30 ms a node that labels fast carries the whole burst in time)
+    assert all(r.successful for r in cl.set(input_qos="reliable", input_depth=100, max_gap_s=0.02,
+                                            carry_max_ms=0.0))
     cl.wait_for(lambda: cl.pub.get_subscription_count() == 1, 10, "rematch")
     cl.probe()
     d0 = cl.wait_diag(lambda d: True)
@@ -210,7 +213,8 @@ def test_burst_keeps_only_the_newest_frame(running):
                      + int(d["frames_skipped_stale"]) - int(d0["frames_skipped_stale"]))
     assert int(d["frames_skipped_stale"]) > int(d0["frames_skipped_stale"])
     assert d["resets_gap"] == d0["resets_gap"]
-    assert all(r.successful for r in cl.set(input_qos="sensor_data", input_depth=5, max_gap_s=0.5))
+    assert all(r.successful for r in cl.set(input_qos="sensor_data", input_depth=5, max_gap_s=0.5,
+                                            carry_max_ms=30.0))
     cl.wait_for(lambda: cl.pub.get_subscription_count() == 1, 10, "rematch")
     cl.probe()
     assert float(d["latency_p50_ms"]) > 0 and float(d["overhead_p50_ms"]) > 0
