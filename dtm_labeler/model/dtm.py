@@ -381,7 +381,7 @@ class TriangulatedModel:
         for term in self.terms + (self.broad_terms or []):
             for pid in range(N_PATTERNS):
                 term.pattern(pid)
-        _ = self.batched_full, self.distance_bounds, self.stacked
+        _ = self.batched_full, self.distance_bounds, self.kernel_tables
         self.batched_full(np.zeros((1, TRIPLE_DIM)), np.zeros(1, dtype=np.int64))     # compile (or load) the kernel
         if self.body_handedness is not None:                                          # and the handedness kernel
             self.body_handedness(np.zeros((1, self.n_labels), dtype=np.int64), np.zeros((1, 3)))
@@ -443,6 +443,22 @@ class TriangulatedModel:
                 if self.broad_applied else StackedTerms.empty()
             self._stacked = (motion, broad)
         return self._stacked
+
+    @property
+    def kernel_tables(self) -> tuple:
+        """Every array the compiled frame kernel reads
+        (:func:`~dtm_labeler.search.frame_kernels.frame_terms`), in its argument order: the
+        stacked motion terms and their roots, the stacked broad terms and the broad weights
+        ``log(1 - w)``, ``log w`` (empty where the broad part does not apply), the edges' body
+        factors ``lo``, ``hi``, ``1 / sd`` (T, 3) (empty without body terms). Built once."""
+        if getattr(self, "_kernel_tables", None) is None:
+            motion, broad = self.stacked
+            weights = (self.broad.log_1mw, self.broad.log_w) if self.broad_applied else (np.zeros(0), np.zeros(0))
+            e = self.body_edges
+            edges = (e.lo, e.hi, e.inv_sd) if e is not None else (np.zeros((0, 3)),) * 3
+            self._kernel_tables = (*motion.arrays, motion.root, *broad.arrays,
+                                   *(np.ascontiguousarray(a, dtype=np.float64) for a in (*weights, *edges)))
+        return self._kernel_tables
 
     @property
     def batched_full(self) -> "BatchedTerms | MixedBatchedTerms":

@@ -172,7 +172,7 @@ def frame_terms(keys, states, codes, dist, n1, T, nbins, log_position,
                 bW, bc, bcj, bcp, bnj, bnp, bmj, bmp, boff, log_1mw, log_w,
                 e_lo, e_hi, e_w):  # pragma: no cover - compiled
     """Triangle terms of new term-cache keys ``(bin, triangle, i, j, k)``, all in one loop: the
-    triple's state rotated by its bin's heading (as :func:`triple_states`), its observation
+    triple's (18,) state rotated about z by ``-bin 2 pi / nbins`` (unobserved entries 0), its observation
     pattern from the points' ``codes``, the conditional mixture term of that pattern (eq.
     30-31; ``W ... off`` a :class:`~dtm_labeler.model.dtm.StackedTerms`, indexed by pattern),
     mixed with the broad Gaussian's where the model has one (``bW ...``, empty otherwise:
@@ -180,7 +180,9 @@ def frame_terms(keys, states, codes, dist, n1, T, nbins, log_position,
     (``root[pid, t] log_position``) and the body factor of the edges the triangle introduces
     (``e_lo``, ``e_hi``, ``e_w`` (T, 3) from :class:`~dtm_labeler.model.body.EdgeTerms`, empty
     without body terms; ``dist`` the frame's (n+1, n+1) point distances, row ``n`` missing).
-    The same arithmetic, in the same order, as the per-pattern batches it replaces."""
+    The same arithmetic, in the same order, as one batch per pattern
+    (:meth:`~dtm_labeler.model.dtm.TriangulatedModel.batched`) plus
+    :meth:`~dtm_labeler.model.dtm.TriangulatedModel.edge_terms`, which it replaced on the hot path."""
     m = keys.size
     n = n1 - 1
     out = np.empty(m)
@@ -224,20 +226,16 @@ def frame_terms(keys, states, codes, dist, n1, T, nbins, log_position,
             bval = row_term(s, t, bW[p], bc[p], bcj[p], bcp[p], bnj[p], bnp[p], bmj[p], bmp[p], boff[p], bz, bq)
             val = log_add_exp(log_1mw[t] + val, log_w[t] + bval)
         if root[p, t]:
-            val = val + log_position
-        else:
-            val = val + 0.0
+            val += log_position
         if edges:
             acc = 0.0
-            for slot in range(3):
+            for slot in range(3):                # (A, B), (A, C), (B, C), both ends seen
                 a = pts[0] if slot < 2 else pts[1]
                 e = pts[1] if slot == 0 else pts[2]
-                d = dist[a, e]
-                g = max(max(e_lo[t, slot] - d, d - e_hi[t, slot]), 0.0) * e_w[t, slot]
                 if a < n and e < n:
+                    d = dist[a, e]
+                    g = max(max(e_lo[t, slot] - d, d - e_hi[t, slot]), 0.0) * e_w[t, slot]
                     acc += g * g
-                else:
-                    acc += 0.0
             val += -0.5 * acc
         out[r] = val
     return out

@@ -62,26 +62,6 @@ class Background:
         return -float(np.log((2.0 * self.max_speed_mps) ** 3))
 
 
-def kernel_tables(model: TriangulatedModel) -> tuple:
-    """The model's arrays in :func:`frame_terms`' argument order after the frame's own: the
-    stacked motion and broad terms, the broad weights and the edges' body factors (empty
-    arrays for what the model lacks). Built once per model."""
-    cached = getattr(model, "_kernel_tables", None)
-    if cached is None:
-        motion, broad = model.stacked
-        if model.broad_applied:
-            log_1mw, log_w = model.broad.log_1mw, model.broad.log_w
-        else:
-            log_1mw = log_w = np.zeros(0)
-        e = model.body_edges
-        edges = (e.lo, e.hi, e.inv_sd) if e is not None else (np.zeros((0, 3)),) * 3
-        cached = (*motion.arrays, motion.root, *broad.arrays, np.ascontiguousarray(log_1mw, dtype=np.float64),
-                  np.ascontiguousarray(log_w, dtype=np.float64), *(np.ascontiguousarray(a, dtype=np.float64)
-                                                                   for a in edges))
-        model._kernel_tables = cached
-    return cached
-
-
 class FrameProblem:
     """Fitness of assignments for one frame; caches triangle terms across the whole search."""
 
@@ -116,7 +96,6 @@ class FrameProblem:
                                     np.log1p(-b.detection_probability))
         self.cache = TermTable()
         self.evaluations = 0
-        self._kernel_args = kernel_tables(model)
 
     # -- heading -------------------------------------------------------------------------
     def yaw(self, pop: np.ndarray) -> np.ndarray:
@@ -182,7 +161,7 @@ class FrameProblem:
         states, whatever their observation patterns, with the broad part and the edges' body
         factor (:meth:`TriangulatedModel.edge_terms`) folded in."""
         out = frame_terms(np.ascontiguousarray(keys, dtype=np.int64), self.states, self.codes, self.dist,
-                          self.n + 1, self.T, self.bins, self.background.log_position, *self._kernel_args)
+                          self.n + 1, self.T, self.bins, self.background.log_position, *self.model.kernel_tables)
         self.evaluations += keys.size
         return out
 
