@@ -12,9 +12,8 @@ from dtm_labeler.model.features import point_states
 from dtm_labeler.training.train import TrainConfig, train_model
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search import label_ops as ops
-from scipy.sparse.csgraph import shortest_path
 
-from dtm_labeler.search.dtm_dp import (max_product, mean_separations, model_regions, region_candidates,
+from dtm_labeler.search.dtm_dp import (max_product, mean_shape, model_regions, region_candidates,
                                        regions_of, relabel_regions, resolve_duplicates)
 
 NAMES = ("neck", "lshoulder", "rshoulder", "lhip", "rhip", "lknee", "rknee", "lankle", "rankle")
@@ -113,16 +112,12 @@ def test_region_relabelling_repairs_a_shifted_chain(model, frame):
     assert np.array_equal(fixed, truth)
 
 
-def test_model_regions_hold_the_nearest_labels_along_the_model(model):
+def test_model_regions_hold_the_nearest_labels_on_the_mean_body(model):
     regions = model_regions(model, max_size=4)
     assert len(regions) == model.n_labels
-    D = mean_separations(model)
-    assert np.allclose(D, D.T) and (np.diag(D) == 0).all()
-    share = np.zeros_like(D, dtype=bool)
-    for tri in model.triangles:
-        share[np.ix_(tri, tri)] = True
-    assert np.array_equal(np.isfinite(D), share | np.eye(model.n_labels, dtype=bool))
-    G = shortest_path(np.where(np.isfinite(D), D, 0.0), directed=False)
+    pos = mean_shape(model)
+    assert pos.shape == (model.n_labels, 3) and np.isfinite(pos).all()
+    G = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
     partner = {a: b for a, b in model.mirror_pairs.tolist()} | {b: a for a, b in model.mirror_pairs.tolist()}
     for lab, reg in enumerate(regions):
         assert lab in reg and len(reg) == 4 and len(set(reg.tolist())) == 4
