@@ -151,7 +151,8 @@ def model_regions(model, max_size: int = 8) -> list[np.ndarray]:
     along. Nearness along the learned triangles (geodesic over their mean separations, the
     regions until 2026-11-25) followed edges that are cheap to describe rather than
     anatomical -- a CBGA structure of HDM05 joins a wrist marker to the back of the head and a
-    knee, so the upper arm's region held the head and not the wrist and finger. Measured,
+    knee, so the upper arm's region (6 labels) held the back of the head, one end of the wrist
+    bar and not the other, nor the finger. Measured,
     inline, geodesic -> mean body (accuracy, search errors): HDM05 41 markers, 3 gapped + 2
     ghosts 93.6 -> 95.4 % (113 -> 70), 2 flickering 94.6 -> 95.5 % (72 -> 45); CMU 85_12's
     model on 85_02 88.1 -> 90.6 %, 91.5 -> 96.5 % (187 -> 65); MoCap Toolbox dance model on
