@@ -22,7 +22,8 @@ same with the subject's calibrated model (``dtm-train --calibrate`` on the first
 as the other cases); ``flicker41cbga``: the model ``dtm-train --calibrate`` gives with its defaults
 (CBGA structure, a 40 s training).
 Reported: labelled fraction after the first 0.5 s, accuracy (all labelled frames, and those after the
-first 0.5 s, where the start-up search has joined) and ghost rejection of the labelled frames, latency. ``--before-src DIR`` runs every case also with the node of another source tree
+first 0.5 s, where the start-up search has joined; per second, and per 0.1 s over the first second) and ghost
+rejection of the labelled frames, latency, and the node's own split of it (labelling, overhead, receive -> published p99). ``--before-src DIR`` runs every case also with the node of another source tree
 (e.g. ``git archive <rev> | tar -x -C DIR``), side by side in the same run and on the same bags.
 
 Writes results/node_latency.json and results/node_latency.md; prints the table.
@@ -162,6 +163,7 @@ def run_once(mon, bag: Path, env: dict, n_frames: int, rate: float) -> dict:
         scored = np.array(mon.scorer.per_frame[i_scored:], dtype=np.int64).reshape(-1, 3)
     warm = scored[scored[:, 0] >= t0 + int(0.5e9)]
     sec = (scored[:, 0] - t0) // 10 ** 9
+    tenth = (scored[:, 0] - t0) // 10 ** 8
     return dict(rate_hz=rate, sent=sent, received=received, labelled=int(lab.size),
                 labelled_fraction_after_warmup=float((late & done).sum() / max(late.sum(), 1)),
                 accuracy=(s1["correct"] - s0["correct"]) / true if true else float("nan"),
@@ -170,6 +172,10 @@ def run_once(mon, bag: Path, env: dict, n_frames: int, rate: float) -> dict:
                 accuracy_by_second=[round(float(scored[sec == k, 1].sum() / scored[sec == k, 2].sum()), 4)
                                     if scored[sec == k, 2].sum() else None for k in range(int(sec.max()) + 1)]
                 if sec.size else [],
+                # the first second in tenths: how long the start-up search leaves the labels wrong
+                accuracy_first_second_by_100ms=[
+                    round(float(scored[tenth == k, 1].sum() / scored[tenth == k, 2].sum()), 3)
+                    if scored[tenth == k, 2].sum() else None for k in range(10)] if sec.size else [],
                 ghost_rejection=(rejected[1] - rejected[0]) / ghosts if ghosts else float("nan"),
                 node_skipped={k: int(v) - int(d0.get(k, 0)) for k, v in d1.items() if k.startswith("frames_skipped_")},
                 node_resets=sum(int(v) - int(d0.get(k, 0)) for k, v in d1.items()
@@ -186,6 +192,11 @@ def run_once(mon, bag: Path, env: dict, n_frames: int, rate: float) -> dict:
                                           if ((lab - t0) // 10 ** 9 == k).any() else None
                                           for k in range(int((truth.max() - t0) // 10 ** 9) + 1)] if truth.size else [],
                 player_lateness_ms=play["lateness_ms"], node_labeling_p50_ms=float(d1.get("labeling_p50_ms", "nan")),
+                # the node's own split of a frame's time (its last 500 frames): labelling, decode + build
+                # + publish, waiting for the labelling thread, and receive -> published
+                node_ms={k: float(d1.get(k, "nan")) for k in ("labeling_p50_ms", "labeling_p99_ms", "overhead_p50_ms",
+                                                             "overhead_p99_ms", "stall_p99_ms", "latency_p50_ms",
+                                                             "latency_p99_ms")},
                 node_full_searches=int(d1.get("full_searches", 0)))
 
 

@@ -11,7 +11,7 @@ import pytest
 from dtm_labeler.evaluation.metrics import MetricsAccumulator
 from dtm_labeler.labeling.config import LabelerSettings
 from dtm_labeler.labeling.recovery import (DeferredRecovery, InterimReporter, ProcessRecovery, RecoveryRequest,
-                                           RecoveryResult, keep_spare_worker)
+                                           RecoveryResult, build_spare, keep_spare_worker)
 from dtm_labeler.labeling.stream import StreamLabeler
 from dtm_labeler.labeling.tracker import Tracker, TrackerSettings
 from dtm_labeler.motion.synthetic import synthesize
@@ -277,3 +277,52 @@ def test_worker_rebuilds_a_bank_labeler_from_its_spec(model, walker):
     best = max(res.candidates.values(), key=lambda c: c[1])[0]
     pts = inp.keep[best[best < len(inp.keep)]]
     assert np.mean(truth[pts] == np.flatnonzero(best < len(inp.keep))) >= 0.9
+
+
+def test_a_spare_worker_built_ahead_serves_at_once_and_the_next_starts_later(model, walker, monkeypatch):
+    """A node's loader has the spare worker build the labeler while it prepares its own
+    (``build_spare``): the labeler built after over the same model finds its worker ready, with
+    no set-up of its own, and its first search comes back from it. The next spare is started
+    ``RESTOCK_DELAY_S`` after one is taken, not at once (its imports compete with the start of
+    the stream); a labeler over another noise does not take the prepared build."""
+    import dtm_labeler.labeling.recovery as recovery
+    monkeypatch.setattr(recovery, "RESTOCK_DELAY_S", 0.5)
+    keep_spare_worker(True)
+    try:
+        wait = build_spare([model], [""], "StreamLabeler", LabelerSettings(noise_mm=1.0))
+        assert wait is not None and wait(60)
+        spare = recovery._spare
+        assert spare.preset_ready
+        lab = StreamLabeler(model, LabelerSettings(recovery="background", audit_period_s=0, noise_mm=1.0))
+        rec = lab.recovery
+        assert rec._worker is spare and rec.ready and rec._spec_sent      # no set-up of its own
+        assert recovery._spare is None                                   # the next one comes later ...
+        req = _first_request(model, walker)
+        rec.submit(req)
+        deadline = time.monotonic() + 60
+        final = None
+        while final is None:
+            assert time.monotonic() < deadline, rec.failed
+            r = rec.poll()
+            if r is not None and not r.interim:
+                final = r
+            time.sleep(0.005)
+        assert final.request.frame == req.frame and not rec.failed
+        lab.close()
+        deadline = time.monotonic() + 10
+        while recovery._spare is None and time.monotonic() < deadline:    # ... after RESTOCK_DELAY_S
+            time.sleep(0.05)
+        assert recovery._spare is not None and recovery._spare is not spare
+        # another noise: the prepared build is not this labeler's; it sets its worker up itself
+        wait = build_spare([model], [""], "StreamLabeler", LabelerSettings(noise_mm=1.0))
+        assert wait(60)
+        other = StreamLabeler(model, LabelerSettings(recovery="background", audit_period_s=0, noise_mm=3.0))
+        assert not other.recovery.ready
+        deadline = time.monotonic() + 60
+        while not other.recovery.ready and time.monotonic() < deadline:
+            other.recovery.poll()
+            time.sleep(0.02)
+        assert other.recovery.ready and not other.recovery.failed
+        other.close()
+    finally:
+        keep_spare_worker(False)

@@ -202,12 +202,18 @@ class BankLabeler(TrackedLabeler):
     def prepare(bank: ModelBank, bank_settings: BankSettings, noise_mm: float) -> Engine:
         """The bank's engine: every action model, or only ``default_action`` (else the first)
         when ``use_bank`` is off. Slow (see :meth:`Engine.prepare`)."""
-        acts = bank.actions
+        acts = BankLabeler.engine_actions(bank, bank_settings)
+        return Engine.prepare([bank[a] for a in acts], noise_mm, acts)
+
+    @staticmethod
+    def engine_actions(bank: ModelBank, bank_settings: BankSettings) -> list[str]:
+        """The actions whose models :meth:`prepare` puts in the engine."""
+        acts = list(bank.actions)
         if not bank_settings.use_bank:
             one = bank_settings.default_action or acts[0]
             bank[one]                                    # KeyError naming the action if unknown
             acts = [one]
-        return Engine.prepare([bank[a] for a in acts], noise_mm, acts)
+        return acts
 
     # -- set-up ------------------------------------------------------------------------
     def _build(self) -> None:

@@ -7,7 +7,10 @@ the labeler's API is a change here only.
   :func:`~.model_check.check_model_file` has vetted the file.
 * :func:`prepare` (slow, loader thread): the labeler's prepared models
   (:meth:`dtm_labeler.labeling.tracked.Engine.prepare`, :meth:`BankLabeler.prepare`) -- widened by
-  the declared measurement noise, densities built, the kernel compiled; touches no labeler.
+  the declared measurement noise, densities built, the kernel compiled; touches no labeler. The
+  background recovery worker builds its labeler over the same models meanwhile
+  (:func:`~dtm_labeler.labeling.recovery.build_spare`), and a load is done when both are: the
+  first searches of a stream that starts right after it do not wait for that build.
 * :class:`NodeLabeler` (fast to build, worker thread only): a labeler over them, with the calls
   the node makes per frame (:meth:`NodeLabeler.process`, :meth:`NodeLabeler.predicted_position`)
   and between frames (:meth:`NodeLabeler.reset`, :meth:`NodeLabeler.update_settings`,
@@ -26,6 +29,7 @@ import numpy as np
 
 from ..labeling.bank_labeler import BankLabeler, BankSettings
 from ..labeling.config import SPECS, LabelerSettings, settings_equal
+from ..labeling.recovery import build_spare
 from ..labeling.stream import StreamLabeler
 from ..labeling.tracked import Engine
 from ..model.bank import ModelBank, load_bank
@@ -89,15 +93,25 @@ def load(source: Source) -> Any:
 
 def prepare(source: Source, base: Any, noise_mm: float, bank_settings: BankSettings) -> Prepared:
     """The labeler's engine for ``base`` at ``noise_mm``, warmed up (slow, see the module doc)."""
+    settings = LabelerSettings(noise_mm=float(noise_mm))
     if isinstance(base, ModelBank):
+        acts = BankLabeler.engine_actions(base, bank_settings)
+        wait = build_spare([base[a] for a in acts], acts, "BankLabeler", settings, bank_settings)
         engine = BankLabeler.prepare(base, bank_settings, noise_mm)
         first = base[base.actions[0]]
     else:
+        wait = build_spare([base], [""], "StreamLabeler", settings)
         engine, first, bank_settings = Engine.prepare(base, noise_mm), base, None
     prepared = Prepared(source, base, float(noise_mm), engine, bank_settings, tuple(first.labels),
                         tuple(sorted(first.structure.edges())))
     _warm_up(prepared)
+    if wait is not None:                 # the background searches' worker builds the same, beside this
+        wait(SPARE_BUILD_WAIT_S)
     return prepared
+
+
+#: how long :func:`prepare` waits for the recovery worker's own build (then the first searches wait for it)
+SPARE_BUILD_WAIT_S = 20.0
 
 
 #: the throw-away labeler of :func:`_warm_up`: every stage runs, with small searches
