@@ -187,6 +187,17 @@ def test_worker_sends_interim_results_before_the_final_one(model, walker):
     lab.close()
 
 
+def _final_result(rec, timeout: float = 60.0):
+    """The first final (not interim) result ``rec`` returns, polled for up to ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while True:
+        assert time.monotonic() < deadline, rec.failed
+        r = rec.poll()
+        if r is not None and not r.interim:
+            return r
+        time.sleep(0.005)
+
+
 def test_a_request_made_before_the_worker_connects_waits_for_it(model, walker):
     """Right after start-up the worker process is still importing: a request then is not
     searched in the frame (that held a live stream for 70-110 ms) but waits and is sent the
@@ -198,14 +209,7 @@ def test_a_request_made_before_the_worker_connects_waits_for_it(model, walker):
     assert rec._conn is None                                  # still importing
     rec.submit(req)
     assert rec.busy and rec._inline is None and not rec.ready
-    deadline = time.monotonic() + 60
-    final = None
-    while final is None:
-        assert time.monotonic() < deadline, rec.failed
-        r = rec.poll()
-        if r is not None and not r.interim:
-            final = r
-        time.sleep(0.005)
+    final = _final_result(rec)
     assert (final.request.frame, final.request.seed) == (req.frame, req.seed)       # came back from the worker
     assert rec.ready and not rec.busy and not rec.failed
     lab.close()
@@ -299,14 +303,7 @@ def test_a_spare_worker_built_ahead_serves_at_once_and_the_next_starts_later(mod
         assert recovery._spare is None                                   # the next one comes later ...
         req = _first_request(model, walker)
         rec.submit(req)
-        deadline = time.monotonic() + 60
-        final = None
-        while final is None:
-            assert time.monotonic() < deadline, rec.failed
-            r = rec.poll()
-            if r is not None and not r.interim:
-                final = r
-            time.sleep(0.005)
+        final = _final_result(rec)
         assert final.request.frame == req.frame and not rec.failed
         lab.close()
         deadline = time.monotonic() + 10

@@ -313,20 +313,18 @@ def build_spare(models, names, cls: str, settings, bank_settings=None):
         return None
     spec = {"cls": cls, "names": list(names), "models": [model_to_bytes(m) for m in models],
             "settings": replace(settings, recovery="inline"), "bank_settings": bank_settings}
-    w.preset, w.preset_ready, sent = spec, False, [False]
+    w.preset, w.preset_ready = spec, False
 
     def wait(timeout: float) -> bool:
         deadline = time.monotonic() + timeout
         while w.conn is None and w.alive() and time.monotonic() < deadline:
             time.sleep(0.01)
         with w._lock:
-            if w.conn is None or not sent[0] and w.on_connect is not None:
+            if w.conn is None or w.on_connect is not None:
                 w.preset = None                     # not connected in time, or taken: a normal set-up
                 return False
             try:
-                if not sent[0]:
-                    w.conn.send(("setup", spec))
-                    sent[0] = True
+                w.conn.send(("setup", spec))
                 while time.monotonic() < deadline and w.conn.poll(max(deadline - time.monotonic(), 0.0)):
                     kind, payload = w.conn.recv()
                     if kind == "ready":
@@ -344,8 +342,7 @@ def build_spare(models, names, cls: str, settings, bank_settings=None):
 def _same_build(a: dict, b: dict) -> bool:
     """Two worker specs build the same labeler up to its settings (class, names, model files,
     noise)."""
-    return (a["cls"] == b["cls"] and list(a["names"]) == list(b["names"]) and len(a["models"]) == len(b["models"])
-            and all(x == y for x, y in zip(a["models"], b["models"]))
+    return (a["cls"] == b["cls"] and a["names"] == b["names"] and a["models"] == b["models"]
             and a["settings"].noise_mm == b["settings"].noise_mm)
 
 
@@ -398,11 +395,7 @@ class ProcessRecovery(Recovery):
         pre = self._worker.preset
         if pre is not None and _same_build(pre, self._spec):       # built ahead (:func:`build_spare`)
             self._spec_sent, self.ready = True, self._worker.preset_ready
-            if self._worker.conn is not None:
-                try:
-                    self._worker.conn.send(("settings", (self._spec["settings"], self._spec["bank_settings"])))
-                except (OSError, EOFError) as e:
-                    self._fail(e)
+            self._send_settings(self._conn)
         self._worker.on_connect = self._ready
         if self._worker.conn is not None:
             self._ready()                       # the worker builds its labeler now, before any request
@@ -443,12 +436,16 @@ class ProcessRecovery(Recovery):
         else:
             self._spec = dict(self._spec, settings=labeler.settings,
                               bank_settings=getattr(labeler, "bank_settings", None))
-            conn = self._ready() if self._spec_sent else None
-            if conn is not None:
-                try:
-                    conn.send(("settings", (labeler.settings, self._spec["bank_settings"])))
-                except (OSError, EOFError) as e:
-                    self._fail(e)
+            self._send_settings(self._ready() if self._spec_sent else None)
+
+    def _send_settings(self, conn: Connection | None) -> None:
+        """The spec's settings to a worker that has (or is building) the labeler."""
+        if conn is None:
+            return
+        try:
+            conn.send(("settings", (self._spec["settings"], self._spec["bank_settings"])))
+        except (OSError, EOFError) as e:
+            self._fail(e)
 
     @property
     def busy(self) -> bool:
