@@ -87,9 +87,14 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--dask", default=None, metavar="ADDRESS",
                    help="run the takes on a dask.distributed cluster: a scheduler address (tcp://host:8786) or "
                         "'local' (a LocalCluster of --jobs workers started for this run)")
-    p.add_argument("--calibrate", default=None, metavar="A:B",
-                   help="calibrate the model's body terms to each take on its frames A:B (as dtm-calibrate) and "
-                        "label and score only the frames after B")
+    p.add_argument("--calibrate", default="auto", metavar="auto|off|A:B",
+                   help="subject calibration of a model whose body is generic (not yet calibrated to a person): "
+                        "'auto' (default) self-calibrates it on each take's first 5 s (at most a third of the "
+                        "take; the model's own confirmed labels, the take's names unused) and keeps the "
+                        "calibration when the calibrated model keeps the labels it was measured on, then labels "
+                        "every frame (the JSON's 'calibration' says what was done); 'off': the model as it is; "
+                        "A:B: calibrate on frames A:B (as dtm-calibrate) and label and score only the frames "
+                        "after B")
     p.add_argument("--calibrate-labels", choices=("model", "capture"), default="model",
                    help="labels of the calibration frames: the model's own, confirmed by its votes (the take's "
                         "labels are not used), or the take's (an operator-labelled calibration)")
@@ -218,7 +223,21 @@ def _main(argv=None) -> int:
             print(f"live labels    {_pct(live)} right as published live (votes over past frames only); "
                   f"the figures above vote over +-{out['take_votes_s']:g} s (--take-votes)"
                   + (f", {_pct(voted)} before the take pass" if voted is not None else ""))
+        for r in runs:
+            if r.calibration is not None:
+                print(f"calibration    {_calibration_line(r.calibration)}"
+                      + (f" ({Path(r.source).name})" if len(runs) > 1 else ""))
     return 1 if failed else 0
+
+
+def _calibration_line(c: dict) -> str:
+    """One line on a take's subject calibration (``--calibrate``)."""
+    if c.get("applied", True) is False:
+        return f"not applied: {c.get('reason', '')}"
+    frames = c.get("frames")
+    where = f"frames {frames[0]}:{frames[1]}" if isinstance(frames, list) else f"the first {frames} frames"
+    kept = f", {100 * c['kept_share']:.0f} % of the model's confirmed labels kept" if "kept_share" in c else ""
+    return f"{c.get('segments', 0)} of {c.get('segments_total', 0)} segment lengths set on {where}{kept}"
 
 
 def _live_accuracy(runs: list, stage: str = "causal") -> float | None:
@@ -353,9 +372,10 @@ def _report(args, settings, out: dict, runs: list, input_keys: list[str]) -> boo
 
 
 def _bank_main(args, settings, bank_settings) -> int:
-    if args.out or args.jobs != 1 or args.dask or args.calibrate:
+    if args.out or args.jobs != 1 or args.dask or args.calibrate not in ("auto", "off"):
         raise CliError("--bank labels takes one after the other and writes no labelled capture "
-                       "(--out, --jobs, --dask, --calibrate are for a single model)")
+                       "(--out, --jobs, --dask, --calibrate A:B are for a single model; a bank is not "
+                       "calibrated: calibrate its models with dtm-calibrate)")
     try:
         bank = load_bank(args.bank)
     except (BankFileError, OSError) as e:

@@ -65,10 +65,18 @@ class LabelJob:
     out: str | None = None             # labelled capture to write (.c3d / .csv)
     keep_records: bool = False         # return every frame (per-point CSV)
     load: dict = field(default_factory=dict)   # load_clip keywords: up_axis, unit_scale, asf_path
-    calibrate: str | None = None       # frames A:B of the take to calibrate the body terms on; label after B
+    calibrate: str | None = None       # frames A:B of the take to calibrate the body terms on, label after B;
+                                       # "auto": self-calibrate on the take's start, label all; None / "off"
     calibrate_labels: str = "model"    # labels of those frames: "model" (self-labelled) or "capture"
     take_votes_s: float = 0.0          # votes again over +- this many seconds around each frame (0: as live)
     take_pass: bool = True             # with take votes: each frame searched again at the take's heading
+
+
+#: ``LabelJob.calibrate`` values: self-calibrate a generic body on each take's first
+#: ``AUTO_CALIBRATION_S`` seconds (at most a third of it) and keep it when it holds up
+#: (:func:`~dtm_labeler.training.calibrate.auto_calibrate`), or label with the model as it is
+AUTO, OFF = "auto", "off"
+AUTO_CALIBRATION_S = 5.0
 
 
 @dataclass
@@ -141,7 +149,8 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
         clip = load_clip(job.source, **job.load)
         a, b = frame_range(job.frames, clip.n_frames)
         clip = clip.slice(a, b)
-        if job.calibrate:
+        auto = job.calibrate == AUTO
+        if job.calibrate and not auto and job.calibrate != OFF:
             model, clip, res.calibration, skip = calibrated(model, clip, job.calibrate, job.calibrate_labels, a)
             a += skip
         mi = model_input(clip, model.labels, job.keep_unlabelled, job.ignore_names)
@@ -149,7 +158,9 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
                              noise_mm=job.noise_mm, seed=job.seed, progress=progress, use_ids=job.use_ids,
                              gap_frames=job.gap_frames, keep_records=job.keep_records or job.out is not None,
                              extra=mi.extra, named=mi.named, take_votes_s=job.take_votes_s,
-                             take_pass=job.take_pass)
+                             take_pass=job.take_pass, calibrate_s=AUTO_CALIBRATION_S if auto else 0.0)
+        if auto:
+            res.calibration = run.settings["calibration"]
         if job.out:
             cap = from_records(run.records, model.labels, clip.n_frames, CaptureFormat.of(clip, a))
             res.out = str(cap.write(job.out))

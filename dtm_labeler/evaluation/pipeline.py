@@ -33,6 +33,7 @@ from ..labeling.take_votes import take_votes
 from ..model.dtm import TriangulatedModel
 from ..motion.clip import MotionClip
 from ..motion.pointsets import model_points
+from ..training.calibrate import auto_calibrate
 
 Progress = Callable[[int, int], None]
 
@@ -194,14 +195,25 @@ def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: Labeler
                    progress: Progress | None = None, use_ids: bool = False, gap_frames: float = 1.0,
                    keep_records: bool = True, done: int = 0, total: int | None = None,
                    extra: np.ndarray | None = None, named: bool = True, take_votes_s: float = 0.0,
-                   take_pass: bool = False) -> ClipRun:
+                   take_pass: bool = False, calibrate_s: float = 0.0) -> ClipRun:
     """:func:`label_clip` returning the full :class:`ClipRun`; ``extra`` (F, K, 3): the take's
-    unlabelled points; ``named=False``: ``clip`` holds no truth (labelled, not scored)."""
+    unlabelled points; ``named=False``: ``clip`` holds no truth (labelled, not scored).
+    ``calibrate_s`` > 0: a generic body is first self-calibrated on the stream's first
+    ``calibrate_s`` seconds (at most a third of it; the points as the labeler gets them, no
+    label used) and kept when it holds up (:func:`~dtm_labeler.training.calibrate.auto_calibrate`);
+    every frame is then labelled; ``settings["calibration"]`` says what was done."""
     mc = clip if not named else model_clip(model, clip)
     stream = corrupt_clip(mc, occlude=occlude, clutter=clutter, noise_mm=noise_mm, seed=seed,
                           gap_frames=gap_frames, extra=extra)
-    return run_stream(model, stream, settings, use_ids=use_ids, keep_records=keep_records, progress=progress,
-                      done=done, total=total, scored=named, take_votes_s=take_votes_s, take_pass=take_pass)
+    calibration = None
+    if calibrate_s > 0:
+        window = int(min(round(calibrate_s * stream.rate), len(stream) // 3))
+        model, calibration = auto_calibrate(model, [stream[i].xyz for i in range(window)], stream.rate)
+    run = run_stream(model, stream, settings, use_ids=use_ids, keep_records=keep_records, progress=progress,
+                     done=done, total=total, scored=named, take_votes_s=take_votes_s, take_pass=take_pass)
+    if calibration is not None:
+        run.settings["calibration"] = calibration
+    return run
 
 
 def label_clips(model: TriangulatedModel, clips: Sequence[MotionClip], settings: LabelerSettings | None = None,
