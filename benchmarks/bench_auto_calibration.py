@@ -1,0 +1,89 @@
+#!/usr/bin/env python
+"""dtm-label's default subject calibration (``--calibrate auto``) on the generalisation cells.
+
+For every case of ``dtm-eval``'s generalisation section (models trained as there, with the
+generic body ``dtm-train`` makes), the test take's start -- its calibration window (the first
+5 s, at most a third of the take) and the 360 (41 markers) or 480 frames after it -- is
+labelled in stream mode as ``dtm-label`` feeds it (labels stripped, points shuffled), once with
+the model as it is (``--calibrate off``) and once with the default: the generic body
+self-calibrated on the window's clouds and kept when the calibrated model keeps >= 90 % of the
+labels the model confirmed there (:func:`dtm_labeler.training.calibrate.auto_calibrate`).
+Accuracy over every frame of the window and after it (the labels as published live: no take
+votes). Writes results/auto_calibration.{json,md}.
+
+    .venv/bin/python benchmarks/bench_auto_calibration.py [--cases loso_5,loso_9]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get("DTM_DATA_DIR", REPO.parent / "shared" / "data"))
+RESULTS = REPO / "results"
+
+from dtm_labeler.evaluation import generalisation as G  # noqa: E402
+from dtm_labeler.evaluation.archive import AUTO_CALIBRATION_S  # noqa: E402
+from dtm_labeler.evaluation.pipeline import label_clip_run  # noqa: E402
+from dtm_labeler.labeling.stream import LabelerSettings  # noqa: E402
+
+
+def run_case(case: G.Case) -> dict:
+    train, test = G.case_clips(DATA, case)
+    model, _ = G.train_case_model(train, G.train_config(case, "body", 0))
+    window = G.calibration_frames(test, AUTO_CALIBRATION_S)
+    n = window + (360 if case.points != "body14" else 480)
+    clip = test.slice(0, n)
+    off = label_clip_run(model, clip, LabelerSettings(seed=0), seed=0, keep_records=False)
+    auto = label_clip_run(model, clip, LabelerSettings(seed=0), seed=0, keep_records=False,
+                          calibrate_s=AUTO_CALIBRATION_S)
+    return dict(group=case.group, title=case.title, frames=n, window=window, off=off.metrics.accuracy,
+                auto=auto.metrics.accuracy, calibration=auto.settings["calibration"])
+
+
+def write_md(res: dict, meta: dict) -> str:
+    L = ["# dtm-label's default subject calibration (`--calibrate auto`)", "",
+         f"{meta['when']}, commit {meta['commit']}, 2 cores. {__doc__.split(chr(10) + chr(10))[1]}", "",
+         "| group | case | frames (window) | off % | auto % | calibration | kept % |",
+         "|---|---|---:|---:|---:|---|---:|"]
+    for r in res.values():
+        c = r["calibration"]
+        L.append(f"| {r['group']} | {r['title']} | {r['frames']} ({r['window']}) | {100 * r['off']:.2f} | "
+                 f"{100 * r['auto']:.2f} | {'applied' if c['applied'] else 'not applied'} | "
+                 f"{100 * c['kept_share']:.1f} |" if 'kept_share' in c else
+                 f"| {r['group']} | {r['title']} | {r['frames']} ({r['window']}) | {100 * r['off']:.2f} | "
+                 f"{100 * r['auto']:.2f} | not applied: {c.get('reason', '')} | - |")
+    return "\n".join(L) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--cases", default=",".join(c.key for c in G.CASES))
+    args = ap.parse_args(argv)
+    keys = args.cases.split(",")
+    res = {}
+    for case in (c for c in G.CASES if c.key in keys):
+        t = time.perf_counter()
+        res[case.key] = r = run_case(case)
+        print(f"{case.key}: {100 * r['off']:.2f} -> {100 * r['auto']:.2f} % "
+              f"({'applied' if r['calibration']['applied'] else 'not applied'}, "
+              f"kept {r['calibration'].get('kept_share', float('nan')):.3f}; {time.perf_counter() - t:.0f} s)",
+              flush=True)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
+                            text=True).stdout.strip()
+    meta = {"when": time.strftime("%Y-%m-%d %H:%M"), "commit": commit}
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "auto_calibration.json").write_text(json.dumps({"meta": meta, "cases": res}, indent=1))
+    (RESULTS / "auto_calibration.md").write_text(write_md(res, meta))
+    print(write_md(res, meta))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
