@@ -119,6 +119,29 @@ def test_calibrate_service_swaps_in_the_subjects_body(running):
     cl.wait_diag(lambda d: d["calibration"] == "none" and d["model_status"] == "loaded")
 
 
+def test_auto_calibration_self_calibrates_the_generic_body_from_the_stream(running):
+    """auto_calibrate: a window that keeps the frames' points opens on the generic body; when
+    it is full, a spawned process self-calibrates the model on them (the check that the
+    calibrated model keeps the labels it was measured on included) and the worker swaps the
+    result in without a reset; turned off, a reload opens no window."""
+    from std_srvs.srv import Trigger
+    proc, cl, feed, wm = running
+    d0 = cl.wait_diag(lambda d: d["model_status"] == "loaded" and d["calibration"] == "none")
+    assert all(r.successful for r in cl.set(calibration_s=0.5, auto_calibrate=True))
+    cl.wait_diag(lambda d: d["calibration"].startswith("auto: collecting"), 5, "the auto window")
+    assert cl.run_frames(feed, 70) > 0.95                             # 0.58 s of stream at 120 Hz
+    d = cl.wait_diag(lambda d: d["calibration"].startswith(("calibrated", "failed")), 60, "the auto calibration")
+    assert re.search(r"calibrated \(auto\) on \d+ frames: [1-9]\d* of \d+ segments, scale [\d.]+, "
+                     r"(9\d|100) % of the confirmed labels kept", d["calibration"]), d["calibration"]
+    assert d["resets_model_reload"] == d0["resets_model_reload"]       # tracks kept
+    assert cl.run_frames(feed, 15) > 0.95
+    assert all(r.successful for r in cl.set(auto_calibrate=False))
+    assert cl.call(Trigger, "reload").success
+    cl.wait_diag(lambda d: d["calibration"] == "none" and d["model_status"] == "loaded")
+    assert cl.run_frames(feed, 15) > 0.95
+    assert cl.wait_diag(lambda d: True)["calibration"] == "none"
+
+
 def test_reload_to_a_new_path(running):
     proc, cl, feed, wm = running
     resets = int(cl.wait_diag(lambda d: True)["resets_model_reload"])

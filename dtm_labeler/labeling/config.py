@@ -297,6 +297,12 @@ PARAMS: Tuple[Param, ...] = (
           "lengths, reach scale; training/calibrate.py), then the calibrated model replaces the "
           "running one without a reset. Any motion; the model must have body terms.", "node",
           range=(0.5, 120.0)),
+    Param("auto_calibrate", False, "Self-calibrate a generic body (not yet calibrated to a person) on "
+          "the first calibration_s seconds of stream after each model load, as dtm-label does by default: "
+          "the model's own confirmed labels set the segment lengths (in a process of its own, at background "
+          "priority), and the calibrated model replaces the running one without a reset only when it keeps "
+          ">= 90 % of those labels on the same frames (training/calibrate.py auto_calibrate); /diagnostics "
+          "'calibration' says what was done.", "node"),
     Param("latency_window", 500, "Frames over which the latency percentiles in /diagnostics are "
           "computed.", "node", range=(1, 1000000)),
 )

@@ -12,6 +12,11 @@ the calibrated model (:func:`~dtm_labeler.training.calibrate.calibrate`: medians
 and the worker swaps it in between two frames, keeping tracks and votes, like a new
 ``noise_mm``. Nothing here runs a search: collecting costs one (M, 3) copy per frame.
 
+The node's ``auto_calibrate`` opens a window with ``keep_clouds`` after each model load: it
+also keeps each frame's points (an (n, 3) copy), on which the loader has
+:func:`~dtm_labeler.training.calibrate.auto_calibrate` self-calibrate the model in a process
+of its own and keep the result only when it holds up, as ``dtm-label`` does by default.
+
 Pure numpy, no ROS: tested without a node.
 """
 from __future__ import annotations
@@ -33,11 +38,14 @@ MIN_CONFIDENCE = CONFIRMED
 class CalibrationWindow:
     """Confirmed labels of ``seconds`` of stream (module doc); ``status`` says where it is."""
 
-    def __init__(self, seconds: float, labels: Sequence[str], min_confidence: float = MIN_CONFIDENCE):
+    def __init__(self, seconds: float, labels: Sequence[str], min_confidence: float = MIN_CONFIDENCE,
+                 keep_clouds: bool = False):
         if seconds <= 0 or len(labels) < 1:
             raise ValueError("a calibration window needs a positive length and at least one label")
         self.seconds, self.labels, self.min_confidence = float(seconds), tuple(labels), float(min_confidence)
         self.n_labels = len(self.labels)
+        self.keep_clouds = bool(keep_clouds)     # the auto calibration: the frames' points too
+        self.clouds: list[np.ndarray] = []
         self._frames: list[np.ndarray] = []
         self._t0: Optional[float] = None
         self._last = 0.0
@@ -58,9 +66,11 @@ class CalibrationWindow:
         if self._t0 is None:
             self._t0 = stamp
         if stamp < self._t0:                     # the time base went back (a reset): start again
-            self._frames, self._t0 = [], stamp
+            self._frames, self.clouds, self._t0 = [], [], stamp
         self._last = stamp
         self._frames.append(confirmed_positions(labels, confidence, xyz, self.n_labels, self.min_confidence))
+        if self.keep_clouds:
+            self.clouds.append(np.array(xyz, dtype=np.float64))
         if stamp - self._t0 >= self.seconds:
             rate = (len(self._frames) - 1) / (stamp - self._t0)
             return MotionClip(np.stack(self._frames), rate, self.labels, source="live stream (~/calibrate)")

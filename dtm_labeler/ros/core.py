@@ -32,6 +32,8 @@ from rclpy.parameter import Parameter
 
 from ..labeling.bank_labeler import bank_settings_from_params
 from ..labeling.recovery import keep_spare_worker
+from ..model.dtm import TriangulatedModel
+from ..training.calibrate import calibratable
 from . import params as P
 from .calibration import CalibrationWindow
 from .diagnostics import DiagnosticsBuilder, NodeState, NodeStats
@@ -212,6 +214,8 @@ class LabelerCore:
             return
         if result.request.reload:
             self._set_model(calibration="none")
+        if result.request.reload or change == "new":
+            self._open_auto_window(p)
         self.handler.clear()
         if replaced:
             self._note_reset(f"model {'reload' if result.request.reload else 'rebuilt'} ({result.request.why})")
@@ -222,8 +226,10 @@ class LabelerCore:
                           f"{result.seconds * 1e3:.0f} ms off the labeling thread)")
 
     def _calibration_applied(self, c: dict) -> None:
-        text = (f"calibrated on {c.get('frames', 0)} frames: {c.get('segments', 0)} of "
-                f"{c.get('segments_total', 0)} segments, scale {c.get('scale', 1.0):.3f}")
+        auto = "kept_share" in c
+        text = (f"calibrated{' (auto)' if auto else ''} on {c.get('frames', 0)} frames: {c.get('segments', 0)} of "
+                f"{c.get('segments_total', 0)} segments, scale {c.get('scale', 1.0):.3f}"
+                + (f", {100 * c['kept_share']:.0f} % of the confirmed labels kept" if auto else ""))
         self._set_model(calibration=text)
         self.log.info(f"subject calibration applied ({text}); tracks kept")
 
@@ -318,6 +324,13 @@ class LabelerCore:
             self._make_timer()
         if old["latency_window"] != values["latency_window"]:
             self.handler.resize(values["latency_window"])
+        if values["auto_calibrate"] != old["auto_calibrate"]:
+            window = self.handler.calibration
+            if not values["auto_calibrate"] and window is not None and window.keep_clouds:
+                self.handler.calibration = None              # an auto window still collecting: closed
+                self._set_model(calibration="none")
+            elif values["auto_calibrate"] and window is None and self.model["calibration"] == "none":
+                self._open_auto_window()
         if (old["max_gap_s"], old["stamp_source"]) != (values["max_gap_s"], values["stamp_source"]):
             with self._input_lock:
                 self.guard.configure(values["max_gap_s"], values["stamp_source"])
@@ -547,12 +560,24 @@ class LabelerCore:
                             "'calibration' says when the calibrated model runs")
         return response
 
-    def _calibration_collected(self, frames) -> None:
-        """Worker thread: the window is full (a clip of its confirmed labels); the loader
-        calibrates and the worker swaps."""
-        self._set_model(calibration=f"calibrating on {frames.n_frames} frames")
+    def _calibration_collected(self, frames, clouds=None) -> None:
+        """Worker thread: the window is full (a clip of its confirmed labels; with ``clouds``,
+        the auto calibration's window); the loader calibrates and the worker swaps."""
+        auto = clouds is not None
+        self._set_model(calibration=f"calibrating{' (auto)' if auto else ''} on {frames.n_frames} frames")
         self.loader.request(self.source(), self.settings.labeler.noise_mm, self.settings.bank,
-                            why="calibration", calibration=frames)
+                            why="auto calibration" if auto else "calibration", calibration=frames, clouds=clouds)
+
+    def _open_auto_window(self, prepared=None) -> None:
+        """``auto_calibrate``: a window that keeps its clouds, opened on a freshly loaded generic
+        body (not a bank, not a model already calibrated to a person)."""
+        p = prepared if prepared is not None else (self.worker.engine.prepared if self.worker.engine else None)
+        if not self.values["auto_calibrate"] or p is None or self.values["use_bank"] \
+                or not isinstance(p.base, TriangulatedModel) or not calibratable(p.base):
+            return
+        window = CalibrationWindow(self.values["calibration_s"], p.labels, keep_clouds=True)
+        self.handler.calibration = window
+        self._set_model(calibration=f"auto: {window.status}")
 
     # ------------------------------------------------------------------ diagnostics
     def state(self) -> NodeState:
@@ -566,7 +591,8 @@ class LabelerCore:
         return NodeState(
             name=self.node.get_name(), hardware_id=self.node.get_fully_qualified_name(), model_status=m["status"],
             model_path=m["path"], model_error=m["error"], labels=tuple(m["labels"]),
-            calibration=(h.calibration.status if h.calibration is not None else m["calibration"]),
+            calibration=((("auto: " if h.calibration.keep_clouds else "") + h.calibration.status)
+                         if h.calibration is not None else m["calibration"]),
             active_model=(engine.active_model if engine else "") or v["model_name"],
             actions=engine.actions if engine else (), active=self.active, input_error=self.input_error,
             recovery_error=engine.recovery_failed if engine else "",

@@ -14,6 +14,7 @@ superseded by a newer one (a parameter set in the same instant: call ``~/calibra
 """
 from __future__ import annotations
 
+import multiprocessing
 import threading
 import time
 from dataclasses import dataclass, field
@@ -21,7 +22,8 @@ from typing import Any, Callable, Optional
 
 from ..labeling.bank_labeler import BankSettings
 from ..model.bank import ModelBank
-from ..training.calibrate import calibrate
+from ..model.io import model_from_bytes, model_to_bytes
+from ..training.calibrate import auto_calibration_process, calibrate
 from .engine import Prepared, Source, load, prepare
 
 __all__ = ["LoadRequest", "LoadResult", "EngineLoader"]
@@ -36,6 +38,7 @@ class LoadRequest:
     generation: int = 0
     why: str = ""
     calibration: Optional[Any] = None    # a clip of confirmed labels: calibrate the loaded model to them
+    clouds: Optional[tuple] = None       # with it, the window's points: the auto calibration (module doc)
 
 
 @dataclass(frozen=True)
@@ -69,7 +72,7 @@ class EngineLoader:
         return self._generation
 
     def request(self, source: Source, noise_mm: float, bank_settings: BankSettings, reload: bool = False,
-                why: str = "", calibration: Optional[Any] = None) -> int:
+                why: str = "", calibration: Optional[Any] = None, clouds: Optional[tuple] = None) -> int:
         """Queue a request (replacing any waiting one); returns its generation. ``calibration``:
         a clip of confirmed labels to calibrate the loaded model's body terms to (``why``
         should say so); the calibrated model then serves every later request of the same
@@ -77,7 +80,7 @@ class EngineLoader:
         with self._cond:
             self._generation += 1
             self._pending = LoadRequest(source, float(noise_mm), bank_settings, reload, self._generation, why,
-                                        calibration)
+                                        calibration, None if clouds is None else tuple(clouds))
             self._cond.notify_all()
             return self._generation
 
@@ -179,11 +182,42 @@ class EngineLoader:
             raise ValueError("the model changed while calibrating; call ~/calibrate again")
         if isinstance(cached[1], ModelBank):
             raise ValueError("a bank cannot be calibrated (calibrate its models with dtm-calibrate)")
-        base = calibrate(cached[1], req.calibration)
-        if self._superseded(req):
+        base = (calibrate(cached[1], req.calibration) if req.clouds is None
+                else self._auto_calibrated(cached[1], req))
+        if base is _DROPPED or self._superseded(req):
             return _DROPPED
         self._calibrated = (req.source, base)
         return prepare(req.source, base, req.noise_mm, req.bank_settings)
+
+
+    def _auto_calibrated(self, model: Any, req: LoadRequest) -> Any:
+        """``model`` self-calibrated on the window's clouds by
+        :func:`~dtm_labeler.training.calibrate.auto_calibrate` in a spawned process at background
+        priority (seconds of Python that would hold the labelling thread's GIL here); dropped
+        (the process ended) when a newer request supersedes it; ValueError when not applied."""
+        ctx = multiprocessing.get_context("spawn")
+        parent, child = ctx.Pipe(duplex=False)
+        proc = ctx.Process(target=auto_calibration_process, name="dtm_labeler_calibration", daemon=True,
+                           args=(child, model_to_bytes(model), list(req.clouds), float(req.calibration.rate)))
+        proc.start()
+        child.close()
+        try:
+            while not parent.poll(0.05):
+                if self._superseded(req):
+                    return _DROPPED
+                if not proc.is_alive():
+                    raise ValueError("the calibration process ended without a result")
+            data, summary = parent.recv()
+        finally:
+            if proc.is_alive():
+                proc.terminate()
+            proc.join(1.0)
+            parent.close()
+        if data is None:
+            raise ValueError(f"auto calibration not applied: {summary.get('reason', '')}")
+        out = model_from_bytes(data, "calibrated model")
+        out.provenance["calibration"] = dict(out.provenance.get("calibration", {}), frames=summary["frames"])
+        return out
 
 
 _DROPPED = object()

@@ -80,7 +80,8 @@ class FrameHandler:
         self.stall = collections.deque(maxlen=500)      # frame ready -> its labelling starts, ms
         self._t_done = 0.0                              # perf_counter() when the last frame was done
         self.calibration: Optional[CalibrationWindow] = None     # open ~/calibrate window (worker thread)
-        self.on_calibration: Callable[[np.ndarray], None] = lambda positions: None
+        # (clip of confirmed labels, the window's clouds or None): the window is full
+        self.on_calibration: Callable[[Any, Optional[list]], None] = lambda positions, clouds: None
 
     def clear(self) -> None:
         """Forget per-stream state (a model change, a reset)."""
@@ -168,7 +169,7 @@ class FrameHandler:
         positions = window.add(stamp, labels, conf, xyz) if window is not None else None
         if positions is not None:
             self.calibration = None
-            self.on_calibration(positions)
+            self.on_calibration(positions, window.clouds if window.keep_clouds else None)
 
     def _publish(self, frame: LabelledFrame, f: Frame, engine: NodeLabeler, v: Dict[str, Any]) -> None:
         out = self.outputs

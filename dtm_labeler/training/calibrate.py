@@ -414,6 +414,35 @@ def auto_calibrate(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.n
     return calibrated, summary
 
 
+def auto_calibrate_bytes(model_bytes: bytes, clouds: Sequence[np.ndarray], rate: float
+                         ) -> tuple[bytes | None, dict]:
+    """:func:`auto_calibrate` on a model file's bytes, for a process of its own (the node runs
+    it away from its labelling thread): the calibrated model's file bytes (None when not
+    applied) and the summary."""
+    from ..model.io import model_from_bytes, model_to_bytes
+    model = model_from_bytes(model_bytes)
+    out, summary = auto_calibrate(model, clouds, rate)
+    return (model_to_bytes(out) if summary["applied"] else None), summary
+
+
+def auto_calibration_process(conn, model_bytes: bytes, clouds: Sequence[np.ndarray], rate: float,
+                             nice: int = 10) -> None:
+    """Entry point of a process of its own (``multiprocessing``, spawned): at background
+    priority, :func:`auto_calibrate_bytes` and its result sent on ``conn`` (an error as
+    ``(None, {"applied": False, "reason": ...})``)."""
+    import os
+    try:
+        os.nice(nice)
+    except OSError:
+        pass
+    try:
+        result = auto_calibrate_bytes(model_bytes, clouds, rate)
+    except Exception as e:      # anything: the node keeps its model and says why
+        result = (None, {"applied": False, "reason": f"{type(e).__name__}: {e}"})
+    conn.send(result)
+    conn.close()
+
+
 LABEL_SOURCES = ("auto", "model", "capture")
 
 
@@ -451,5 +480,5 @@ def calibrate_from_clip(model: TriangulatedModel, clip: MotionClip, labels: str 
     return out, dict(out.provenance["calibration"])
 
 
-__all__ = ["LABEL_SOURCES", "auto_calibrate", "calibratable", "kept_share", "calibrate_from_clip", "calibrate_on_takes", "confirmed_positions", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "mirror_rows", "wrong_side", "self_label",
+__all__ = ["LABEL_SOURCES", "auto_calibrate", "auto_calibrate_bytes", "auto_calibration_process", "calibratable", "kept_share", "calibrate_from_clip", "calibrate_on_takes", "confirmed_positions", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "mirror_rows", "wrong_side", "self_label",
            "self_calibrate", "labelled_positions"]
