@@ -71,6 +71,15 @@ CASES = {
     # the faster greedy one; on this stream it limits the labels, 96 % against 99.5 % inline)
     "flicker41cbga": dict(path=HDM05, points="all", train="0:70%", test="70%:100%", rates=(120.0,), ramp=False,
                           corrupt=dict(occlude=3, clutter=2, gap_frames=1.0), calibrate=True, structure="cbga"),
+    # another person: subject 55's lambada under a model of subjects 5, 7 and 9 (as dtm-eval's
+    # leave-one-subject-out cell), 2 flickering + 2 ghosts; run it with and without
+    # --param auto_calibrate:=true (the node's self-calibration on its first calibration_s)
+    "lambada14": dict(path="cmu_skeletal/asf_amc/cmu_55_02_lambada-dance_s55.amc", points="body14",
+                      train_paths=["cmu_skeletal/bvh_from_fbx/cmu_07_01_walk_s07.bvh",
+                                   "cmu_skeletal/bvh_from_fbx/cmu_09_11_run_s09.bvh",
+                                   "cmu_skeletal/asf_amc/cmu_s05_pirouette-dance.amc"],
+                      train="0:100%", test="0:100%", seconds=15.0, rates=(120.0,), ramp=False,
+                      corrupt=dict(occlude=2, clutter=2, gap_frames=1.0), structure="given"),
 }
 
 
@@ -89,13 +98,15 @@ def model_for(case: dict, work: Path, structure: str) -> tuple[Path, object]:
     path = cache_dir() / f"bench_model_{hashlib.sha1(key.encode()).hexdigest()[:12]}.npz"
     if not path.is_file():
         t = time.perf_counter()
-        clip = load_inputs([str(DATA / case["path"])], case["points"], case["train"])[0]
-        model, _ = train_model([clip], TrainConfig(structure=structure, seed=0))
+        clips = load_inputs([str(DATA / p) for p in case.get("train_paths", [case["path"]])], case["points"],
+                            case["train"])
+        model, _ = train_model(clips, TrainConfig(structure=structure, seed=0))
         if case.get("calibrate"):        # dtm-train --calibrate: the body terms of the training take's person
             from dtm_labeler.training.calibrate import calibrate_on_takes
-            model = calibrate_on_takes(model, [clip])
+            model = calibrate_on_takes(model, clips)
         save_model(model, path)
-        print(f"  trained {path.name} on {clip.n_frames} frames in {time.perf_counter() - t:.1f} s", flush=True)
+        print(f"  trained {path.name} on {sum(c.n_frames for c in clips)} frames in "
+              f"{time.perf_counter() - t:.1f} s", flush=True)
     return path, load_model(path)
 
 
@@ -191,6 +202,9 @@ def run_once(mon, bag: Path, env: dict, n_frames: int, rate: float) -> dict:
                 latency_max_by_second_ms=[round(float(lat[(lab - t0) // 10 ** 9 == k].max()), 1)
                                           if ((lab - t0) // 10 ** 9 == k).any() else None
                                           for k in range(int((truth.max() - t0) // 10 ** 9) + 1)] if truth.size else [],
+                # frames sent without a labelled output, per second of the stream: where the skips are
+                skipped_by_second=[int(((truth - t0) // 10 ** 9 == k)[~done].sum())
+                                   for k in range(int((truth.max() - t0) // 10 ** 9) + 1)] if truth.size else [],
                 player_lateness_ms=play["lateness_ms"], node_labeling_p50_ms=float(d1.get("labeling_p50_ms", "nan")),
                 # the node's own split of a frame's time (its last 500 frames): labelling, decode + build
                 # + publish, waiting for the labelling thread, and receive -> published

@@ -299,7 +299,7 @@ PARAMS: Tuple[Param, ...] = (
           range=(0.5, 120.0)),
     Param("auto_calibrate", False, "Self-calibrate a generic body (not yet calibrated to a person) on "
           "the first calibration_s seconds of stream after each model load, as dtm-label does by default: "
-          "the model's own confirmed labels set the segment lengths (in a process of its own, at background "
+          "the model's own confirmed labels set the segment lengths (in a process of its own, at idle "
           "priority), and the calibrated model replaces the running one without a reset only when it keeps "
           ">= 90 % of those labels on the same frames (training/calibrate.py auto_calibrate); /diagnostics "
           "'calibration' says what was done.", "node"),

@@ -120,20 +120,31 @@ _WARM_UP = LabelerSettings(recovery="inline", restarts=0,
                            warm=replace(LabelerSettings().warm, population=8, max_generations=2))
 
 
-_warmed = False
+_warmed: set = set()      # the kinds of engine warmed up in this process (:func:`_engine_kind`)
+
+
+def _engine_kind(prepared: Prepared) -> tuple:
+    """What decides which compiled code a frame runs: a bank or not, and per model whether its
+    body is calibrated (segment, off-edge and handedness factors, the broad component) or
+    generic (reach limits) or absent."""
+    return (prepared.bank_settings is not None,
+            tuple(None if m.body is None else bool(m.body.calibration) for m in prepared.engine.base))
 
 
 def _warm_up(prepared: Prepared) -> None:
-    """Once per process, label a few made-up frames with a throw-away labeler on the prepared
-    engine, off the labeling thread: the first frames of a stream otherwise pay the first
-    calls of the tracker, the fast path, the region checks and the confidences (compiled
-    kernels loaded from disk, first allocations) -- 20-30 ms offline, 50-70 ms in a node
-    sharing its cores, which dropped the 3-7 frames behind them as stale. What is per model
-    (its densities, batched terms, bounds) :meth:`Engine.prepare` has built already."""
-    global _warmed
-    if _warmed:
+    """Once per process and kind of engine (:func:`_engine_kind`), label a few made-up frames
+    with a throw-away labeler on the prepared engine, off the labeling thread: the first frames
+    of a stream otherwise pay the first calls of the tracker, the fast path, the region checks
+    and the confidences (compiled kernels loaded from disk, first allocations) -- 20-30 ms
+    offline, 50-70 ms in a node sharing its cores, which dropped the 3-7 frames behind them as
+    stale. A model calibrated live (``~/calibrate``, ``auto_calibrate``) runs the calibrated
+    body's factors for the first time: unwarmed, its first frame held the stream 235 ms (25
+    frames stale at 120 Hz). What is per model (its densities, batched terms, bounds)
+    :meth:`Engine.prepare` has built already."""
+    kind = _engine_kind(prepared)
+    if kind in _warmed:
         return
-    _warmed = True
+    _warmed.add(kind)
     rng = np.random.default_rng(0)
     xyz = rng.normal(scale=0.4, size=(len(prepared.labels), 3))
     if prepared.bank_settings is not None:
@@ -204,12 +215,16 @@ class NodeLabeler:
         self._lab.reset()
 
     def same_source(self, prepared: Prepared) -> bool:
-        """True when ``prepared`` holds the same models at another noise (tracks can stay)."""
+        """True when ``prepared`` holds the same models at another noise, or the same model
+        calibrated to a person (``~/calibrate``, ``auto_calibrate``): the same labels, so tracks
+        and votes can stay. (A calibrated model was once taken as another model: a new labeler,
+        the tracks dropped, the stream searched from scratch -- 24-30 frames stale at 120 Hz.)"""
         p = self.prepared
-        return p.base is prepared.base and (p.bank_settings is None) == (prepared.bank_settings is None)
+        return p.labels == prepared.labels and (p.bank_settings is None) == (prepared.bank_settings is None)
 
     def swap_models(self, prepared: Prepared) -> None:
-        """The same models widened for another noise: fitness levels restart, tracks stay."""
+        """The same models widened for another noise, or calibrated: fitness levels restart,
+        tracks stay."""
         self.prepared = prepared
         self._update(self.settings, prepared.engine)
 

@@ -23,7 +23,7 @@ from typing import Any, Callable, Optional
 from ..labeling.bank_labeler import BankSettings
 from ..model.bank import ModelBank
 from ..model.io import model_from_bytes, model_to_bytes
-from ..training.calibrate import auto_calibration_process, calibrate
+from ..training.calibrate import auto_calibration_process, calibrate, idle_priority
 from .engine import Prepared, Source, load, prepare
 
 __all__ = ["LoadRequest", "LoadResult", "EngineLoader"]
@@ -192,7 +192,7 @@ class EngineLoader:
 
     def _auto_calibrated(self, model: Any, req: LoadRequest) -> Any:
         """``model`` self-calibrated on the window's clouds by
-        :func:`~dtm_labeler.training.calibrate.auto_calibrate` in a spawned process at background
+        :func:`~dtm_labeler.training.calibrate.auto_calibrate` in a spawned process at idle
         priority (seconds of Python that would hold the labelling thread's GIL here); dropped
         (the process ended) when a newer request supersedes it; ValueError when not applied."""
         ctx = multiprocessing.get_context("spawn")
@@ -200,6 +200,7 @@ class EngineLoader:
         proc = ctx.Process(target=auto_calibration_process, name="dtm_labeler_calibration", daemon=True,
                            args=(child, model_to_bytes(model), list(req.clouds), float(req.calibration.rate)))
         proc.start()
+        idle_priority(proc.pid)          # from its imports on (seconds of CPU), not only once it runs
         child.close()
         try:
             while not parent.poll(0.05):

@@ -425,16 +425,25 @@ def auto_calibrate_bytes(model_bytes: bytes, clouds: Sequence[np.ndarray], rate:
     return (model_to_bytes(out) if summary["applied"] else None), summary
 
 
-def auto_calibration_process(conn, model_bytes: bytes, clouds: Sequence[np.ndarray], rate: float,
-                             nice: int = 10) -> None:
-    """Entry point of a process of its own (``multiprocessing``, spawned): at background
-    priority, :func:`auto_calibrate_bytes` and its result sent on ``conn`` (an error as
-    ``(None, {"applied": False, "reason": ...})``)."""
+def idle_priority(pid: int) -> None:
+    """Process ``pid`` (0: this one) at idle priority: Linux ``SCHED_IDLE`` (it runs only on a
+    core nothing else wants), elsewhere nice 19; silently as it is where neither is allowed."""
     import os
     try:
-        os.nice(nice)
-    except OSError:
-        pass
+        os.sched_setscheduler(pid, os.SCHED_IDLE, os.sched_param(0))
+    except (AttributeError, OSError):
+        try:
+            os.setpriority(os.PRIO_PROCESS, pid, 19)
+        except (AttributeError, OSError):
+            pass
+
+
+def auto_calibration_process(conn, model_bytes: bytes, clouds: Sequence[np.ndarray], rate: float) -> None:
+    """Entry point of a process of its own (``multiprocessing``, spawned): at idle priority
+    (Linux ``SCHED_IDLE``: it runs only on a core nothing else wants, so a live labeler sharing
+    the machine is not delayed by it; elsewhere nice 19), :func:`auto_calibrate_bytes` and its
+    result sent on ``conn`` (an error as ``(None, {"applied": False, "reason": ...})``)."""
+    idle_priority(0)
     try:
         result = auto_calibrate_bytes(model_bytes, clouds, rate)
     except Exception as e:      # anything: the node keeps its model and says why
@@ -480,5 +489,5 @@ def calibrate_from_clip(model: TriangulatedModel, clip: MotionClip, labels: str 
     return out, dict(out.provenance["calibration"])
 
 
-__all__ = ["LABEL_SOURCES", "auto_calibrate", "auto_calibrate_bytes", "auto_calibration_process", "calibratable", "kept_share", "calibrate_from_clip", "calibrate_on_takes", "confirmed_positions", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "mirror_rows", "wrong_side", "self_label",
+__all__ = ["LABEL_SOURCES", "auto_calibrate", "auto_calibrate_bytes", "auto_calibration_process", "idle_priority", "calibratable", "kept_share", "calibrate_from_clip", "calibrate_on_takes", "confirmed_positions", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "mirror_rows", "wrong_side", "self_label",
            "self_calibrate", "labelled_positions"]
