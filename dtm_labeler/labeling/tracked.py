@@ -316,6 +316,7 @@ class TrackedLabeler:
         self._last_search_stamp = None
         self._audits = 0
         self._misfit_run = 0                       # frames in a row with a label below its floors
+        self._fresh_search = False                 # new models under carried labels: search from scratch
         self._reset_levels()
 
     def _reset_levels(self) -> None:
@@ -339,12 +340,11 @@ class TrackedLabeler:
         if settings.noise_mm != self.engine.noise_mm or engine is not None:
             self.engine = (engine or self.engine).with_noise(settings.noise_mm)
             self._reset_levels()
-            # the next accepted frame gets a full search from scratch in the background (an
-            # audit, :meth:`_maybe_audit`), joined when it fits better: the tracks carry a
-            # labeling chosen under the old models, which new ones (a person's calibrated body)
-            # may rank below another -- carried on, it stayed (subject 55's lambada, live, after
-            # the auto calibration: 77-88 % where a fresh search gave 99-100 %)
-            self._last_search_stamp, self._audits = None, AUDITS_PER_PERIOD - 1
+            # the next search is a full one from scratch (an audit), joined when it fits
+            # better: the tracks carry a labeling chosen under the old models, which new ones
+            # (a person's calibrated body) may rank below another, and a warm search from it
+            # stays in its basin (:attr:`_fresh_search`)
+            self._fresh_search = True
         if (settings.tracker, settings.window, settings.mode, settings.method) == \
                 (old.tracker, old.window, old.mode, old.method):
             self.full_search.settings = settings.full
@@ -501,7 +501,7 @@ class TrackedLabeler:
         later warm searches did not leave -- 89 % -> 5 % -- where the usual random path found
         the way out; the same fragility, not a better first frame)."""
         if seeds is not None:
-            return "recover"
+            return "audit" if self._fresh_search else "recover"
         return "first" if self._provisional else "full"
 
     def _while_recovering(self, problems, inp, searched, seeds, fast) -> FrameSearch:
@@ -537,11 +537,11 @@ class TrackedLabeler:
                 self.settings.method != "cbga" or not self.recovery.background_ready:
             return fast
         now = self.last_stamp
-        due = self._last_search_stamp is None or now - self._last_search_stamp >= period
+        due = self._last_search_stamp is None or now - self._last_search_stamp >= period or self._fresh_search
         if not due and self._misfit_run < MISFIT_FRAMES:
             return fast
         self._audits += 1
-        kind = "audit" if self._audits % AUDITS_PER_PERIOD == 0 else "sweep"
+        kind = "audit" if self._audits % AUDITS_PER_PERIOD == 0 or self._fresh_search else "sweep"
         best = fast.best.assignment
         self.recovery.submit(self._request(problems, inp, searched, best[None], kind))
         return fast
@@ -568,6 +568,8 @@ class TrackedLabeler:
         return fast
 
     def _request(self, problems, inp, searched, seeds, kind: str) -> RecoveryRequest:
+        if kind == "audit":
+            self._fresh_search = False
         self._last_search_stamp = self.last_stamp
         seed = 0 if self.recovery.inline else int(self.rng.integers(2 ** 31))   # inline: this labeler's stream
         return RecoveryRequest(self._epoch, self._frame_no, inp.upd.states, inp.upd.track_ids, self.heading,

@@ -91,16 +91,19 @@ def load(source: Source) -> Any:
     return load_model(source.path)
 
 
-def prepare(source: Source, base: Any, noise_mm: float, bank_settings: BankSettings) -> Prepared:
-    """The labeler's engine for ``base`` at ``noise_mm``, warmed up (slow, see the module doc)."""
+def prepare(source: Source, base: Any, noise_mm: float, bank_settings: BankSettings, spare: bool = True
+            ) -> Prepared:
+    """The labeler's engine for ``base`` at ``noise_mm``, warmed up (slow, see the module doc).
+    ``spare``: the spare recovery worker builds the same labeler beside it (for a labeler that
+    will be new; models swapped into a running labeler -- a calibration -- go to its own worker)."""
     settings = LabelerSettings(noise_mm=float(noise_mm))
     if isinstance(base, ModelBank):
         acts = BankLabeler.engine_actions(base, bank_settings)
-        wait = build_spare([base[a] for a in acts], acts, "BankLabeler", settings, bank_settings)
+        wait = build_spare([base[a] for a in acts], acts, "BankLabeler", settings, bank_settings) if spare else None
         engine = BankLabeler.prepare(base, bank_settings, noise_mm)
         first = base[base.actions[0]]
     else:
-        wait = build_spare([base], [""], "StreamLabeler", settings)
+        wait = build_spare([base], [""], "StreamLabeler", settings) if spare else None
         engine, first, bank_settings = Engine.prepare(base, noise_mm), base, None
     prepared = Prepared(source, base, float(noise_mm), engine, bank_settings, tuple(first.labels),
                         tuple(sorted(first.structure.edges())))

@@ -187,7 +187,7 @@ class EngineLoader:
         if base is _DROPPED or self._superseded(req):
             return _DROPPED
         self._calibrated = (req.source, base)
-        return prepare(req.source, base, req.noise_mm, req.bank_settings)
+        return prepare(req.source, base, req.noise_mm, req.bank_settings, spare=False)   # swapped in: tracks stay
 
 
     def _auto_calibrated(self, model: Any, req: LoadRequest) -> Any:
