@@ -141,8 +141,8 @@ def _warm_up(prepared: Prepared) -> None:
     and the confidences (compiled kernels loaded from disk, first allocations) -- 20-30 ms
     offline, 50-70 ms in a node sharing its cores, which dropped the 3-7 frames behind them as
     stale. A model calibrated live (``~/calibrate``, ``auto_calibrate``) runs the calibrated
-    body's factors for the first time: unwarmed, its first frame held the stream 235 ms (25
-    frames stale at 120 Hz). What is per model (its densities, batched terms, bounds)
+    body's factors for the first time: unwarmed, its first frame took 235 ms (measured in the
+    node, 14 points, 120 Hz). What is per model (its densities, batched terms, bounds)
     :meth:`Engine.prepare` has built already."""
     kind = _engine_kind(prepared)
     if kind in _warmed:
