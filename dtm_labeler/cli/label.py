@@ -89,9 +89,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "'local' (a LocalCluster of --jobs workers started for this run)")
     p.add_argument("--calibrate", default="auto", metavar="auto|off|A:B",
                    help="subject calibration of a model whose body is generic (not yet calibrated to a person): "
-                        "'auto' (default) self-calibrates it on each take's first 5 s (at most a third of the "
-                        "take; the model's own confirmed labels, the take's names unused) and keeps the "
-                        "calibration when the calibrated model keeps the labels it was measured on, then labels "
+                        "'auto' (default) self-calibrates it on each take's first 5 s (a shorter take: its first "
+                        "third or all of it, whichever the calibrated model reproduces better; the model's own "
+                        "confirmed labels, the take's names unused) and keeps the calibration when the "
+                        "calibrated model keeps the labels it was measured on, then labels "
                         "every frame (the JSON's 'calibration' says what was done); 'off': the model as it is; "
                         "A:B: calibrate on frames A:B (as dtm-calibrate) and label and score only the frames "
                         "after B")

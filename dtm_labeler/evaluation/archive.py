@@ -73,7 +73,8 @@ class LabelJob:
 
 
 #: ``LabelJob.calibrate`` values: self-calibrate a generic body on each take's first
-#: ``AUTO_CALIBRATION_S`` seconds (at most a third of it) and keep it when it holds up
+#: ``AUTO_CALIBRATION_S`` seconds (a shorter take: its first third or all of it, whichever the
+#: model reproduces better) and keep it when it holds up
 #: (:func:`~dtm_labeler.training.calibrate.auto_calibrate`), or label with the model as it is
 AUTO, OFF = "auto", "off"
 AUTO_CALIBRATION_S = 5.0
