@@ -2,12 +2,13 @@
 """dtm-label's default subject calibration (``--calibrate auto``) on the generalisation cells.
 
 For every case of ``dtm-eval``'s generalisation section (models trained as there, with the
-generic body ``dtm-train`` makes), the test take's start -- its calibration window (the first
+generic body ``dtm-train`` makes), the test take's start -- the eval's calibration window (the first
 5 s, at most a third of the take) and the 360 (41 markers) or 480 frames after it -- is
 labelled in stream mode as ``dtm-label`` feeds it (labels stripped, points shuffled), once with
 the model as it is (``--calibrate off``) and once with the default: the generic body
-self-calibrated on the window's clouds and kept when the calibrated model keeps >= 90 % of the
-labels the model confirmed there (:func:`dtm_labeler.training.calibrate.auto_calibrate`).
+self-calibrated on the clip's first 5 s (a clip shorter than 15 s: its first third and all of its
+first 5 s both, the better reproduced kept) and kept when the calibrated model keeps >= 90 % of
+the labels the model confirmed there (:func:`dtm_labeler.training.calibrate.auto_calibrate`).
 Accuracy over every frame of the window and after it (the labels as published live: no take
 votes). Writes results/auto_calibration.{json,md}.
 
@@ -43,21 +44,21 @@ def run_case(case: G.Case) -> dict:
     off = label_clip_run(model, clip, LabelerSettings(seed=0), seed=0, keep_records=False)
     auto = label_clip_run(model, clip, LabelerSettings(seed=0), seed=0, keep_records=False,
                           calibrate_s=AUTO_CALIBRATION_S)
-    return dict(group=case.group, title=case.title, frames=n, window=window, off=off.metrics.accuracy,
+    return dict(group=case.group, title=case.title, frames=clip.n_frames, window=window, off=off.metrics.accuracy,
                 auto=auto.metrics.accuracy, calibration=auto.settings["calibration"])
 
 
 def write_md(res: dict, meta: dict) -> str:
     L = ["# dtm-label's default subject calibration (`--calibrate auto`)", "",
          f"{meta['when']}, commit {meta['commit']}, 2 cores. {__doc__.split(chr(10) + chr(10))[1]}", "",
-         "| group | case | frames (window) | off % | auto % | calibration | kept % |",
+         "| group | case | frames (calibration frames) | off % | auto % | calibration | kept % |",
          "|---|---|---:|---:|---:|---|---:|"]
     for r in res.values():
         c = r["calibration"]
-        L.append(f"| {r['group']} | {r['title']} | {r['frames']} ({r['window']}) | {100 * r['off']:.2f} | "
+        L.append(f"| {r['group']} | {r['title']} | {r['frames']} ({r['calibration'].get('frames')}) | {100 * r['off']:.2f} | "
                  f"{100 * r['auto']:.2f} | {'applied' if c['applied'] else 'not applied'} | "
                  f"{100 * c['kept_share']:.1f} |" if 'kept_share' in c else
-                 f"| {r['group']} | {r['title']} | {r['frames']} ({r['window']}) | {100 * r['off']:.2f} | "
+                 f"| {r['group']} | {r['title']} | {r['frames']} ({r['calibration'].get('frames')}) | {100 * r['off']:.2f} | "
                  f"{100 * r['auto']:.2f} | not applied: {c.get('reason', '')} | - |")
     return "\n".join(L) + "\n"
 

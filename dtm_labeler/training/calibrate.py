@@ -376,12 +376,13 @@ def auto_calibrate(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.n
     measured on -- the lengths of an arm chain confirmed one marker along, or a short window
     of a run whose calibrated legs then swap below the hips -- describes no consistent body.
     Measured on ``dtm-eval``'s generalisation cells as ``dtm-label`` feeds a take (points
-    shuffled; the first 5 s, at most a third of the take, as the window; stream accuracy over
-    the window and the 360-480 frames after it, model as it is -> default;
-    ``benchmarks/bench_auto_calibration.py``): subject 5 pirouette 73.7 -> 99.9 %, subject 9
-    run 80.4 -> 94.7 %, subject 55 lambada 86.1 -> 100 %, CMU 85 breakdance -> jump and twist
-    86.0 -> 99.95 %, HDM05 -> CMU 85 69.0 -> 87.1 %; floor moves not applied (kept 74 %,
-    69.9 % either way); no cell lower. The check matters: the same windows with the points
+    shuffled; stream accuracy over the take's first 5 s, at most a third of it, and the 360-480
+    frames after them, model as it is -> default;
+    ``benchmarks/bench_auto_calibration.py``, a short take calibrated on its first third and on
+    all of its first 5 s, the better reproduced kept): subject 5 pirouette 73.7 -> 99.9 %,
+    subject 9 run 80.4 -> 98.3 %, subject 55 lambada 86.1 -> 100 %, CMU 85 breakdance -> jump
+    and twist 86.0 -> 99.95 %, HDM05 -> CMU 85 69.0 -> 95.5 %; floor moves not applied (kept
+    77 %, 69.9 % either way); no cell lower. The check matters: the same windows with the points
     in label order gave two calibrations that would have lowered the cell (subject 9 80.4 ->
     74.1 %, CMU 85 -> HDM05 96.1 -> 73.7 %); both keep under 90 % (83 and 69 %) and are dropped.
     """
