@@ -1,7 +1,7 @@
 """Generalisation beyond the training motions (issue 13): other takes, other motions, other people.
 
 Every case trains models on some recordings and labels another one, exactly as ``dtm-label``
-does (labels stripped, points shuffled, stream and single mode), in three variants:
+does (labels stripped, points shuffled, stream and single mode), in four variants:
 
 * **today** -- the paper's model as before issue 13: per-triangle motion mixtures only
   (``TrainConfig(body_terms=False, broad_component=False)``: a format-1 model);
@@ -10,6 +10,10 @@ does (labels stripped, points shuffled, stream and single mode), in three varian
 * **body** -- the same training with the body terms (:mod:`dtm_labeler.model.body`; the
   ``dtm-train`` default): a generic body, whose reach limits apply (its segment lengths wait
   for a calibration);
+* **dtm-label default** -- that model as ``dtm-label`` runs it by default (``--calibrate
+  auto``): self-calibrated on the same window, its points shuffled as the labeler gets them,
+  and kept only when the calibrated model keeps >= 90 % of the labels it was measured on
+  (:func:`~dtm_labeler.training.calibrate.auto_calibrate`; else the generic model labels);
 * **body + calibration** -- that model calibrated on the first seconds of the test recording
   (at most ``calibration_s``, at most a third of it), the frames labelled by the model itself
   and confirmed by their vote confidence (:func:`~dtm_labeler.training.calibrate.self_calibrate`;
@@ -17,7 +21,7 @@ does (labels stripped, points shuffled, stream and single mode), in three varian
   whose labels lie on the wrong side of the trunk, are not taken from those labels), then the
   rest labelled.
 
-All three variants are scored on the same frames: those after the calibration window
+All variants are scored on the same frames: those after the calibration window
 (stream mode: the first ``stream_frames`` of them through one labeler; single mode:
 ``single_frames`` frames spread over them, each searched from scratch).
 
@@ -38,6 +42,7 @@ import numpy as np
 
 from .experiments import SUMMARY_KEYS, label_single, spread_frames
 from .metrics import is_search_error
+from .corruption import corrupt_clip
 from .pipeline import label_clip_run, model_clip
 from ..labeling.stream import LabelerSettings
 from ..model.body import SEGMENT, slot_distances
@@ -46,7 +51,7 @@ from ..model.features import point_states
 from ..motion.clip import MotionClip
 from ..motion.load import load_clip
 from ..search.problem import Background, FrameProblem
-from ..training.calibrate import CalibrationError, self_calibrate
+from ..training.calibrate import CalibrationError, auto_calibrate, self_calibrate
 from ..training.train import TrainConfig, train_model
 
 # recordings in the shared data folder: key -> (relative path, subject, what)
@@ -65,7 +70,7 @@ RECORDINGS = {
 }
 SKELETAL = ("W1", "R1", "D1", "D2", "D3")
 GROUPS = ("same person, other take", "same person, other motion", "other person", "41 markers")
-VARIANTS = ("today", "body", "body + calibration")
+VARIANTS = ("today", "body", "body + calibration", "dtm-label default")
 TODAY = {"body_terms": False, "broad_component": False}
 MARKER_TRAINING = {"k_max": 4, "max_frames_per_triangle": 1500}
 
@@ -211,6 +216,9 @@ def run_variant(model: TriangulatedModel, test: MotionClip, variant: str, plan: 
     n_cal = calibration_frames(test, plan.calibration_s)
     rest = test.slice(n_cal, None)
     out: dict = {"calibration_frames": n_cal}
+    if variant == "dtm-label default":         # auto_calibrate on the window as the labeler gets it
+        stream = corrupt_clip(model_clip(model, test.slice(0, n_cal)), seed=plan.seed)
+        model, out["calibration"] = auto_calibrate(model, [f.xyz for f in stream], stream.rate)
     if variant == "body + calibration":
         cal = model_clip(model, test.slice(0, n_cal))
         try:

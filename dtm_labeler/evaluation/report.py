@@ -471,7 +471,8 @@ def _markers(res: dict, out: Path) -> list[str]:
                 f"{k} {res[k]['clean']['frames']}" for k in files if res.get(k, {}).get("clean")) + ".", ""]
 
 
-GEN_COLORS = {"today": "tab:gray", "body": "tab:blue", "body + calibration": "tab:green"}
+GEN_COLORS = {"today": "tab:gray", "body": "tab:blue", "body + calibration": "tab:green",
+              "dtm-label default": "tab:orange"}
 
 
 def _gen_acc(cell: dict | None, mode: str) -> str:
@@ -493,7 +494,10 @@ def _generalisation(res: dict, out: Path, figures: list) -> list[str]:
              "it), labelled by the model itself and kept where the votes confirm it (no true label used; a "
              "segment whose confirmed length disagrees with its mirror's is dropped and takes the mirror's "
              "length; the segments of a label whose point lies on the wrong side of the trunk keep the generic "
-             "range), then its segment lengths, reach limits and the broad motion component apply. All "
+             "range), then its segment lengths, reach limits and the broad motion component apply; **dtm-label "
+             "default** = the body model as `dtm-label` runs it by default (`--calibrate auto`): self-calibrated "
+             "on the same window, its points shuffled as the labeler gets them, and kept only when the calibrated "
+             "model keeps >= 90 % of the labels the model confirmed there (else the generic model labels). All "
              "variants are scored on the same frames after the calibration window: stream mode on the first "
              f"{plan['stream_frames']} of them ({plan['marker_stream_frames']} at 41 markers), single mode on "
              f"{plan['single_frames']} ({plan['marker_single_frames']}) frames spread over them. Model errors = "
@@ -502,7 +506,7 @@ def _generalisation(res: dict, out: Path, figures: list) -> list[str]:
     if res.get("note"):
         lines += [res["note"], ""]
     header = ["case", "trained on → tested on"] + [f"{v} {m}" for v in VARIANTS for m in ("stream", "single")] + \
-        ["model / search errors (today → body → calibrated)"]
+        ["model / search errors (today → body → calibrated → dtm-label default)"]
     for group in GROUPS:
         rows = []
         for key, info in cases.items():
@@ -544,14 +548,15 @@ def _generalisation(res: dict, out: Path, figures: list) -> list[str]:
         for ax, mode in zip(axes, ("stream", "single")):
             for i, v in enumerate(VARIANTS):
                 acc = [100 * (results[k].get(v, {}).get(mode) or {}).get("accuracy", np.nan) for k in keys]
-                ax.bar(x + (i - 1) * 0.27, acc, 0.27, color=GEN_COLORS[v], label=v)
+                w = 0.8 / len(VARIANTS)
+                ax.bar(x + (i - (len(VARIANTS) - 1) / 2) * w, acc, w, color=GEN_COLORS[v], label=v)
             ax.set_ylabel(f"{mode} accuracy (%)")
             ax.set_ylim(0, 101)
             ax.axhline(97, color="k", lw=0.6, ls=":")
             ax.grid(axis="y", alpha=0.3)
         axes[0].legend(loc="lower left", fontsize=8)
         axes[1].set_xticks(x, keys, rotation=35, ha="right", fontsize=8)
-        axes[0].set_title("Generalisation: today vs body terms vs body terms + calibration")
+        axes[0].set_title("Generalisation: today, body terms, + calibration, dtm-label's default")
         name = _save(fig, out / "fig_generalisation.png", figures)
         lines += [f"![generalisation]({name})", ""]
     return lines
