@@ -572,8 +572,8 @@ class LabelerCore:
         """``auto_calibrate``: a window that keeps its clouds, opened on a freshly loaded generic
         body (not a bank, not a model already calibrated to a person)."""
         p = prepared if prepared is not None else (self.worker.engine.prepared if self.worker.engine else None)
-        if not self.values["auto_calibrate"] or p is None or self.values["use_bank"] \
-                or not isinstance(p.base, TriangulatedModel) or not calibratable(p.base):
+        if not self.values["auto_calibrate"] or p is None or not isinstance(p.base, TriangulatedModel) \
+                or not calibratable(p.base):                  # (a bank's base is a ModelBank)
             return
         window = CalibrationWindow(self.values["calibration_s"], p.labels, keep_clouds=True)
         self.handler.calibration = window

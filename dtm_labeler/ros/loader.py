@@ -216,9 +216,7 @@ class EngineLoader:
             parent.close()
         if data is None:
             raise ValueError(f"auto calibration not applied: {summary.get('reason', '')}")
-        out = model_from_bytes(data, "calibrated model")
-        out.provenance["calibration"] = dict(out.provenance.get("calibration", {}), frames=summary["frames"])
-        return out
+        return model_from_bytes(data, "calibrated model")     # its provenance holds the calibration
 
 
 _DROPPED = object()

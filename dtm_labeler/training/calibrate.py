@@ -440,11 +440,10 @@ def idle_priority(pid: int) -> None:
 
 
 def auto_calibration_process(conn, model_bytes: bytes, clouds: Sequence[np.ndarray], rate: float) -> None:
-    """Entry point of a process of its own (``multiprocessing``, spawned): at idle priority
-    (Linux ``SCHED_IDLE``: it runs only on a core nothing else wants, so a live labeler sharing
-    the machine is not delayed by it; elsewhere nice 19), :func:`auto_calibrate_bytes` and its
-    result sent on ``conn`` (an error as ``(None, {"applied": False, "reason": ...})``)."""
-    idle_priority(0)
+    """Entry point of a process of its own (``multiprocessing``, spawned; its starter sets it
+    to :func:`idle_priority` right away, so that its imports run there too):
+    :func:`auto_calibrate_bytes` and its result sent on ``conn`` (an error as
+    ``(None, {"applied": False, "reason": ...})``)."""
     try:
         result = auto_calibrate_bytes(model_bytes, clouds, rate)
     except Exception as e:      # anything: the node keeps its model and says why
