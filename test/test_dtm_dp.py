@@ -13,8 +13,8 @@ from dtm_labeler.training.train import TrainConfig, train_model
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search import label_ops as ops
 
-from dtm_labeler.search.dtm_dp import (max_product, mean_shape, model_regions, region_candidates,
-                                       regions_of, relabel_regions, resolve_duplicates)
+from dtm_labeler.search.dtm_dp import (body_at_heading, max_product, mean_shape, model_regions, region_candidates,
+                                       regions_of, relabel_regions, resolve_duplicates, turned_round)
 
 NAMES = ("neck", "lshoulder", "rshoulder", "lhip", "rhip", "lknee", "rknee", "lankle", "rankle")
 
@@ -94,6 +94,35 @@ def test_max_product_is_exact_over_its_candidates(model, frame):
     got = max_product(p, cands, b)
     assert ops.is_valid(got[None], p.n).all()
     assert _objective(p, got[None], b)[0] == pytest.approx(best, abs=1e-6)
+
+
+def test_the_body_turned_round_is_turned_back(model, frame):
+    """The body seen from behind -- every left label on its right partner's point, so the
+    labeling faces 180 deg from the truth -- fits worse than the truth but no single move or
+    region sweep turns it; the whole-body max-product at the opposite facing does."""
+    states, truth = frame
+    p = FrameProblem(model, states, Background())
+    behind = ops.mirror(truth[None], p.mirror_pairs)[0]
+    b_true, b_behind = (int(x) for x in p.candidate_bins(np.stack([truth, behind])))
+    off = abs((b_behind - b_true + p.bins // 2) % p.bins - p.bins // 2)
+    assert off > p.bins // 4                                  # it faces the other way
+    f_true, f_behind = (float(x) for x in p.fitness(np.stack([truth, behind])))
+    assert f_true > f_behind
+    got, f, evals = turned_round(p, behind, f_behind)
+    assert evals > 0 and f >= f_true - 1e-6
+    assert (got == truth).mean() >= 8 / 9
+    assert ops.is_valid(got[None], p.n).all()
+
+
+def test_turned_round_never_worsens_and_the_whole_body_dp_is_valid(model, frame):
+    states, truth = frame
+    p = FrameProblem(model, states, Background())
+    f_true = float(p.fitness(truth[None])[0])
+    got, f, _ = turned_round(p, truth, f_true)
+    assert f >= f_true and (f > f_true or np.array_equal(got, truth))
+    whole = body_at_heading(p, int(p.candidate_bins(truth[None])[0]))
+    assert ops.is_valid(whole[None], p.n).all()
+    assert (whole == truth).mean() >= 8 / 9                  # the exact DP at the true facing
 
 
 def test_region_relabelling_repairs_a_shifted_chain(model, frame):

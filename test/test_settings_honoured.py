@@ -54,6 +54,7 @@ CHANGES = {
     "misfit_nats": 0.01,
     "confidence_temperature": 0.3,
     "chain_moves": 3,
+    "turn_check": False,
     "region_checks": 0,
     "region_size": 2,
     "region_every": 1,

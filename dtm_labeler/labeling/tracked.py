@@ -41,7 +41,7 @@ import numpy as np
 from ..model.dtm import TriangulatedModel
 from ..model.features import FULL, POSITION_ONLY
 from ..search import dp_kernels, frame_kernels, label_ops
-from ..search.dtm_dp import chains_of, regions_of, relabel_regions
+from ..search.dtm_dp import chains_of, regions_of, relabel_regions, turned_round
 from ..search.label_search import GASearch, LabelSearch, SearchOutcome, make_search, polish, targeted_moves
 from ..search.problem import FrameProblem
 from .config import LabelerSettings
@@ -615,7 +615,8 @@ class TrackedLabeler:
             found.full = not np.isnan(self.level[m]) and self._falls_short(found.best, problems[m], m)
         self._init_levels(problems, searched)
         if found is None or found.full:
-            full = self._full_search(problems, searched, seeds if request.kind != "audit" else None)
+            audit = request.kind == "audit"
+            full = self._full_search(problems, searched, seeds if not audit else None, turn=not audit)
             if found is None:
                 found = full
             else:
@@ -708,14 +709,16 @@ class TrackedLabeler:
         """The islands' final sizes (the bank carries its models' shares to the next frame)."""
 
     def _full_search(self, problems: list[FrameProblem], searched: list[int],
-                     seeds: np.ndarray | None) -> FrameSearch:
+                     seeds: np.ndarray | None, turn: bool = True) -> FrameSearch:
         """The full GA, repeated from fresh populations (up to ``restarts`` times) while its
         best falls ``refit_drop`` short of the level times the frame's labellable points
         (:func:`frame_weight`): on 28-41 markers one run can stall in a deep local optimum --
         limbs' labels exchanged -- that its mutations do not leave, while independent runs
         rarely share it. A frame that fits well costs one run. Judged against every point the
         frame could label, not only those labelled: a stalled run often leaves several points
-        unlabelled, which a per-labelled-point level forgives."""
+        unlabelled, which a per-labelled-point level forgives. A search without seeds (a cold
+        start; ``turn``: not the background's periodic audits, ~1 s more each at 41 markers)
+        also checks the body turned round (:meth:`_turn_round`)."""
         found = self._ga(self.full_search, problems, searched, seeds)
         restarts = self.settings.restarts if self.settings.method in ("cbga", "sga") else 0   # others: deterministic
         for _ in range(restarts):
@@ -723,7 +726,27 @@ class TrackedLabeler:
             if found.best.fitness >= self.level[m] * frame_weight(problems[m]) - self._refit_margin(m):
                 break
             found.merge(self._ga(self.full_search, problems, searched, None))
+        if turn and self.settings.turn_check and seeds is None and self.settings.method == "cbga":
+            self._turn_round(problems, found)
         return found
+
+    def _turn_round(self, problems: list[FrameProblem], found: FrameSearch) -> None:
+        """A search from scratch also checks the body turned round (:func:`turned_round`: the
+        whole-body max-product at the opposite facing, polished and swept as the GA's result),
+        under each searched model."""
+        for m, c in list(found.candidates.items()):
+            p = problems[m]
+            if p.n == 0 or p.M <= 3:
+                continue
+
+            def refine(x, fx, p=p):
+                if isinstance(self.full_search, GASearch):
+                    return self.full_search._sweep_regions(p, x, fx, None)
+                return polish(p, x, fx, self.settings.fast_rounds)
+            ind, f, e = turned_round(p, c.assignment, c.fitness, refine)
+            found.evaluations += e
+            if f > c.fitness:
+                found.candidates[m] = Candidate(ind, f)
 
     def _fast_path(self, problems: list[FrameProblem], searched: list[int], seed: np.ndarray):
         """The carried-over labeling hill-climbed over its targeted neighbourhood
