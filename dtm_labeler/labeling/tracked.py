@@ -734,16 +734,12 @@ class TrackedLabeler:
         """A search from scratch also checks the body turned round (:func:`turned_round`: the
         whole-body max-product at the opposite facing, polished and swept as the GA's result),
         under each searched model."""
+        sweep = self.full_search._sweep_regions          # the CBGA's (only it runs the check)
         for m, c in list(found.candidates.items()):
             p = problems[m]
             if p.n == 0 or p.M <= 3:
                 continue
-
-            def refine(x, fx, p=p):
-                if isinstance(self.full_search, GASearch):
-                    return self.full_search._sweep_regions(p, x, fx, None)
-                return polish(p, x, fx, self.settings.fast_rounds)
-            ind, f, e = turned_round(p, c.assignment, c.fitness, refine)
+            ind, f, e = turned_round(p, c.assignment, c.fitness, lambda x, fx, p=p: sweep(p, x, fx, None))
             found.evaluations += e
             if f > c.fitness:
                 found.candidates[m] = Candidate(ind, f)
