@@ -92,3 +92,72 @@ def test_chain_moves_put_a_shifted_limb_right(model, hdm):
     assert not _stream(model, hdm, chain_moves=0, fast_rounds=1)[:2].any()
     assert _stream(model, hdm, chain_moves=4, fast_rounds=1).all()
     assert _stream(model, hdm, chain_moves=3, fast_rounds=2).all()
+
+
+def _region_case(model, hdm, frame):
+    from dtm_labeler.model.features import point_states
+    from dtm_labeler.search.problem import Background, FrameProblem
+    st = point_states(hdm.positions[frame - 1:frame + 1], hdm.rate)[-1]
+    return FrameProblem(model, st, Background()), np.arange(model.n_labels)
+
+
+def test_a_label_moved_onto_its_neighbour_is_undone_by_the_branched_region_check(model, hdm):
+    """Label ``a``'s point labelled as its region neighbour ``b``, ``b``'s point left unlabelled,
+    ``a`` missing (a cross-lab stream carried such a shift for 254 of 360 frames): the region's
+    unconstrained DP gives ``a``'s point to both, and resolving that after keeps the shift in
+    some cases; branching on the conflict restores the truth in every case."""
+    from dtm_labeler.search.dtm_dp import regions_of, relabel_regions
+    regions = regions_of(model, 6)
+    restored = {0: 0, 6: 0}
+    cases = 0
+    for frame in range(2000, 3000, 100):
+        p, truth = _region_case(model, hdm, frame)
+        f_true = float(p.fitness(truth[None])[0])
+        for a in range(p.M):
+            for b in regions[a]:
+                wrong = truth.copy()
+                wrong[b], wrong[a] = truth[a], p.n
+                f_wrong = float(p.fitness(wrong[None])[0])
+                if b == a or f_wrong >= f_true:
+                    continue
+                cases += 1
+                for branches in restored:
+                    ind, f, _ = relabel_regions(p, wrong, f_wrong, regions, [a], branches=branches)
+                    assert f >= f_wrong and ops.is_valid(ind[None], p.n).all()
+                    restored[branches] += f >= f_true - 1e-9
+    assert cases > 500
+    assert restored[6] == cases
+    assert restored[0] < cases            # resolving the conflict after the DP loses some
+
+
+def test_branching_on_conflicts_finds_the_exact_one_to_one_optimum(model, hdm):
+    """A region's labels free over their own points, their neighbours' points and "missing", the
+    rest fixed: without a budget the branched DP returns the brute-force maximum of the DP's
+    objective over every one-to-one combination; with a small one never less than resolving
+    the conflict after."""
+    import itertools
+    from dtm_labeler.search.dtm_dp import _conflict, _dp_assignment, max_product, regions_of
+    regions = regions_of(model, 5)
+    conflicts = 0
+    for frame in (2100, 2500, 2900):
+        p, truth = _region_case(model, hdm, frame)
+        b = int(p.candidate_bins(truth[None])[0])
+        for a in (model.labels.index("RWRA"), model.labels.index("RELB")):
+            reg = regions[a]
+            cands = [np.array([truth[lab]]) for lab in range(p.M)]
+            for lab in reg:
+                cands[lab] = np.unique(np.append(truth[reg], p.n))
+            combos = np.array(list(itertools.product(*cands)), dtype=np.int64)
+            combos = combos[ops.is_valid(combos, p.n)]
+            within = np.array([not (p.dist[np.ix_(c, c)] > p.bounds).any() for c in combos])
+
+            def objective(pop):
+                return p.triangle_table(pop, np.full(len(pop), b)).sum(1) + p.label_gain[pop].sum(1)
+            best = objective(combos[within]).max()
+            plain, exact = max_product(p, cands, b), max_product(p, cands, b, branches=100_000)
+            budget = max_product(p, cands, b, branches=2)
+            assert objective(exact[None])[0] == pytest.approx(best, abs=1e-6)
+            assert objective(budget[None])[0] >= objective(plain[None])[0] - 1e-9
+            assert ops.is_valid(np.stack([plain, exact, budget]), p.n).all()
+            conflicts += _conflict(_dp_assignment(p, cands, b), p.n) is not None
+    assert conflicts >= 1                 # the branching was exercised

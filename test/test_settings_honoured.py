@@ -58,6 +58,7 @@ CHANGES = {
     "region_checks": 0,
     "region_size": 2,
     "region_every": 1,
+    "region_branches": 6,
     "max_gap_s": 0.02,
     "noise_mm": 30.0,
     "heading_snap_deg": 0.0,
@@ -109,6 +110,9 @@ def trace(labeler, stream, base: list | None = None) -> list:
 #: fields that act only while searches run in the background: compared with background recovery
 #: made deterministic (DeferredRecovery)
 BACKGROUND_ONLY = {"audit_period_s"}
+#: fields that act only where a region's best relabelling gives a point to two labels: compared
+#: with region checks over the whole body on every frame
+WHOLE_BODY_REGIONS = {"region_branches"}
 
 
 def make(kind, models, settings, background=False):
@@ -128,11 +132,16 @@ def test_every_field_has_a_change():
 def test_every_setting_changes_both_labelers(kind, models, stream):
     base = trace(make(kind, models, BASE), stream)
     assert trace(make(kind, models, BASE), stream) == base          # deterministic
-    ignored = [name for name, value in CHANGES.items() if name not in BACKGROUND_ONLY and
+    ignored = [name for name, value in CHANGES.items() if name not in BACKGROUND_ONLY | WHOLE_BODY_REGIONS and
                trace(make(kind, models, dataclasses.replace(BASE, **{name: value})), stream, base) == base]
     bg = dataclasses.replace(BASE, recovery="background")
     for name in BACKGROUND_ONLY:
         base_bg = trace(make(kind, models, bg, True), stream)
         if trace(make(kind, models, dataclasses.replace(bg, **{name: CHANGES[name]}), True), stream, base_bg) == base_bg:
+            ignored.append(name)
+    whole = dataclasses.replace(BASE, region_size=16, region_every=1, region_checks=2)
+    base_whole = trace(make(kind, models, whole), stream)
+    for name in WHOLE_BODY_REGIONS:
+        if trace(make(kind, models, dataclasses.replace(whole, **{name: CHANGES[name]})), stream, base_whole) == base_whole:
             ignored.append(name)
     assert not ignored, f"{kind} labeler ignores {ignored}"

@@ -1016,7 +1016,7 @@ class TrackedLabeler:
         def refine(x, fx):
             return polish(problem, x, fx, self.settings.fast_rounds, neighbours=moves)
         return relabel_regions(problem, ind, f, regions_of(problem.model, self.settings.region_size),
-                               centres, refine)
+                               centres, refine, self.settings.region_branches)
 
     # -- output --------------------------------------------------------------------------------
     @staticmethod

@@ -26,7 +26,7 @@ import numpy as np
 
 from .problem import FrameProblem
 from . import label_ops as ops
-from .dtm_dp import max_product, regions_of, relabel_regions
+from .dtm_dp import REGION_BRANCHES, max_product, regions_of, relabel_regions
 from .evolve import Island, Mating, evolve
 from .ga import Termination
 
@@ -61,6 +61,7 @@ class GASettings:
     fresh_fraction: float = 0.25        # share of a seeded population drawn fresh (guided sampling)
     region_sweeps: int = 1              # after the polish: sweeps of exact region relabelling (0: none)
     region_size: int = 6                # labels per region of those sweeps
+    region_branches: int = REGION_BRANCHES   # extra DP solves per region on a point given to two labels
 
     def __post_init__(self) -> None:
         if self.population < 4:
@@ -71,8 +72,8 @@ class GASettings:
             raise ValueError("probabilities must be in [0, 1]")
         if not 0 <= self.n_elite < self.population:
             raise ValueError("n_elite must be in [0, population)")
-        if self.region_sweeps < 0 or self.region_size < 2:
-            raise ValueError("region_sweeps must be >= 0 and region_size >= 2")
+        if self.region_sweeps < 0 or self.region_size < 2 or self.region_branches < 0:
+            raise ValueError("region_sweeps and region_branches must be >= 0 and region_size >= 2")
 
 
 class LabelSearch(ABC):
@@ -343,15 +344,18 @@ class GASearch(LabelSearch):
     def _sweep_regions(self, problem, ind, f, deadline):
         """:func:`sweep_regions` with this search's settings."""
         s = self.settings
-        return sweep_regions(problem, ind, f, s.region_sweeps, s.region_size, s.polish_rounds, deadline)
+        return sweep_regions(problem, ind, f, s.region_sweeps, s.region_size, s.polish_rounds, deadline,
+                             s.region_branches)
 
 
 def sweep_regions(problem: FrameProblem, ind: np.ndarray, f: float, sweeps: int, region_size: int,
-                  polish_rounds: int, deadline: float | None = None) -> tuple[np.ndarray, float, int]:
+                  polish_rounds: int, deadline: float | None = None,
+                  branches: int = 0) -> tuple[np.ndarray, float, int]:
     """``sweeps`` passes of :func:`relabel_regions` over every label's region, each accepted
     relabelling polished; stops early when a pass changes nothing. The GA and polish leave
     labelings that are wrong over a few neighbouring labels at once (a limb shifted along its
-    markers); this settles them exactly. Returns (ind, fitness, evaluations)."""
+    markers); this settles them exactly (``branches``: see :func:`relabel_regions`). Returns
+    (ind, fitness, evaluations)."""
     evals = 0
     if sweeps <= 0 or problem.M <= 3 or problem.n == 0:
         return ind, f, evals
@@ -363,7 +367,7 @@ def sweep_regions(problem: FrameProblem, ind: np.ndarray, f: float, sweeps: int,
         if deadline is not None and time.perf_counter() > deadline:
             break
         f0 = f
-        ind, f, e = relabel_regions(problem, ind, f, regions, range(problem.M), refine)
+        ind, f, e = relabel_regions(problem, ind, f, regions, range(problem.M), refine, branches)
         evals += e
         if f <= f0 + 1e-9:
             break
