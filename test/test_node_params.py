@@ -42,8 +42,10 @@ def test_mapping_of_each_labeler_parameter():
         method="greedy", mode="single", window=3, population=30, max_generations=7, stagnation=2,
         time_budget_ms=25.0, warm_population=10, warm_generations=4, warm_stagnation=2, refit_drop=3.0,
         accept_drop=2.0, seed=9, gate_m=0.1, gate_speed_factor=0.2, max_misses=4, clutter_volume_m3=20.0,
-        clutter_max_speed_mps=2.0, detection_probability=0.9, max_points=40, max_gap_s=1.5))
+        clutter_max_speed_mps=2.0, detection_probability=0.9, max_points=40, max_gap_s=1.5,
+        sweep_branches=6, region_branches=4))
     assert (s.method, s.mode, s.window, s.seed, s.max_points) == ("greedy", "single", 3, 9, 40)
+    assert (s.full.region_branches, s.region_branches, LabelerSettings().full.region_branches) == (6, 4, 0)
     assert (s.full.population, s.full.max_generations, s.full.stagnation) == (30, 7, 2)
     assert (s.warm.population, s.warm.max_generations, s.warm.stagnation) == (10, 4, 2)
     assert s.full.time_budget_s == pytest.approx(0.025) and s.warm.time_budget_s == pytest.approx(0.025)

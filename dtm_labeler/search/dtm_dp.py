@@ -29,11 +29,6 @@ from .problem import FrameProblem
 from . import label_ops as ops
 
 
-#: extra DP solves the search's region sweeps spend on points a region's optimum gives to two
-#: labels (:func:`max_product`; ``GASettings.region_branches``)
-REGION_BRANCHES = 6
-
-
 def max_product(problem: FrameProblem, candidates: list[np.ndarray], heading_bin: int,
                 branches: int = 0) -> np.ndarray:
     """The assignment maximising the sum of triangle terms and label gains over
@@ -53,7 +48,9 @@ def max_product(problem: FrameProblem, candidates: list[np.ndarray], heading_bin
     labeling lies in one branch, so with an unlimited budget this is the exact one-to-one
     optimum of the DP's objective. Measured: CMU 85 model, self-calibrated, on
     HDM05 -- a shift carried for 254 of 360 frames that the region checks could not undo (the
-    resolved optimum was the labeling they started from) is undone at the first check."""
+    resolved optimum was the labeling they started from) is undone at the first check. Off in
+    the labeler by default (``sweep_branches``, ``region_branches``: the wider search also
+    finds wrong labelings the model prefers elsewhere; see the parameter table)."""
     n, M = problem.n, problem.M
     cand = [np.asarray(c, dtype=np.int64) for c in candidates]
     cand = [c if c.size < 2 else np.unique(c) for c in cand]

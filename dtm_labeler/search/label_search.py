@@ -26,7 +26,7 @@ import numpy as np
 
 from .problem import FrameProblem
 from . import label_ops as ops
-from .dtm_dp import REGION_BRANCHES, max_product, regions_of, relabel_regions
+from .dtm_dp import max_product, regions_of, relabel_regions
 from .evolve import Island, Mating, evolve
 from .ga import Termination
 
@@ -61,7 +61,7 @@ class GASettings:
     fresh_fraction: float = 0.25        # share of a seeded population drawn fresh (guided sampling)
     region_sweeps: int = 1              # after the polish: sweeps of exact region relabelling (0: none)
     region_size: int = 6                # labels per region of those sweeps
-    region_branches: int = REGION_BRANCHES   # extra DP solves per region on a point given to two labels
+    region_branches: int = 0            # extra DP solves per region on a point given to two labels
 
     def __post_init__(self) -> None:
         if self.population < 4:
