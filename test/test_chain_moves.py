@@ -1,12 +1,17 @@
 """Chain shifts: the fast path's move that shifts the labels of a chain of neighbouring markers
 by one marker (a limb's labels carried one marker along by the tracker), on real HDM05 frames."""
+import itertools
+
 import numpy as np
 import pytest
 
 from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
 from dtm_labeler.motion.load import load_clip
+from dtm_labeler.model.features import point_states
 from dtm_labeler.search import label_ops as ops
-from dtm_labeler.search.dtm_dp import chains_of, mean_shape, model_chains
+from dtm_labeler.search.dtm_dp import (_conflict, _dp_assignment, chains_of, max_product, mean_shape, model_chains,
+                                       regions_of, relabel_regions)
+from dtm_labeler.search.problem import Background, FrameProblem
 from dtm_labeler.training.train import TrainConfig, train_model
 
 HDM = "markers_c3d/hdm05_bd_05-01_01_120.c3d"
@@ -95,8 +100,6 @@ def test_chain_moves_put_a_shifted_limb_right(model, hdm):
 
 
 def _region_case(model, hdm, frame):
-    from dtm_labeler.model.features import point_states
-    from dtm_labeler.search.problem import Background, FrameProblem
     st = point_states(hdm.positions[frame - 1:frame + 1], hdm.rate)[-1]
     return FrameProblem(model, st, Background()), np.arange(model.n_labels)
 
@@ -106,7 +109,6 @@ def test_a_label_moved_onto_its_neighbour_is_undone_by_the_branched_region_check
     ``a`` missing (a cross-lab stream carried such a shift for 254 of 360 frames): the region's
     unconstrained DP gives ``a``'s point to both, and resolving that after keeps the shift in
     some cases; branching on the conflict restores the truth in every case."""
-    from dtm_labeler.search.dtm_dp import regions_of, relabel_regions
     regions = regions_of(model, 6)
     restored = {0: 0, 6: 0}
     cases = 0
@@ -135,8 +137,6 @@ def test_branching_on_conflicts_finds_the_exact_one_to_one_optimum(model, hdm):
     rest fixed: without a budget the branched DP returns the brute-force maximum of the DP's
     objective over every one-to-one combination; with a small one never less than resolving
     the conflict after."""
-    import itertools
-    from dtm_labeler.search.dtm_dp import _conflict, _dp_assignment, max_product, regions_of
     regions = regions_of(model, 5)
     conflicts = 0
     for frame in (2100, 2500, 2900):

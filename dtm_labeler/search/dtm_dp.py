@@ -124,15 +124,13 @@ def resolve_duplicates(problem: FrameProblem, assign: np.ndarray) -> np.ndarray:
     fitness keeps it and the others become missing (one conflict at a time)."""
     n = problem.n
     assign = np.asarray(assign, dtype=np.int64).copy()
-    while True:
-        vals, counts = np.unique(assign[assign < n], return_counts=True)
-        if not (counts > 1).any():
-            return assign
-        labs = np.flatnonzero(assign == vals[np.argmax(counts > 1)])
+    while (conflict := _conflict(assign, n)) is not None:
+        labs = conflict[1]
         options = np.repeat(assign[None], labs.size, 0)
         options[:, labs] = n
         options[np.arange(labs.size), labs] = assign[labs]
         assign = options[int(np.argmax(problem.fitness(options)))]
+    return assign
 
 
 def local_candidates(problem: FrameProblem, ind: np.ndarray, k_near: int = 3,
