@@ -24,7 +24,7 @@ def test_window_slides():
     vb.add(np.array([1]), np.array([1]))
     vb.add(np.array([1]), np.array([1]))                      # first frame falls out
     assert vb.tally(np.array([1])).tolist() == [[0, 2]]
-    assert len(vb.frames) == 2
+    assert len(vb.frame_sizes) == 2
     vb.reset()
     assert vb.tally(np.array([1])).tolist() == [[0, 0]]
     with pytest.raises(ValueError):
@@ -129,3 +129,24 @@ def test_doubtful_frames_abstain_from_the_unlabelled_vote():
     vb.add(np.array([1, 2]), np.array([-1, -1]))
     labels, _ = vb.publish(np.array([1, 2]), np.array([-1, -1]))
     assert labels.tolist() == [-1, -1]
+
+
+def test_sliding_window_equals_a_recount():
+    """The window kept as one concatenation, slid by a frame per add, counts what a recount of
+    the window's frames from scratch counts (votes, frames seen, "no label" votes)."""
+    rng = np.random.default_rng(3)
+    vb, frames = VoteBook(window=7, n_labels=4), []
+    for _ in range(40):
+        k = int(rng.integers(0, 7))
+        t = rng.permutation(10)[:k]
+        labs = np.where(rng.random(k) < 0.3, -1, rng.integers(0, 4, k))
+        abstain = bool(rng.random() < 0.2)
+        vb.add(t, labs, abstain=abstain)
+        frames = (frames + [(t, labs, abstain)])[-7:]
+        ask = np.arange(11)
+        votes, seen, none = vb._count(ask)
+        for i, tr in enumerate(ask):
+            exp_votes = [sum(int(((t == tr) & (labs == lab)).sum()) for t, labs, _ in frames) for lab in range(4)]
+            assert votes[i].tolist() == exp_votes
+            assert seen[i] == sum(int((t == tr).sum()) for t, _, _ in frames)
+            assert none[i] == sum(int(((t == tr) & (labs < 0)).sum()) for t, labs, a in frames if not a)

@@ -40,9 +40,10 @@ import numpy as np
 
 from ..model.dtm import TriangulatedModel
 from ..model.features import FULL, POSITION_ONLY
-from ..search import dp_kernels, frame_kernels, label_ops
+from ..search import dp_kernels, frame_kernels, label_ops, move_kernels
 from ..search.dtm_dp import chains_of, regions_of, relabel_regions, turned_round
 from ..search.label_search import GASearch, LabelSearch, SearchOutcome, make_search, polish, targeted_moves
+from ..search.move_kernels import close_label_pairs, free_points
 from ..search.problem import FrameProblem
 from .config import LabelerSettings
 from .confidence import label_posteriors, published_confidence
@@ -110,6 +111,7 @@ class Engine:
         models = tuple(m.with_noise(noise_mm * 1e-3).warm_up() for m in base)
         frame_kernels.warm_up()
         dp_kernels.warm_up()
+        move_kernels.warm_up()
         return cls(names, base, models, float(noise_mm), tuple(term_floors(m) for m in models))
 
     def with_noise(self, noise_mm: float) -> "Engine":
@@ -887,10 +889,8 @@ class TrackedLabeler:
     def _close_label_pairs(self, problem: FrameProblem, ind: np.ndarray) -> np.ndarray:
         """Pairs of labels whose points are closer than ``swap_radius_m`` (where the tracker
         may have swapped two markers that passed each other)."""
-        have = np.flatnonzero(ind < problem.n)
-        d = problem.dist[np.ix_(ind[have], ind[have])]
-        i, j = np.nonzero(np.triu(d < self.settings.swap_radius_m, 1))
-        return np.stack([have[i], have[j]], axis=1)
+        return close_label_pairs(np.ascontiguousarray(ind, dtype=np.int64), problem.n, problem.dist,
+                                 float(self.settings.swap_radius_m))
 
     def _moves(self, problem: FrameProblem, seed: np.ndarray):
         """The targeted neighbourhood of a labeling near ``seed`` (mirror, left/right and
@@ -899,7 +899,7 @@ class TrackedLabeler:
         close = self._close_label_pairs(problem, seed)
 
         def moves(ind):
-            free = np.flatnonzero(~label_ops.used_mask(ind[None], n)[0])
+            free = free_points(ind, n)
             return targeted_moves(ind, n, problem.mirror_pairs, free, close,
                                   problem.allowed(ind) if free.size else None, self._releasable(problem, ind))
         return moves

@@ -181,8 +181,8 @@ class Tracker:
             self.misses = np.concatenate([self.misses, np.zeros(n_new, dtype=np.int64)])
         if self.t is not None and t > self.t:                 # the typical interval: a slow running median
             step = t - self.t
-            self.frame_dt = step if self.frame_dt is None else self.frame_dt + 0.05 * float(np.clip(
-                step - self.frame_dt, -self.frame_dt, self.frame_dt))
+            fdt = self.frame_dt
+            self.frame_dt = step if fdt is None else fdt + 0.05 * min(max(step - fdt, -fdt), fdt)
         self.t = t
         return TrackUpdate(track_ids, states, new, lost)
 

@@ -26,15 +26,27 @@ class VoteBook:
             raise ValueError("vote window must be >= 1 frame")
         self.window = window
         self.n_labels = n_labels
-        self.frames: deque[tuple[np.ndarray, np.ndarray, bool]] = deque(maxlen=window)
+        self.reset()
 
     def reset(self) -> None:
-        self.frames.clear()
+        # the window's frames, one after another (oldest first): track ids, labels, and whether
+        # the point votes "no label"; ``frame_sizes``: how many entries each frame holds
+        self.frame_sizes: deque[int] = deque()
+        self._tids = np.zeros(0, dtype=np.int64)
+        self._labs = np.zeros(0, dtype=np.int64)
+        self._none = np.zeros(0, dtype=bool)
 
     def add(self, track_ids: np.ndarray, labels: np.ndarray, abstain: bool = False) -> None:
         """One frame's search result: ``labels[i]`` (-1 = none) for point with ``track_ids[i]``;
-        ``abstain``: its unlabelled points cast no "no label" vote (module doc)."""
-        self.frames.append((np.asarray(track_ids).copy(), np.asarray(labels).copy(), bool(abstain)))
+        ``abstain``: its unlabelled points cast no "no label" vote (module doc). The window
+        slides by one frame: two concatenations per frame, whatever its length."""
+        tids = np.asarray(track_ids, dtype=np.int64).reshape(-1)
+        labs = np.asarray(labels, dtype=np.int64).reshape(-1)
+        drop = self.frame_sizes.popleft() if len(self.frame_sizes) == self.window else 0
+        self.frame_sizes.append(tids.size)
+        self._tids = np.concatenate([self._tids[drop:], tids])
+        self._labs = np.concatenate([self._labs[drop:], labs])
+        self._none = np.concatenate([self._none[drop:], (labs < 0) & (not abstain)])
 
     def tally(self, track_ids: np.ndarray) -> np.ndarray:
         """(n, n_labels) vote counts (eq. 32) for the given tracks over the window."""
@@ -48,23 +60,19 @@ class VoteBook:
         """Votes (n, n_labels), frames seen (n,) and "no label" votes (n,) of ``track_ids``:
         one pass over the window."""
         track_ids = np.asarray(track_ids)
-        votes = np.zeros((track_ids.size, self.n_labels))
-        seen = np.zeros(track_ids.size)
-        none = np.zeros(track_ids.size)
-        if not self.frames or track_ids.size == 0:
-            return votes, seen, none
-        tids = np.concatenate([f[0] for f in self.frames])
-        labs = np.concatenate([f[1] for f in self.frames])
-        votes_none = np.concatenate([np.full(f[0].size, not f[2]) for f in self.frames])
+        k, M = track_ids.size, self.n_labels
+        if not self.frame_sizes or k == 0:
+            return np.zeros((k, M)), np.zeros(k), np.zeros(k)
+        tids, labs = self._tids, self._labs
         order = np.argsort(track_ids)
         sorted_ids = track_ids[order]
-        pos = np.minimum(np.searchsorted(sorted_ids, tids), sorted_ids.size - 1)
+        pos = np.minimum(np.searchsorted(sorted_ids, tids), k - 1)
         hit = sorted_ids[pos] == tids
-        np.add.at(seen, order[pos[hit]], 1.0)
+        row = order[pos]
+        seen = np.bincount(row[hit], minlength=k).astype(float)
         lab = hit & (labs >= 0)
-        np.add.at(votes, (order[pos[lab]], labs[lab]), 1.0)
-        unl = hit & (labs < 0) & votes_none
-        np.add.at(none, order[pos[unl]], 1.0)
+        votes = np.bincount(row[lab] * M + labs[lab], minlength=k * M).astype(float).reshape(k, M)
+        none = np.bincount(row[hit & self._none], minlength=k).astype(float)
         return votes, seen, none
 
     def publish(self, track_ids: np.ndarray, current: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

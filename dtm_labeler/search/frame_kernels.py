@@ -13,6 +13,8 @@ before the mixture kernel itself). Here each is one compiled loop:
 * :class:`TermTable` -- an open-addressing hash table int64 key -> float64 term for the frame
   (:func:`table_lookup`, :func:`table_insert`), replacing a sorted array with
   ``searchsorted``/``insert``;
+* :func:`allowed_points` -- which label may take which point given the rest of a labeling (the
+  distance bounds to its triangle neighbours' points), what every move of the fast path asks;
 * :func:`frame_terms` -- the terms of new triples in one loop: each triple's 18-D canonical
   state rotated about z by its bin's heading on the fly (no per-bin copies of the frame), its
   observation pattern, that pattern's mixture term, the broad part and the edges' body factor.
@@ -110,6 +112,25 @@ def table_fill(tkeys, tvals, pop, bins, tri, ts, n1, T, out):  # pragma: no cove
                 t = ts[c]
                 key = (((bins[r] * T + t) * n1 + pop[r, tri[t, 0]]) * n1 + pop[r, tri[t, 1]]) * n1 + pop[r, tri[t, 2]]
                 out[r, c] = tvals[_slot(tkeys, key)]
+
+
+@njit(cache=True, nogil=True)
+def allowed_points(dist, ind, bounds, n):  # pragma: no cover - compiled
+    """(M, n+1): label ``l`` may take point ``p`` given the labeling ``ind`` -- within
+    ``bounds[l, m]`` of the point of every label ``m`` it shares a triangle with (finite
+    bound); "missing" (column ``n``) always."""
+    M = ind.size
+    ok = np.ones((M, n + 1), dtype=np.bool_)
+    for lab in range(M):
+        for m in range(M):
+            b = bounds[lab, m]
+            if b == np.inf:
+                continue
+            q = ind[m]
+            for p in range(n):
+                if ok[lab, p] and dist[p, q] > b:
+                    ok[lab, p] = False
+    return ok
 
 
 @njit(cache=True, nogil=True)
@@ -254,6 +275,7 @@ def warm_up() -> None:
     tab.insert(miss, np.zeros(miss.size))
     table_fill(tab.keys, tab.vals, pop, np.zeros(1, dtype=np.int64), tri, ts, 2, 1, out)
     table_lookup_keys(tab.keys, tab.vals, miss)
+    allowed_points(np.zeros((2, 2)), np.zeros(3, dtype=np.int64), np.full((3, 3), np.inf), 1)
     stack = (np.zeros((1, 1, 18, 1)), np.zeros((1, 1, 1)), np.zeros((1, 1, 1)), np.zeros((1, 1, 1)),
              np.ones((1, 1), dtype=np.int64), np.zeros((1, 1), dtype=np.int64), np.ones(1, dtype=np.int64),
              np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64))
@@ -262,5 +284,5 @@ def warm_up() -> None:
                 np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((1, 3)))
 
 
-__all__ = ["facing", "TermTable", "table_lookup", "table_fill", "table_insert", "table_lookup_keys",
+__all__ = ["allowed_points", "facing", "TermTable", "table_lookup", "table_fill", "table_insert", "table_lookup_keys",
            "frame_terms", "warm_up"]

@@ -29,6 +29,7 @@ from . import label_ops as ops
 from .dtm_dp import max_product, regions_of, relabel_regions
 from .evolve import Island, Mating, evolve
 from .ga import Termination
+from .move_kernels import move_rows
 
 
 @dataclass
@@ -195,32 +196,19 @@ def targeted_moves(ind: np.ndarray, n: int, mirror_pairs: np.ndarray, free_point
     left/right pair swapped, labels on nearby points swapped (``close_pairs``: where tracks
     cross) and every label (missing or not) moved onto each free point -- only where
     ``allowed`` (M, n+1), if given, permits that label on that point (the distance bounds
-    to its labelled triangle neighbours, :meth:`FrameProblem.allowed`)."""
-    out = [ind[None], ops.mirror(ind[None], mirror_pairs)]
-    if close_pairs is not None and len(close_pairs):
-        sw = np.repeat(ind[None], len(close_pairs), 0)
-        r = np.arange(len(close_pairs))
-        sw[r, close_pairs[:, 0]], sw[r, close_pairs[:, 1]] = ind[close_pairs[:, 1]], ind[close_pairs[:, 0]]
-        out.append(sw)
-    if len(mirror_pairs):
-        sw = np.repeat(ind[None], len(mirror_pairs), 0)
-        r = np.arange(len(mirror_pairs))
-        sw[r, mirror_pairs[:, 0]], sw[r, mirror_pairs[:, 1]] = ind[mirror_pairs[:, 1]], ind[mirror_pairs[:, 0]]
-        out.append(sw)
-    if free_points.size:
-        lab, pt = np.meshgrid(np.arange(ind.size), free_points, indexing="ij")
-        lab, pt = lab.ravel(), pt.ravel()
-        if allowed is not None:
-            ok = allowed[lab, pt]
-            lab, pt = lab[ok], pt[ok]
-        mv = np.repeat(ind[None], lab.size, 0)
-        mv[np.arange(lab.size), lab] = pt
-        out.append(mv)
-    if release is not None and len(release):
-        rel = np.repeat(ind[None], len(release), 0)
-        rel[np.arange(len(release)), release] = n
-        out.append(rel)
-    return np.concatenate(out)
+    to its labelled triangle neighbours, :meth:`FrameProblem.allowed`). Written by a compiled
+    kernel (:func:`~.move_kernels.move_rows`), in this order."""
+    empty = np.zeros((0, 2), dtype=np.int64)
+    return move_rows(np.ascontiguousarray(ind, dtype=np.int64), n, _pairs(mirror_pairs, empty),
+                     _pairs(close_pairs, empty), np.ascontiguousarray(free_points, dtype=np.int64),
+                     allowed if allowed is not None else np.zeros((1, 1), dtype=np.bool_), allowed is not None,
+                     np.zeros(0, dtype=np.int64) if release is None else np.ascontiguousarray(release, dtype=np.int64))
+
+
+def _pairs(pairs: np.ndarray | None, empty: np.ndarray) -> np.ndarray:
+    if pairs is None or not len(pairs):
+        return empty
+    return np.ascontiguousarray(pairs, dtype=np.int64).reshape(-1, 2)
 
 
 def polish(problem: FrameProblem, ind: np.ndarray, fit: float | None, rounds: int,

@@ -36,7 +36,7 @@ import numpy as np
 
 from ..model.dtm import TriangulatedModel
 from ..model.features import STATE_DIM, observation_state
-from .frame_kernels import TermTable, facing, frame_terms, table_fill, table_lookup, table_lookup_keys
+from .frame_kernels import TermTable, allowed_points, facing, frame_terms, table_fill, table_lookup, table_lookup_keys
 
 
 @dataclass(frozen=True)
@@ -78,10 +78,12 @@ class FrameProblem:
         self.states = np.vstack([states, np.full((1, STATE_DIM), np.nan)])       # row n = missing
         self.codes = observation_state(self.states)
         xyz = self.states[:, :3]
-        d = np.linalg.norm(xyz[:, None] - xyz[None], axis=-1)
+        diff = xyz[:, None] - xyz[None]
+        d = np.sqrt((diff * diff).sum(-1))                     # what np.linalg.norm computes, cheaper
         d[-1, :] = d[:, -1] = 0.0                              # "missing" is never too far
-        self.dist = np.nan_to_num(d, nan=0.0)
-        self.bounds = model.distance_bounds
+        d[np.isnan(d)] = 0.0
+        self.dist = d
+        self.bounds = np.ascontiguousarray(model.distance_bounds, dtype=np.float64)
         self._xy = np.ascontiguousarray(self.states[:, :2])
         self.bins = model.heading_bins
         self.T = model.structure.n_triangles
@@ -188,10 +190,7 @@ class FrameProblem:
     def allowed(self, ind: np.ndarray) -> np.ndarray:
         """(M, n+1): label ``l`` may take point ``p`` given the rest of ``ind`` (distance
         bounds to its assigned triangle neighbours); "missing" always allowed."""
-        d = self.dist[:, ind]                                          # (n+1, M)
-        ok = ~(d[None, :, :] > self.bounds[:, None, :]).any(axis=2)    # (M, n+1)
-        ok[:, self.n] = True
-        return ok
+        return allowed_points(self.dist, np.ascontiguousarray(ind, dtype=np.int64), self.bounds, self.n)
 
     def empty_assignment(self) -> np.ndarray:
         return np.full(self.M, self.n, dtype=np.int64)
