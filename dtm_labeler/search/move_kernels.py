@@ -1,11 +1,11 @@
 """Compiled neighbourhood of a carried-over labeling (the fast path's moves).
 
-The moves themselves are few -- a few dozen rows of M labels -- and scoring them is one cached
-lookup per row (:meth:`~.problem.FrameProblem.fitness`, ~10-15 us at 14 points). Written with
-numpy, building them cost more than scoring them: meshgrids, repeats and fancy assignments over
-small arrays, ~100 us per hill-climb round at 14 points (the fast path's largest cost, measured
-on the demo's flicker stream). Here the rows are written in two compiled loops, in the same
-order as before (ties in the hill-climb's arg max are broken the same way):
+The moves are few -- a few dozen rows of M labels -- and scoring them all is one call of
+:meth:`~.problem.FrameProblem.fitness` (13-20 us at 14 points, the terms cached). Built with
+numpy (meshgrids, repeats, fancy assignments over small arrays) they cost more than that: on
+the demo's flicker stream at 14 points, ~100 us per hill-climb round plus 30 us for the close
+pairs. Compiled here (with :func:`~.frame_kernels.allowed_points`), 14-19 us. The rows come in
+the order numpy wrote them, so the hill-climb's arg max breaks ties as before:
 
 1. the labeling itself, its mirror image (every left/right pair swapped at once);
 2. each close label pair swapped, then each left/right pair swapped;
