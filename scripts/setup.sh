@@ -34,4 +34,18 @@ build_msgs() {  # <package dir> <python module>
 }
 build_msgs msg_defs dtm_labeler_msgs
 build_msgs vendor/mocap4r2_msgs mocap4r2_msgs
+# compile the numba kernels once (cached on disk next to the sources): otherwise the first
+# labeler of a fresh checkout -- a node loading its first model -- pays ~10-20 s of compiling
+echo "[setup] compiling the labeler's kernels (cached; seconds when up to date)"
+python - <<'PY'
+from dtm_labeler.evaluation.corruption import corrupt_clip
+from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
+from dtm_labeler.motion import synthesize
+from dtm_labeler.training.train import TrainConfig, train_model
+clip = synthesize(duration=1.0, seed=1)
+model, _ = train_model([clip], TrainConfig(mixture="fixed", k_fixed=2, structure="greedy"))
+with StreamLabeler(model, LabelerSettings(recovery="inline")) as lab:
+    for fr in corrupt_clip(clip.slice(0, 40), occlude=2, clutter=2, gap_frames=1, seed=1):
+        lab.process(fr.xyz, fr.stamp)
+PY
 echo "[setup] ready: source .venv/bin/activate"
