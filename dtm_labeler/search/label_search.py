@@ -198,17 +198,19 @@ def targeted_moves(ind: np.ndarray, n: int, mirror_pairs: np.ndarray, free_point
     ``allowed`` (M, n+1), if given, permits that label on that point (the distance bounds
     to its labelled triangle neighbours, :meth:`FrameProblem.allowed`). Written by a compiled
     kernel (:func:`~.move_kernels.move_rows`), in this order."""
-    empty = np.zeros((0, 2), dtype=np.int64)
-    return move_rows(np.ascontiguousarray(ind, dtype=np.int64), n, _pairs(mirror_pairs, empty),
-                     _pairs(close_pairs, empty), np.ascontiguousarray(free_points, dtype=np.int64),
-                     allowed if allowed is not None else np.zeros((1, 1), dtype=np.bool_), allowed is not None,
-                     np.zeros(0, dtype=np.int64) if release is None else np.ascontiguousarray(release, dtype=np.int64))
+    use_allowed = allowed is not None
+    return move_rows(_int64(ind), n, _pairs(mirror_pairs), _pairs(close_pairs), _int64(free_points),
+                     allowed if use_allowed else np.zeros((1, 1), dtype=np.bool_), use_allowed,
+                     _int64(release if release is not None else ()))
 
 
-def _pairs(pairs: np.ndarray | None, empty: np.ndarray) -> np.ndarray:
-    if pairs is None or not len(pairs):
-        return empty
-    return np.ascontiguousarray(pairs, dtype=np.int64).reshape(-1, 2)
+def _int64(a) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.int64)
+
+
+def _pairs(pairs: np.ndarray | None) -> np.ndarray:
+    """(K, 2) int64 label pairs (K = 0 for None or none)."""
+    return _int64(pairs if pairs is not None else ()).reshape(-1, 2)
 
 
 def polish(problem: FrameProblem, ind: np.ndarray, fit: float | None, rounds: int,
