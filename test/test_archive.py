@@ -1,5 +1,7 @@
 """Archives (issue 14, part c): many takes with --jobs (local processes) and --dask local (a real
 LocalCluster); the same figures as a serial run, one entry per take."""
+import contextlib
+import io
 import json
 import os
 
@@ -40,6 +42,19 @@ def _run(capsys, *args) -> dict:
     return out
 
 
+@pytest.fixture(scope="module")
+def serial(archive) -> dict:
+    """The archive labelled in this process, one take after another (what --jobs and --dask
+    must reproduce); run once for the module."""
+    model, takes = archive
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        rc = label_main([str(model), str(takes), "--json", "--quiet"])
+    out = json.loads(buf.getvalue())
+    out["rc"] = rc
+    return out
+
+
 def _same_figures(a: dict, b: dict) -> None:
     assert a["rc"] == b["rc"] == 0 and len(a["inputs"]) == len(b["inputs"]) == 4
     assert [x["source"] for x in a["inputs"]] == [x["source"] for x in b["inputs"]]
@@ -53,9 +68,8 @@ def _same_figures(a: dict, b: dict) -> None:
     assert not any(w.endswith(me) for w in workers) and 1 <= len(workers) <= 2
 
 
-def test_jobs_give_the_serial_figures(archive, capsys, tmp_path):
+def test_jobs_give_the_serial_figures(archive, serial, capsys, tmp_path):
     model, takes = archive
-    serial = _run(capsys, model, takes)
     assert serial["ghosts"] == 4 * 30 * 2 and serial["accuracy"] > 0.8
     jobs = _run(capsys, model, takes, "--jobs", 2, "--out", tmp_path / "labelled", "--out-format", "csv")
     _same_figures(serial, jobs)
@@ -65,9 +79,8 @@ def test_jobs_give_the_serial_figures(archive, capsys, tmp_path):
     assert back.names == tuple(UPPER) and back.n_frames == 30
 
 
-def test_dask_local_gives_the_serial_figures(archive, capsys):
+def test_dask_local_gives_the_serial_figures(archive, serial, capsys):
     model, takes = archive
-    serial = _run(capsys, model, takes)
     _same_figures(serial, _run(capsys, model, takes, "--jobs", 2, "--dask", "local"))
 
 

@@ -108,9 +108,10 @@ def test_dtm_label_self_calibrates_a_generic_body_by_default(models, data_dir, r
     """Another person (subject 5's pirouette) under a generic body of subject 55: by default
     dtm-label self-calibrates the body on the take's first frames (a third of these 240: no
     name of the take used), keeps the calibration because the calibrated model keeps what the
-    model confirmed, labels every frame -- and beats the model as it is (measured 60.7 -> 84.2 %)."""
+    model confirmed, labels every frame -- and beats the model as it is (measured 60.7 -> 84.2 %;
+    without the take pass, left out here for time: 67.6 -> 82.7 %)."""
     model_path, _, _ = models
-    args = [model_path, data_dir / PIROUETTE, "--frames", "0:240", "--json", "--quiet"]
+    args = [model_path, data_dir / PIROUETTE, "--frames", "0:240", "--no-take-pass", "--json", "--quiet"]
     auto = json.loads(run("dtm-label", *args).stdout)
     off = json.loads(run("dtm-label", *args, "--calibrate", "off").stdout)
     cal = auto["inputs"][0]["calibration"]
