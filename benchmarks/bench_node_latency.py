@@ -235,7 +235,8 @@ def run_variant(name: str, case: dict, variant: str, env: dict, model_path: Path
             if not mon.wait_ready(60, alive=lambda: node.poll() is None, topics=("markers/labeled", "/diagnostics")):
                 raise RuntimeError(f"node did not start:\n{tail(log)}")
             # the node loads its model off the executor: wait until it runs
-            mon.wait_diag(lambda d: d and "loading" not in d.get("_message", ""), timeout=60)
+            if not mon.wait_model_loaded(60, alive=lambda: node.poll() is None):
+                raise RuntimeError(f"node did not load its model:\n{tail(log)}")
             for rate in rates:
                 bag, n = make_bag(case, model, rate, work, args.seconds)
                 r = dict(run_once(mon, bag, env, n, rate), variant=variant)

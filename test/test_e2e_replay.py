@@ -67,6 +67,9 @@ def test_replay_through_the_node(setup):
             assert mon.wait_ready(timeout=30, alive=lambda: node.poll() is None,
                                   topics=("markers/labeled", "/diagnostics")), f"node not up:\n{tail(log)}"
             assert mon.wait_diag(lambda d: d.get("frames_received") == "0", timeout=10), "no diagnostics"
+            # the monitor reads the node's model status (what dtm-demo waits for before playing)
+            assert mon.wait_model_loaded(timeout=60, alive=lambda: node.poll() is None), tail(log)
+            assert mon.model_diag["model_path"] == str(setup["model_path"])
             player = start_player(setup["bag"], env, ["--restamp", "--wait-for", "markers/unlabeled",
                                                       "markers/ground_truth", "--start-delay", "0.2"])
             out, err = player.communicate(timeout=60)

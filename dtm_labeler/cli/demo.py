@@ -315,8 +315,11 @@ def _main(argv=None) -> int:
             if not mon.wait_ready(timeout=30.0, alive=lambda: node.poll() is None,
                                   topics=("markers/labeled", "/diagnostics")):
                 raise CliError(f"the node did not come up (exit status {node.poll()}):\n{tail(log_path)}")
-            # wait for a diagnostics message: the node is spinning (model loaded)
-            mon.wait_diag(lambda d: True, timeout=5.0)
+            # wait until the node says its model is loaded (a fresh install compiles its kernels
+            # on the first load): frames sent before that would be dropped as "no_model"
+            if not mon.wait_model_loaded(timeout=60.0, alive=lambda: node.poll() is None):
+                raise CliError(f"the node did not load its model within 60 s (exit status {node.poll()}):\n"
+                               f"{tail(log_path)}")
             say(f"node      up after {time.perf_counter() - t_start:.1f} s (pid {node.pid}); playing")
             player = start_player(bag, env, ["--restamp", "--wait-for", "markers/unlabeled", "markers/ground_truth",
                                              "--start-delay", "0.3", "--wait-timeout", "20"])

@@ -242,6 +242,7 @@ class ReplayMonitor:
         self._score_lock = threading.Lock()
         self.diag: dict = {}                    # last /diagnostics values of the labeler
         self.diag_count = 0
+        self.model_diag: dict = {}              # last values of its model status (model_status, model_path)
         self._ctx = None
         self._thread = None
 
@@ -340,10 +341,15 @@ class ReplayMonitor:
 
     def _on_diag(self, msg) -> None:
         for st in msg.status:
-            if st.name.endswith(": labeling") and (not self.diag_node or st.name.startswith(self.diag_node)):
+            if self.diag_node and not st.name.startswith(self.diag_node):
+                continue
+            if st.name.endswith(": labeling"):
                 with self.lock:
                     self.diag = _diag_values(st)
                     self.diag_count += 1
+            elif st.name.endswith(": model"):
+                with self.lock:
+                    self.model_diag = _diag_values(st)
 
     # -- queries
     def publishers_ready(self, topics: Sequence[str] = ("markers/labeled", "/diagnostics")) -> bool:
@@ -357,6 +363,19 @@ class ReplayMonitor:
         while time.monotonic() - t < timeout:
             if self.publishers_ready(topics):
                 return True
+            if alive is not None and not alive():
+                return False
+            time.sleep(0.05)
+        return False
+
+    def wait_model_loaded(self, timeout: float = 60.0, alive: Callable[[], bool] | None = None) -> bool:
+        """Wait until the node's model status says ``loaded``; False on timeout or when
+        ``alive()`` turns False."""
+        t = time.monotonic()
+        while time.monotonic() - t < timeout:
+            with self.lock:
+                if self.model_diag.get("model_status") == "loaded":
+                    return True
             if alive is not None and not alive():
                 return False
             time.sleep(0.05)
