@@ -264,11 +264,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _frames_with_errors(per_frame: list) -> dict:
-    """How many scored frames had a wrong or missing label, and how many of them came before
-    the stream's first fully right frame (the start-up, before any labeling was known)."""
+    """How many scored frames had a wrong or missing label, how many of them came before the
+    stream's first fully right frame (the start-up, before any labeling was known), and the
+    accuracy from that frame on (steady state; None when no frame was right)."""
     wrong = [c < t for _, c, t in per_frame]
     first_right = wrong.index(False) if False in wrong else len(wrong)
-    return dict(total=int(sum(wrong)), before_first_right_frame=first_right)
+    rest = per_frame[first_right:]
+    seen = sum(t for _, _, t in rest)
+    return dict(total=int(sum(wrong)), before_first_right_frame=first_right,
+                accuracy_from_first_right_frame=sum(c for _, c, _ in rest) / seen if seen else None)
 
 
 def _fmt_ms(d: dict, k: str) -> str:
@@ -386,7 +390,7 @@ def _main(argv=None) -> int:
         print(json.dumps(summary, indent=1))
     else:
         lat, nl = s["latency_ms"], s["node_latency_ms"]
-        acc = s["accuracy"]
+        acc, errs = s["accuracy"], summary["frames_with_errors"]
         print("summary")
         print(f"  frames      sent {sent}, received by the node {received}, labelled {s['labeled']} "
               f"({s['node_carried']} carried by the tracks while a search ran), "
@@ -396,8 +400,9 @@ def _main(argv=None) -> int:
         print(f"  accuracy    {'n/a' if acc != acc else f'{100 * acc:.2f} %'} of {s['true_markers']} visible true "
               f"markers in labelled frames" + (f"; ghosts left unlabeled {100 * s['ghost_rejection']:.1f} %"
                                                if s["ghosts"] else "")
-              + f"; {summary['frames_with_errors']['total']} frames with an error "
-                f"({summary['frames_with_errors']['before_first_right_frame']} of them at the start)")
+              + f"; {errs['total']} frames with an error ({errs['before_first_right_frame']} of them at the start"
+              + (f"; from the first right frame on {100 * errs['accuracy_from_first_right_frame']:.2f} %)"
+                 if errs["accuracy_from_first_right_frame"] is not None else ")"))
         print(f"  latency     end-to-end (stamp -> labelled frame here) p50 {lat['p50']:.1f} ms, "
               f"p99 {lat['p99']:.1f} ms, max {lat['max']:.1f} ms; in the node p50 {nl['p50']:.1f} ms, "
               f"p99 {nl['p99']:.1f} ms")
