@@ -35,9 +35,12 @@ def archive(data_dir, tmp_path_factory):
     return model_path, takes
 
 
-def _run(capsys, *args) -> dict:
-    rc = label_main([str(a) for a in args] + ["--json", "--quiet"])
-    out = json.loads(capsys.readouterr().out)
+def _run(*args) -> dict:
+    """``dtm-label ARGS --json --quiet`` in this process: its JSON, and its exit status as ``rc``."""
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        rc = label_main([str(a) for a in args] + ["--json", "--quiet"])
+    out = json.loads(buf.getvalue())
     out["rc"] = rc
     return out
 
@@ -46,13 +49,7 @@ def _run(capsys, *args) -> dict:
 def serial(archive) -> dict:
     """The archive labelled in this process, one take after another (what --jobs and --dask
     must reproduce); run once for the module."""
-    model, takes = archive
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
-        rc = label_main([str(model), str(takes), "--json", "--quiet"])
-    out = json.loads(buf.getvalue())
-    out["rc"] = rc
-    return out
+    return _run(*archive)
 
 
 def _same_figures(a: dict, b: dict) -> None:
@@ -68,10 +65,10 @@ def _same_figures(a: dict, b: dict) -> None:
     assert not any(w.endswith(me) for w in workers) and 1 <= len(workers) <= 2
 
 
-def test_jobs_give_the_serial_figures(archive, serial, capsys, tmp_path):
+def test_jobs_give_the_serial_figures(archive, serial, tmp_path):
     model, takes = archive
     assert serial["ghosts"] == 4 * 30 * 2 and serial["accuracy"] > 0.8
-    jobs = _run(capsys, model, takes, "--jobs", 2, "--out", tmp_path / "labelled", "--out-format", "csv")
+    jobs = _run(model, takes, "--jobs", 2, "--out", tmp_path / "labelled", "--out-format", "csv")
     _same_figures(serial, jobs)
     written = sorted(p.relative_to(tmp_path / "labelled").as_posix() for p in (tmp_path / "labelled").rglob("*.csv"))
     assert written == ["sub/take2.csv", "sub/take3.csv", "take0.csv", "take1.csv"]
@@ -79,16 +76,16 @@ def test_jobs_give_the_serial_figures(archive, serial, capsys, tmp_path):
     assert back.names == tuple(UPPER) and back.n_frames == 30
 
 
-def test_dask_local_gives_the_serial_figures(archive, serial, capsys):
+def test_dask_local_gives_the_serial_figures(archive, serial):
     model, takes = archive
-    _same_figures(serial, _run(capsys, model, takes, "--jobs", 2, "--dask", "local"))
+    _same_figures(serial, _run(model, takes, "--jobs", 2, "--dask", "local"))
 
 
-def test_a_bad_take_does_not_stop_the_archive(archive, capsys, tmp_path):
+def test_a_bad_take_does_not_stop_the_archive(archive, tmp_path):
     model, takes = archive
     bad = tmp_path / "broken.c3d"
     bad.write_bytes(b"not a c3d file")
-    out = _run(capsys, model, takes / "take0.c3d", bad, "--jobs", 2)
+    out = _run(model, takes / "take0.c3d", bad, "--jobs", 2)
     assert out["rc"] == 1 and out["errors"] == 1
     assert "cannot read C3D" in out["inputs"][1]["error"] and out["inputs"][0]["frames"] == 30
     assert out["frames"] == 30
