@@ -50,7 +50,12 @@ def run_case(case: G.Case) -> dict:
 
 def write_md(res: dict, meta: dict) -> str:
     L = ["# dtm-label's default subject calibration (`--calibrate auto`)", "",
-         f"{meta['when']}, commit {meta['commit']}, 2 cores. {__doc__.split(chr(10) + chr(10))[1]}", "",
+         f"{meta['when']}, commit {meta['commit']}, 2 cores. {__doc__.split(chr(10) + chr(10))[1]}", ""]
+    older = {k: c for k, c in meta.get("commits", {}).items() if c != meta["commit"] and k in res}
+    if older:
+        L += ["Rows kept from an earlier run (`--merge`): " + "; ".join(f"{res[k]['title']} (commit {c})"
+                                                                       for k, c in older.items()) + ".", ""]
+    L += [
          "| group | case | frames (calibration frames) | off % | auto % | calibration | kept % |",
          "|---|---|---:|---:|---:|---|---:|"]
     for r in res.values():
@@ -66,9 +71,15 @@ def write_md(res: dict, meta: dict) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--cases", default=",".join(c.key for c in G.CASES))
+    ap.add_argument("--merge", action="store_true", help="keep the cases of results/auto_calibration.json "
+                    "that this run does not redo (their rows keep the commit they were measured at)")
     args = ap.parse_args(argv)
     keys = args.cases.split(",")
-    res = {}
+    res, kept = {}, {}
+    if args.merge and (RESULTS / "auto_calibration.json").is_file():
+        old = json.loads((RESULTS / "auto_calibration.json").read_text())
+        kept = {k: old["meta"].get("commits", {}).get(k, old["meta"]["commit"]) for k in old["cases"] if k not in keys}
+        res = {k: v for k, v in old["cases"].items() if k in kept}
     for case in (c for c in G.CASES if c.key in keys):
         t = time.perf_counter()
         res[case.key] = r = run_case(case)
@@ -78,7 +89,9 @@ def main(argv=None) -> int:
               flush=True)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
                             text=True).stdout.strip()
-    meta = {"when": time.strftime("%Y-%m-%d %H:%M"), "commit": commit}
+    meta = {"when": time.strftime("%Y-%m-%d %H:%M"), "commit": commit,
+            "commits": {**{k: commit for k in res if k not in kept}, **kept}}
+    res = {c.key: res[c.key] for c in G.CASES if c.key in res}          # the section's order
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "auto_calibration.json").write_text(json.dumps({"meta": meta, "cases": res}, indent=1))
     (RESULTS / "auto_calibration.md").write_text(write_md(res, meta))

@@ -468,3 +468,22 @@ def test_fit_reference_moves_confidences_not_labels(person):
     labelled = np.array([r.labels for r in runs[None][5:]]) >= 0
     assert (high[labelled] < 0.5 * base[labelled]).all()
     assert (low[labelled] >= base[labelled] - 1e-12).all() and base[labelled].mean() > 0.9
+
+
+def test_broad_weight_floor_by_point_set(models, walker, data_dir):
+    """The broad weight's floor (held-out frames of the same takes show less novelty than
+    another motion will): 0.06 for the 14 body points, 0.02 for marker sets (about 40
+    triangles, whose tails add up); an explicit ``min_weight`` wins."""
+    from dtm_labeler.motion.load import load_clip
+    from dtm_labeler.training.body_fit import MIN_WEIGHT_BODY14, MIN_WEIGHT_MARKERS, BodySettings
+    body14 = models[0]
+    assert body14.settings["broad_component"]["settings"]["min_weight"] == MIN_WEIGHT_BODY14 == 0.06
+    assert body14.broad.weights.min() >= MIN_WEIGHT_BODY14 - 1e-12
+    arm = ["C7", "CLAV", "LSHO", "RSHO", "LELB", "RELB", "LWRA", "RWRA"]
+    hdm = load_clip(data_dir / "markers_c3d/hdm05_bd_05-01_01_120.c3d").select(arm).slice(1200, 1800)
+    markers, _ = train_model([hdm], TrainConfig(mixture="fixed", k_fixed=2, structure="greedy", seed=0))
+    assert markers.settings["broad_component"]["settings"]["min_weight"] == MIN_WEIGHT_MARKERS == 0.02
+    assert markers.broad.weights.min() >= MIN_WEIGHT_MARKERS - 1e-12
+    assert markers.broad.weights.min() < MIN_WEIGHT_BODY14          # the EM went below the body-14 floor
+    explicit, _ = train_model([walker], TrainConfig(**FAST, body=BodySettings(min_weight=0.3)))
+    assert explicit.broad.weights.min() >= 0.3 - 1e-12

@@ -106,21 +106,22 @@ def test_dtm_train_calibrate_makes_the_takes_person_model(data_dir, tmp_path, ca
 
 def test_dtm_label_self_calibrates_a_generic_body_by_default(models, data_dir, run):
     """Another person (subject 5's pirouette) under a generic body of subject 55: by default
-    dtm-label self-calibrates the body on the take's first frames (a third of these 240: no
-    name of the take used), keeps the calibration because the calibrated model keeps what the
-    model confirmed, labels every frame -- and beats the model as it is (measured 60.7 -> 84.2 %;
-    without the take pass, left out here for time: 67.6 -> 82.7 %)."""
+    dtm-label self-calibrates the body on the take's first frames (of a take this short: its
+    first third or all of it, whichever the calibrated model reproduces better; no name of the
+    take used), keeps the calibration because the calibrated model keeps what the model
+    confirmed, labels every frame -- and beats the model as it is (measured without the take
+    pass, left out here for time: 67.6 -> 100 %, calibrated on all 240 frames)."""
     model_path, _, _ = models
     args = [model_path, data_dir / PIROUETTE, "--frames", "0:240", "--no-take-pass", "--json", "--quiet"]
     auto = json.loads(run("dtm-label", *args).stdout)
     off = json.loads(run("dtm-label", *args, "--calibrate", "off").stdout)
     cal = auto["inputs"][0]["calibration"]
-    assert cal["applied"] and cal["frames"] == 80 and cal["segments"] > 5 and 0.9 <= cal["kept_share"] <= 1
+    assert cal["applied"] and cal["frames"] in (80, 240) and cal["segments"] > 5 and 0.9 <= cal["kept_share"] <= 1
     assert auto["frames"] == off["frames"] == 240 and auto["inputs"][0]["frame_range"] == [0, 240]
     assert "calibration" not in off["inputs"][0]
-    assert auto["accuracy"] > off["accuracy"] + 0.1 and auto["accuracy"] > 0.75
+    assert auto["accuracy"] > off["accuracy"] + 0.2 and auto["accuracy"] > 0.95
     text = run("dtm-label", *args[:-2], "--quiet").stdout
-    assert "calibration    " in text and "segment lengths set on the first 80 frames" in text
+    assert "calibration    " in text and f"segment lengths set on the first {cal['frames']} frames" in text
 
 
 def test_auto_calibration_keeps_the_model_when_it_cannot_or_should_not_calibrate(models, data_dir):

@@ -442,7 +442,8 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         floor = np.r_[np.full(9, config.velocity_floor_mps ** 2), np.full(6, config.position_floor_m ** 2)]
         broad, broad_info = broad_components(structure, train_states, train_codes, held_rows, recorded,
                                              fit_features, floor, config.body,
-                                             lambda i, k: step("broad components", i, k))
+                                             lambda i, k: step("broad components", i, k),
+                                             joint_centres=set(labels) <= set(BODY14))
 
     model = TriangulatedModel(
         labels=tuple(labels), structure=structure, mixtures=mixtures, heading_pairs=pairs,
