@@ -487,3 +487,6 @@ def test_broad_weight_floor_by_point_set(models, walker, data_dir):
     assert markers.broad.weights.min() < MIN_WEIGHT_BODY14          # the EM went below the body-14 floor
     explicit, _ = train_model([walker], TrainConfig(**FAST, body=BodySettings(min_weight=0.3)))
     assert explicit.broad.weights.min() >= 0.3 - 1e-12
+    with pytest.raises(ValueError):                  # a cap below the body-14 floor, the floor left unset
+        BodySettings(max_weight=0.04).check()
+    BodySettings(min_weight=0.01, max_weight=0.04).check()

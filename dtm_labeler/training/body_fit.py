@@ -41,11 +41,12 @@ Broad components by EM on held-out frames
     generalisation, calibrated, stream: a run with no run in the training 97.0 -> 99.7 %,
     another dancer 99.7 -> 100 %, no cell lower; single frames: the run 89.3 -> 94.9 %, one cell
     lower, lambada -> whirl 97.6 -> 96.4 %; the EM put 10 of 12 triangles of that model at the
-    old floor, 0.02). For marker sets it stays 0.02: with some 40 triangles, each one's tail adds up, and
-    at 0.06 wrong labelings of another lab's markers got cheap (HDM05 -> CMU 85 calibrated
-    93.6 -> 77.4 %, floor moves 89.9 -> 46.8 %) while CMU 85 -> HDM05 gained (48.9 -> 97.5 %). The model keeps its mixtures fitted to all frames
-    and gets the broad part (:class:`dtm_labeler.model.body.BroadMotion`) moment-matched to all
-    frames with the chosen ``(w, s)``.
+    old floor, 0.02). For marker sets it stays 0.02: with some 40 triangles, each one's tail
+    adds up, and at 0.06 wrong labelings of another lab's markers got cheap (HDM05 -> CMU 85
+    calibrated 93.6 -> 77.4 %, floor moves 89.9 -> 46.8 %) while CMU 85 -> HDM05 gained
+    (48.9 -> 97.5 %). The model keeps its mixtures fitted to all frames and gets the broad
+    part (:class:`dtm_labeler.model.body.BroadMotion`) moment-matched to all frames with the
+    chosen ``(w, s)``.
 """
 from __future__ import annotations
 
@@ -97,7 +98,8 @@ class BodySettings:
     def check(self) -> None:
         if not 0.0 < self.validation_fraction < 0.5:
             raise ValueError("validation fraction must be in (0, 0.5)")
-        if not 0.0 < (self.min_weight if self.min_weight is not None else MIN_WEIGHT_MARKERS) <= self.max_weight < 1.0:
+        floors = (self.min_weight,) if self.min_weight is not None else (MIN_WEIGHT_BODY14, MIN_WEIGHT_MARKERS)
+        if not all(0.0 < w <= self.max_weight < 1.0 for w in floors):
             raise ValueError("need 0 < min_weight <= max_weight < 1")
         if (self.between_rel is not None and self.between_rel < 0) or self.within_floor_m <= 0 or self.reach_sd_m <= 0:
             raise ValueError("body spreads must be positive")
