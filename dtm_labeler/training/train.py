@@ -383,9 +383,9 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         raise ValueError(f"{', '.join(lost)}: never seen together with two other points in {MIN_TRIPLE_FRAMES} "
                          "frames; the structure cannot hold them (leave them out with --points or add takes)")
     body, prior = None, scores       # body terms; structure search scores with the edge prior
+    joint_centres = set(labels) <= set(BODY14)      # the 14 body points, not markers (body_fit's defaults)
     if config.body_terms:
         positions = [canonical_states(c, pairs)[..., :3] for c in clips]
-        joint_centres = set(labels) <= set(BODY14)
         stats = pair_statistics(positions, config.body.max_frames)
         body = fit_body(stats, parents if parents is not None else rigid_tree(clips), config.body, joint_centres=joint_centres)
         if not joint_centres:        # marker clusters: their handedness (model/body.py Handedness)
@@ -443,7 +443,7 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         broad, broad_info = broad_components(structure, train_states, train_codes, held_rows, recorded,
                                              fit_features, floor, config.body,
                                              lambda i, k: step("broad components", i, k),
-                                             joint_centres=set(labels) <= set(BODY14))
+                                             joint_centres=joint_centres)
 
     model = TriangulatedModel(
         labels=tuple(labels), structure=structure, mixtures=mixtures, heading_pairs=pairs,
