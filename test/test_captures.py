@@ -222,13 +222,15 @@ def test_named_take_scores_star_ghosts_and_drop_unlabelled(hdm, upper_model, tmp
     f = tmp_path / "named.c3d"
     write_c3d(f, np.concatenate([clip.positions, ghosts], 1), [f"Subj:{n}" for n in UPPER] + ["Subj:*0", "*1"],
               clip.rate)
-    assert label_main([str(upper_model), str(f), "--json", "--quiet", "--out", str(tmp_path / "o.csv")]) == 0
+    # --calibrate off: the default's self-calibration (test_calibrate_cli) is not what this tests
+    assert label_main([str(upper_model), str(f), "--json", "--quiet", "--out", str(tmp_path / "o.csv"),
+                       "--calibrate", "off"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert d["ghosts"] == 2 * clip.n_frames and d["ghost_rejection"] > 0.9 and d["accuracy"] > 0.9
     assert d["inputs"][0]["unlabelled_points"] == 2
     back = load_clip(tmp_path / "o.csv")
     assert back.names == tuple(UPPER) and back.meta["units"] == "mm"
-    assert label_main([str(upper_model), str(f), "--json", "--quiet", "--drop-unlabelled"]) == 0
+    assert label_main([str(upper_model), str(f), "--json", "--quiet", "--drop-unlabelled", "--calibrate", "off"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert d["ghosts"] == 0 and d["ghost_rejection"] is None
 

@@ -134,9 +134,10 @@ def test_dtm_label_votes_over_the_take(gappy_upper, tmp_path, capsys):
     #                                        240 frames they were within 0.5 % of the live labels)
     write_c3d(tmp_path / "take.c3d", take.positions, list(take.names), take.rate)
     out = {}
+    # --calibrate off: labelled as label_clip_run above (the default's self-calibration: test_calibrate_cli)
     for votes in ("1", "0"):
         assert label_main([str(tmp_path / "m.npz"), str(tmp_path / "take.c3d"), "--json", "--quiet",
-                           "--take-votes", votes]) == 0
+                           "--take-votes", votes, "--calibrate", "off"]) == 0
         out[votes] = json.loads(capsys.readouterr().out)
     assert out["1"]["take_votes_s"] == 1.0 and out["0"]["take_votes_s"] == 0.0
     assert out["1"]["take_pass"] and not out["0"]["take_pass"] and "voted_accuracy" not in out["0"]
