@@ -1,6 +1,7 @@
 """``dtm-calibrate`` and ``dtm-label --calibrate`` as a user runs them (their ``main`` with a
 command line, on real recordings)."""
 import json
+import re
 
 import numpy as np
 import pytest
@@ -120,8 +121,10 @@ def test_dtm_label_self_calibrates_a_generic_body_by_default(models, data_dir, r
     assert auto["frames"] == off["frames"] == 240 and auto["inputs"][0]["frame_range"] == [0, 240]
     assert "calibration" not in off["inputs"][0]
     assert auto["accuracy"] > off["accuracy"] + 0.2 and auto["accuracy"] > 0.95
-    text = run("dtm-label", *args[:-2], "--quiet").stdout
-    assert "calibration    " in text and f"segment lengths set on the first {cal['frames']} frames" in text
+    # the text summary says so too (on a shorter take: the same path, a third of the time)
+    text = run("dtm-label", model_path, data_dir / PIROUETTE, "--frames", "0:80", "--no-take-pass", "--quiet").stdout
+    line = re.search(r"calibration +(\d+) of (\d+) segment lengths set on the first (\d+) frames, (\d+) % of", text)
+    assert line and int(line[1]) > 5 and int(line[3]) in (26, 80) and int(line[4]) >= 90, text
 
 
 def test_auto_calibration_keeps_the_model_when_it_cannot_or_should_not_calibrate(models, data_dir):

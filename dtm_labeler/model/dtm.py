@@ -30,7 +30,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import numpy as np
 
-from .body import SEGMENT, BodyModel, BroadMotion, CrossSegments, EdgeTerms, Handedness, slot_distances
+from .body import SEGMENT, BodyModel, BroadMotion, CrossSegments, EdgeTerms, Handedness, TrunkTwist, slot_distances
 from .features import (FEATURE_DIM, MISSING, N_PATTERNS, STATE_DIM, TRIPLE_DIM, feature_map_for, observation_state,
                        observed_map, pattern_codes, pattern_id)
 from .mixture import GaussianMixture
@@ -328,6 +328,8 @@ class TriangulatedModel:
         self.body_cross = cross if cross is not None and cross.active else None     # rigid pairs off the edges
         hand = Handedness(self.body) if self.body is not None and self.body.calibration else None
         self.body_handedness = hand if hand is not None and hand.active else None  # clusters' handedness
+        twist = TrunkTwist(self.body) if self.body is not None else None
+        self.body_twist = twist if twist is not None and twist.active else None     # trunk's twist limit
         if self.broad is not None and len(self.broad.gaussians) != len(self.mixtures):
             raise ValueError(f"{len(self.broad.gaussians)} broad components for {len(self.mixtures)} triangles")
         # the broad part applies once the body is calibrated to a person (model/body.py, "Whose lengths")
@@ -494,8 +496,9 @@ class TriangulatedModel:
         Missing points (NaN) are marginalised; every root adds ``background_position``
         (the log density of an unmodelled absolute position; 0 gives the pure model term).
         Body terms (if any) included: the edge factors and a calibrated body's rigid pairs off
-        the edges (:class:`~dtm_labeler.model.body.CrossSegments`) and the clusters' handedness
-        (:class:`~dtm_labeler.model.body.Handedness`), as the frame fitness has them.
+        the edges (:class:`~dtm_labeler.model.body.CrossSegments`), the clusters' handedness
+        (:class:`~dtm_labeler.model.body.Handedness`) and the trunk's twist limit
+        (:class:`~dtm_labeler.model.body.TrunkTwist`), as the frame fitness has them.
         """
         states = np.asarray(states, dtype=np.float64)
         codes = observation_state(states)
@@ -512,6 +515,8 @@ class TriangulatedModel:
             total += self.body_cross.labelled(states[..., :3])
         if self.body_handedness is not None:
             total += self.body_handedness.labelled(states[..., :3])
+        if self.body_twist is not None:
+            total += self.body_twist.labelled(states[..., :3])
         return total
 
     def components_per_triangle(self) -> list[int]:

@@ -14,13 +14,17 @@ Layout (all entries plain numeric arrays; loaded with ``allow_pickle=False``)::
     body_between_sd
     body_quads        (Q,4)   int64     the marker clusters' handedness (version 3): neighbouring
     body_quad_sign    (Q,)    float64   label quadruples and the sign of their signed volume
+    body_twists       (K,5)   int64     the trunk's twist limits (version 4): shoulder axis (left,
+                                        mid or -1, right) and hip axis (left, right) labels
     broad_weights     (T,)    float64   broad part of each triangle's conditional (version 2, when
     broad<t>_mean     (15,)   float64   the header's "broad" is true; see dtm_labeler.model.body)
     broad<t>_covariance (15,15) float64
 
 Versions: 2 adds the body terms and the broad components (issue 13); 3 the clusters' handedness
-(:class:`~dtm_labeler.model.body.Handedness`). Version 1 files still load, as models without body terms,
-version 2 files as bodies without handedness (both score exactly as they did;
+(:class:`~dtm_labeler.model.body.Handedness`); 4 the trunk's twist limit
+(:class:`~dtm_labeler.model.body.TrunkTwist`). Version 1 files still load, as models without body terms,
+version 2 files as bodies without handedness, version 3 files as bodies without twist limits (all
+score exactly as they did;
 ``provenance["format_version_read"]`` says which). A file that is
 not a model, has an unknown format version, or whose arrays disagree with the header raises
 :class:`ModelFileError` naming the file and the problem.
@@ -42,8 +46,8 @@ from .mixture import GaussianMixture
 from .structure import Structure
 
 FORMAT_NAME = "dtm_labeler.model"
-FORMAT_VERSION = 3
-READABLE_VERSIONS = (1, 2, 3)
+FORMAT_VERSION = 4
+READABLE_VERSIONS = (1, 2, 3, 4)
 
 
 class ModelFileError(ValueError):

@@ -178,6 +178,8 @@ class FrameProblem:
             f = f + self.model.body_cross(pop, self.dist, self.n)
         if self.model.body_handedness is not None:  # marker clusters shown mirrored (model/body.py)
             f = f + self.model.body_handedness(pop, self.states[:, :3])
+        if self.model.body_twist is not None:       # hips exchanged under the shoulders (model/body.py)
+            f = f + self.model.body_twist(pop, self.states[:, :3])
         return (f, bins) if return_bins else f
 
     def plausible(self, pop: np.ndarray, labels: np.ndarray, points: np.ndarray) -> np.ndarray:

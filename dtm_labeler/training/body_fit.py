@@ -60,10 +60,12 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import shortest_path
 
-from ..model.body import HANDEDNESS_SHARE, REACH, SEGMENT, BodyModel, BroadMotion, Handedness, broad_covariance
+from ..model.body import (HANDEDNESS_SHARE, REACH, SEGMENT, TWIST_COS_MIN, TWIST_COS_SD, BodyModel, BroadMotion,
+                          Handedness, TrunkTwist, broad_covariance)
 from ..model.features import FULL, MISSING, feature_map_for, observed_map, triangle_features
 from ..model.mixture import GaussianMixture, logsumexp_rows
 from ..model.structure import Structure
+from ..motion.pointsets import MARKER_SETS
 
 
 #: floor of the broad component's weight by point set when ``BodySettings.min_weight`` is None (module doc)
@@ -148,6 +150,38 @@ def handedness_quads(clips: Sequence[np.ndarray], share: float = HANDEDNESS_SHAR
     if not cand:
         return np.zeros((0, 4), dtype=np.int64), np.zeros(0)
     return quad_signs(P, np.array(sorted(cand), dtype=np.int64), share, min_frames)
+
+
+def trunk_twists(labels: Sequence[str], clips: Sequence[np.ndarray] = (), share: float = 0.999) -> np.ndarray:
+    """The trunk's twist limits (:class:`~dtm_labeler.model.body.TrunkTwist`) of a point set:
+    rows ``(left shoulder, midline point or -1, right shoulder, left hip, right hip)`` of label
+    indices, one per pair of pelvis points, from the names of every known point set
+    (:data:`~dtm_labeler.motion.pointsets.MARKER_SETS`: the 14 body points' shoulders, neck and
+    hips; a marker set's shoulder, C7 / CV7 and pelvis markers) that ``labels`` hold. With
+    training frames ``clips`` ((F, M, 3) labelled positions), a row is kept only where its
+    cosine stays above the limit plus two spreads in ``share`` of the frames that show it (a
+    point set whose "left" is the other side's left is not limited). Training attaches them to
+    the 14 body points only (:class:`~dtm_labeler.model.body.TrunkTwist`: measured on marker
+    sets, they moved the 41-marker cells both ways)."""
+    index = {name: i for i, name in enumerate(labels)}
+    rows = []
+    for table in MARKER_SETS.values():
+        ls, rs = table["lshoulder"][0], table["rshoulder"][0]
+        mids = [m for m in table["neck"] if m in index and m not in (ls, rs)]
+        for lh, rh in zip(table["lhip"], table["rhip"]):
+            if all(n in index for n in (ls, rs, lh, rh)):
+                rows.append((index[ls], index[mids[0]] if mids else -1, index[rs], index[lh], index[rh]))
+    twists = np.array(sorted(set(rows)), dtype=np.int64).reshape(-1, 5)
+    if twists.shape[0] and len(clips):
+        P = np.concatenate([np.asarray(c, dtype=np.float64) for c in clips])
+        M = P.shape[1]
+        probe = TrunkTwist(BodyModel(M, np.zeros((0, 2)), [], [], [], [], [], twists=twists))
+        c = probe.cosines(P.reshape(-1, 3), np.arange(P.shape[0] * M).reshape(-1, M))
+        with np.errstate(invalid="ignore"):
+            low = np.array([np.quantile(col[np.isfinite(col)], 1.0 - share) if np.isfinite(col).any() else np.inf
+                            for col in c.T])
+        twists = twists[low >= TWIST_COS_MIN + 2.0 * TWIST_COS_SD]
+    return twists
 
 
 def quad_signs(positions: np.ndarray, quads: np.ndarray, share: float = HANDEDNESS_SHARE,

@@ -51,7 +51,7 @@ from .gaps import (MIN_TRIPLE_FRAMES, coverage_report, fill_yaw, fit_rows, fit_t
 from ..model.structure import BODY14_GIVEN, Structure
 from ..search import structure_search as ss
 from .body_fit import (BodySettings, broad_components, edge_prior, fit_body, handedness_quads, pair_statistics,
-                       validation_rows)
+                       trunk_twists, validation_rows)
 
 STRUCTURE_METHODS = ("cbga", "greedy", "given", "sga", "body")
 MIXTURE_KINDS = ("mdl", "fixed", "single")
@@ -391,6 +391,8 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         if not joint_centres:        # marker clusters: their handedness (model/body.py Handedness)
             quads, signs = handedness_quads(positions, max_frames=config.body.max_frames)
             body = replace(body, quads=quads, quad_sign=signs)
+        else:                        # joint centres: the trunk's twist limit (model/body.py TrunkTwist)
+            body = replace(body, twists=trunk_twists(labels, positions))
         if scores is not None and config.body.segment_edge_prior > 0:
             prior = scores.with_edge_prior(edge_prior(stats, config.body))
     if config.structure == "given":
