@@ -1,6 +1,7 @@
 """dtm-demo's per-frame summary (pure Python, no node): frames with errors, the start-up
-before the first fully right frame, and the accuracy from that frame on."""
-from dtm_labeler.cli.demo import _frames_with_errors
+before the first fully right frame, and the accuracy from that frame on; and its model cache."""
+from dtm_labeler.cli.demo import _frames_with_errors, cached_model_path
+from dtm_labeler.model import io as model_io
 
 
 def test_start_up_and_steady_accuracy():
@@ -16,3 +17,15 @@ def test_no_right_frame_and_no_frames():
     assert d["before_first_right_frame"] == 2 and d["accuracy_from_first_right_frame"] is None
     d = _frames_with_errors([])
     assert d == dict(total=0, before_first_right_frame=0, accuracy_from_first_right_frame=None)
+
+
+def test_cached_model_is_named_by_key_and_model_format(monkeypatch, tmp_path):
+    """A model cached by an older version (another file format: fewer model terms) is not
+    reused: the cache name changes with the format."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    key = {"seed": 0, "frames": 600}
+    path = cached_model_path(key)
+    assert path.parent == tmp_path / "dtm_labeler" and path == cached_model_path(dict(key))
+    assert cached_model_path({"seed": 1, "frames": 600}) != path
+    monkeypatch.setattr(model_io, "FORMAT_VERSION", model_io.FORMAT_VERSION + 1)
+    assert cached_model_path(key) != path

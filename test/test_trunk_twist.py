@@ -46,6 +46,15 @@ def test_factor_is_zero_for_any_spine_twist_and_costs_an_exchange():
     f = twist(pop, xyz)
     assert f[0] == 0.0 and (f[1:4] < -10).all()
     assert f[4] == 0.0 and f[5] == 0.0
+    # the compiled factor is the dead-zone quadratic of the cosines' reading, also without a mid point
+    rng = np.random.default_rng(0)
+    pts = np.vstack([rng.normal(size=(6, 3)), np.full((1, 3), np.nan)])
+    pop = rng.integers(0, 7, size=(400, 5))
+    for rows in ([[0, 1, 2, 3, 4]], [[0, -1, 2, 3, 4]], [[0, 1, 2, 3, 4], [2, -1, 0, 4, 1]]):
+        tw = TrunkTwist(BodyModel(5, np.zeros((0, 2)), [], [], [], [], [], twists=rows))
+        c = tw.cosines(pts, pop)
+        x = np.maximum(TWIST_COS_MIN - c, 0.0) / TWIST_COS_SD
+        assert np.allclose(tw(pop, pts), -0.5 * np.where(np.isfinite(x), x * x, 0.0).sum(1))
     with pytest.raises(ValueError, match="twists"):
         BodyModel(5, np.zeros((0, 2)), [], [], [], [], [], twists=[[0, -1, 2, 3, 7]])
 

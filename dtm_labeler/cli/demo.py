@@ -152,13 +152,23 @@ def resample(clip, rate: float):
     return out
 
 
+def cached_model_path(key: dict) -> Path:
+    """Where the demo keeps the model trained for ``key``: named by a hash of the key and the
+    model file format, so a newer format (new model terms) trains again instead of reusing a
+    model without them."""
+    from ..model import io as model_io
+
+    key = dict(key, format_version=model_io.FORMAT_VERSION)
+    h = hashlib.sha1(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()[:12]
+    return cache_dir() / f"demo_model_{h}.npz"
+
+
 def _train_cached(key: dict, make_clips, quiet: bool, log) -> Path:
     """Train (or reuse) a model for ``key``; returns the model path."""
     from ..model.io import save_model
     from ..training.train import TrainConfig, train_model
 
-    h = hashlib.sha1(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()[:12]
-    path = cache_dir() / f"demo_model_{h}.npz"
+    path = cached_model_path(key)
     if path.is_file():
         log(f"model     {path} (cached)")
         return path

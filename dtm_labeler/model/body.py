@@ -74,7 +74,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .body_kernel import mirrored_quads
+from .body_kernel import mirrored_quads, twist_factors
 from .mixture import GaussianMixture
 
 SEGMENT, REACH = 0, 1
@@ -417,7 +417,7 @@ class TrunkTwist:
     """
 
     def __init__(self, body: BodyModel):
-        tw = np.asarray(body.twists, dtype=np.int64).reshape(-1, 5)
+        tw = np.ascontiguousarray(body.twists, dtype=np.int64).reshape(-1, 5)
         self.twists = tw
         self.mid = np.where(tw[:, 1] >= 0, tw[:, 1], tw[:, 0])   # no midline point: the left shoulder again
         self.active = bool(tw.shape[0])
@@ -435,20 +435,19 @@ class TrunkTwist:
             return (s * h).sum(-1) / np.sqrt((s * s).sum(-1) * (h * h).sum(-1))
 
     def _factors(self, idx: np.ndarray, pts: np.ndarray) -> np.ndarray:
-        c = self.cosines(pts, idx)
-        x = np.maximum(TWIST_COS_MIN - c, 0.0) / TWIST_COS_SD
-        return -0.5 * np.where(np.isfinite(x), x * x, 0.0).sum(axis=1)
+        """(P,) summed factors (compiled: :func:`~dtm_labeler.model.body_kernel.twist_factors`)."""
+        return twist_factors(idx, pts, self.twists, TWIST_COS_MIN, TWIST_COS_SD)
 
     def __call__(self, pop: np.ndarray, xyz: np.ndarray) -> np.ndarray:
         """(P,) summed factors of (P, M) assignments given the frame's (n+1, 3) positions
         (row ``n``, "missing", NaN)."""
-        return self._factors(np.asarray(pop, dtype=np.int64), np.asarray(xyz, dtype=np.float64))
+        return self._factors(np.ascontiguousarray(pop, dtype=np.int64), np.ascontiguousarray(xyz, dtype=np.float64))
 
     def labelled(self, positions: np.ndarray) -> np.ndarray:
         """(F,) summed factors of labelled frames (F, M, 3) (NaN = unseen)."""
         F, M = positions.shape[:2]
         return self._factors(np.arange(F * M, dtype=np.int64).reshape(F, M),
-                             np.asarray(positions, dtype=np.float64).reshape(F * M, 3))
+                             np.ascontiguousarray(positions, dtype=np.float64).reshape(F * M, 3))
 
 
 #: cosine of the shoulder and hip axes below which the trunk's twist costs (0: 90 degrees)

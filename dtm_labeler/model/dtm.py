@@ -387,6 +387,8 @@ class TriangulatedModel:
         self.batched_full(np.zeros((1, TRIPLE_DIM)), np.zeros(1, dtype=np.int64))     # compile (or load) the kernel
         if self.body_handedness is not None:                                          # and the handedness kernel
             self.body_handedness(np.zeros((1, self.n_labels), dtype=np.int64), np.zeros((1, 3)))
+        if self.body_twist is not None:                                               # and the twist kernel
+            self.body_twist(np.zeros((1, self.n_labels), dtype=np.int64), np.zeros((1, 3)))
         return self
 
     @property
