@@ -55,6 +55,21 @@ confident in every bin below 0.9, the worst gaps seed over-confident between 0.2
 the local posterior is too sharp at the low end there: of 370k labels over ten streams, those
 with ``p_l`` < 0.1 were right 71 % of the time (at 14 points 41 %), so one tempering or one
 monotone map of the scale cannot serve both.
+
+What makes a calibrated body of another lab under-confident (traced 2026-11-26: HDM05 -> CMU 85
+calibrated, ``dtm-eval``'s generalisation cell, 360 frames, 14296 labels, 93.6 % right): every
+bin below 0.8 is 93-96 % right; the bin 0-0.1 holds 1617 labels at 0.024, 94 % right. Their
+local posterior is 0.002-0.03 (the heels, toes, LMT5, RSHN, the ankles, CLAV: right 95-100 %)
+because one alternative outweighs the rest: leaving the label missing, which that model scores
+11-102 nats above the published labeling (median 21.6; the best alternative for all 1543 labels
+with ``p_l`` < 0.05). The model fits these true markers worse than clutter, and the fast path
+does not release labels (``release_moves`` off: at 41 markers releasing made search errors
+113 -> 207 of 1000), so the published labeling keeps them, rightly. Tried: the release
+alternative capped at the published labeling's fitness (it may tie, never outweigh) -- pooled
+ECE over the 120 stream cells 4.16 -> 2.66 %, the bin 0-0.1 now 14 % right, every 14-point cell
+the same; but the subject calibration confirms labels by this confidence (``CONFIRMED``), so
+``dtm-label``'s checked self-calibration moved: floor moves 93.55 -> 27.34 %, 85_02 -> 85_12
+99.14 -> 91.35 %. Not kept; it needs the confirmation decoupled from the published confidence.
 """
 from __future__ import annotations
 

@@ -19,6 +19,12 @@ import numpy as np
 from numba import njit
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _diff(pts, a, b):  # pragma: no cover - compiled
+    """``pts[b] - pts[a]`` as three scalars (NaN where either point is missing)."""
+    return pts[b, 0] - pts[a, 0], pts[b, 1] - pts[a, 1], pts[b, 2] - pts[a, 2]
+
+
 @njit(cache=True, nogil=True)
 def mirrored_quads(idx, pts, quads, sign):  # pragma: no cover - compiled
     """(P,) number of quadruples each row of ``idx`` (P, M) shows mirrored: for quadruple ``q``
@@ -34,15 +40,9 @@ def mirrored_quads(idx, pts, quads, sign):  # pragma: no cover - compiled
             b = idx[p, quads[q, 1]]
             c = idx[p, quads[q, 2]]
             d = idx[p, quads[q, 3]]
-            u0 = pts[b, 0] - pts[a, 0]
-            u1 = pts[b, 1] - pts[a, 1]
-            u2 = pts[b, 2] - pts[a, 2]
-            v0 = pts[c, 0] - pts[a, 0]
-            v1 = pts[c, 1] - pts[a, 1]
-            v2 = pts[c, 2] - pts[a, 2]
-            w0 = pts[d, 0] - pts[a, 0]
-            w1 = pts[d, 1] - pts[a, 1]
-            w2 = pts[d, 2] - pts[a, 2]
+            u0, u1, u2 = _diff(pts, a, b)
+            v0, v1, v2 = _diff(pts, a, c)
+            w0, w1, w2 = _diff(pts, a, d)
             vol = (u1 * v2 - u2 * v1) * w0 + (u2 * v0 - u0 * v2) * w1 + (u0 * v1 - u1 * v0) * w2
             if vol * sign[q] < 0:                # NaN compares False
                 count += 1
@@ -66,9 +66,7 @@ def twist_factors(idx, pts, twists, cos_min, cos_sd):  # pragma: no cover - comp
             rs = idx[p, twists[k, 2]]
             lh = idx[p, twists[k, 3]]
             rh = idx[p, twists[k, 4]]
-            h0 = pts[rh, 0] - pts[lh, 0]
-            h1 = pts[rh, 1] - pts[lh, 1]
-            h2 = pts[rh, 2] - pts[lh, 2]
+            h0, h1, h2 = _diff(pts, lh, rh)
             if not (h0 == h0 and h1 == h1 and h2 == h2):
                 continue
             a, b = ls, rs
@@ -82,9 +80,7 @@ def twist_factors(idx, pts, twists, cos_min, cos_sd):  # pragma: no cover - comp
                     b = mid
                 else:
                     continue
-            s0 = pts[b, 0] - pts[a, 0]
-            s1 = pts[b, 1] - pts[a, 1]
-            s2 = pts[b, 2] - pts[a, 2]
+            s0, s1, s2 = _diff(pts, a, b)
             norm = np.sqrt((s0 * s0 + s1 * s1 + s2 * s2) * (h0 * h0 + h1 * h1 + h2 * h2))
             if not norm > 0:
                 continue
