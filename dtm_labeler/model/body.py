@@ -74,7 +74,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .body_kernel import mirrored_quads, twist_factors
+from .body_kernel import mirrored_quads, twist_cosines, twist_factors
 from .mixture import GaussianMixture
 
 SEGMENT, REACH = 0, 1
@@ -417,22 +417,14 @@ class TrunkTwist:
     """
 
     def __init__(self, body: BodyModel):
-        tw = np.ascontiguousarray(body.twists, dtype=np.int64).reshape(-1, 5)
-        self.twists = tw
-        self.mid = np.where(tw[:, 1] >= 0, tw[:, 1], tw[:, 0])   # no midline point: the left shoulder again
-        self.active = bool(tw.shape[0])
+        self.twists = np.ascontiguousarray(body.twists, dtype=np.int64).reshape(-1, 5)
+        self.active = bool(self.twists.shape[0])
 
     def cosines(self, pts: np.ndarray, idx: np.ndarray) -> np.ndarray:
         """(P, K) cosine of the shoulder and hip axes (NaN where either is not seen) for label
         -> row ``idx`` (P, M) of points ``pts`` (N, 3) (NaN rows: not seen)."""
-        tw = self.twists
-        ls, rs, mid = pts[idx[:, tw[:, 0]]], pts[idx[:, tw[:, 2]]], pts[idx[:, self.mid]]
-        s = rs - ls
-        s = np.where(np.isnan(s), rs - mid, s)                      # a shoulder missing: its half
-        s = np.where(np.isnan(s), mid - ls, s)
-        h = pts[idx[:, tw[:, 4]]] - pts[idx[:, tw[:, 3]]]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return (s * h).sum(-1) / np.sqrt((s * s).sum(-1) * (h * h).sum(-1))
+        return twist_cosines(np.ascontiguousarray(idx, dtype=np.int64), np.ascontiguousarray(pts, dtype=np.float64),
+                             self.twists)
 
     def _factors(self, idx: np.ndarray, pts: np.ndarray) -> np.ndarray:
         """(P,) summed factors (compiled: :func:`~dtm_labeler.model.body_kernel.twist_factors`)."""

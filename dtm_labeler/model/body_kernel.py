@@ -9,7 +9,7 @@ loop reads each quadruple's four points where they lie and counts the mirrored o
 
 The twist limit is one cosine per row; in numpy (gathers, fall-backs, norms) it cost 58 us a
 call whatever the number of rows (the fast path makes 2-4 calls a frame at 14 points with
-flicker, a search many more); compiled, 2-8 us for 1-300 rows. Paired offline runs (demo walker,
+flicker, a search many more); compiled, 2-12 us for 1-300 rows. Paired offline runs (demo walker,
 2 flickering + 2 ghosts, inline, CPU time per frame, median of 3): p50 1.97 ms with the factor,
 2.02 ms without; the labels are the same.
 """
@@ -50,45 +50,59 @@ def mirrored_quads(idx, pts, quads, sign):  # pragma: no cover - compiled
     return out
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _twist_cosine(idx, p, pts, tw, k):  # pragma: no cover - compiled
+    """Cosine of the shoulder axis (right - left; with a shoulder missing, its half through the
+    mid point, if any) and the hip axis (right - left) of row ``p`` of ``idx`` for twist row
+    ``tw[k]`` (left shoulder, mid or -1, right shoulder, left hip, right hip); NaN when either
+    axis is not seen."""
+    h0, h1, h2 = _diff(pts, idx[p, tw[k, 3]], idx[p, tw[k, 4]])
+    if not (h0 == h0 and h1 == h1 and h2 == h2):
+        return np.nan
+    a, b = idx[p, tw[k, 0]], idx[p, tw[k, 2]]
+    if not (pts[a, 0] == pts[a, 0] and pts[b, 0] == pts[b, 0]):
+        if tw[k, 1] < 0:
+            return np.nan
+        mid = idx[p, tw[k, 1]]
+        if not pts[mid, 0] == pts[mid, 0]:
+            return np.nan
+        if pts[b, 0] == pts[b, 0]:
+            a = mid
+        elif pts[a, 0] == pts[a, 0]:
+            b = mid
+        else:
+            return np.nan
+    s0, s1, s2 = _diff(pts, a, b)
+    norm = np.sqrt((s0 * s0 + s1 * s1 + s2 * s2) * (h0 * h0 + h1 * h1 + h2 * h2))
+    if not norm > 0:
+        return np.nan
+    return (s0 * h0 + s1 * h1 + s2 * h2) / norm
+
+
+@njit(cache=True, nogil=True)
+def twist_cosines(idx, pts, twists):  # pragma: no cover - compiled
+    """(P, K) cosine of each twist row's shoulder and hip axes (:func:`_twist_cosine`) for each
+    row of ``idx`` (P, M: label -> row of ``pts`` (N, 3); NaN = missing)."""
+    out = np.empty((idx.shape[0], twists.shape[0]))
+    for p in range(idx.shape[0]):
+        for k in range(twists.shape[0]):
+            out[p, k] = _twist_cosine(idx, p, pts, twists, k)
+    return out
+
+
 @njit(cache=True, nogil=True)
 def twist_factors(idx, pts, twists, cos_min, cos_sd):  # pragma: no cover - compiled
     """(P,) summed twist factors ``-1/2 (max(0, cos_min - c) / cos_sd)^2`` of each row of ``idx``
-    (P, M) over ``twists`` (K, 5: left shoulder, mid or -1, right shoulder, left hip, right
-    hip): ``c`` the cosine of the shoulder axis (right - left; with a shoulder missing, its
-    half through the mid point) and the hip axis (right - left) of the points
-    ``pts[idx[p, label]]`` (N, 3; NaN = missing); no axis on either side: no factor."""
-    P = idx.shape[0]
-    out = np.zeros(P)
-    for p in range(P):
+    over ``twists``, ``c`` the cosine of :func:`_twist_cosine`; no axis: no factor."""
+    out = np.zeros(idx.shape[0])
+    for p in range(idx.shape[0]):
         total = 0.0
         for k in range(twists.shape[0]):
-            ls = idx[p, twists[k, 0]]
-            rs = idx[p, twists[k, 2]]
-            lh = idx[p, twists[k, 3]]
-            rh = idx[p, twists[k, 4]]
-            h0, h1, h2 = _diff(pts, lh, rh)
-            if not (h0 == h0 and h1 == h1 and h2 == h2):
-                continue
-            a, b = ls, rs
-            if not (pts[a, 0] == pts[a, 0] and pts[b, 0] == pts[b, 0]):
-                if twists[k, 1] < 0:
-                    continue
-                mid = idx[p, twists[k, 1]]
-                if pts[b, 0] == pts[b, 0] and pts[mid, 0] == pts[mid, 0]:
-                    a = mid
-                elif pts[a, 0] == pts[a, 0] and pts[mid, 0] == pts[mid, 0]:
-                    b = mid
-                else:
-                    continue
-            s0, s1, s2 = _diff(pts, a, b)
-            norm = np.sqrt((s0 * s0 + s1 * s1 + s2 * s2) * (h0 * h0 + h1 * h1 + h2 * h2))
-            if not norm > 0:
-                continue
-            x = (cos_min - (s0 * h0 + s1 * h1 + s2 * h2) / norm) / cos_sd
-            if x > 0:
+            x = (cos_min - _twist_cosine(idx, p, pts, twists, k)) / cos_sd
+            if x > 0:                            # NaN compares False
                 total -= 0.5 * x * x
         out[p] = total
     return out
 
 
-__all__ = ["mirrored_quads", "twist_factors"]
+__all__ = ["mirrored_quads", "twist_cosines", "twist_factors"]

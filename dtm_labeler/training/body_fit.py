@@ -61,7 +61,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import shortest_path
 
 from ..model.body import (HANDEDNESS_SHARE, REACH, SEGMENT, TWIST_COS_MIN, TWIST_COS_SD, BodyModel, BroadMotion,
-                          Handedness, TrunkTwist, broad_covariance)
+                          Handedness, broad_covariance)
+from ..model.body_kernel import twist_cosines
 from ..model.features import FULL, MISSING, feature_map_for, observed_map, triangle_features
 from ..model.mixture import GaussianMixture, logsumexp_rows
 from ..model.structure import Structure
@@ -175,8 +176,7 @@ def trunk_twists(labels: Sequence[str], clips: Sequence[np.ndarray] = (), share:
     if twists.shape[0] and len(clips):
         P = np.concatenate([np.asarray(c, dtype=np.float64) for c in clips])
         M = P.shape[1]
-        probe = TrunkTwist(BodyModel(M, np.zeros((0, 2)), [], [], [], [], [], twists=twists))
-        c = probe.cosines(P.reshape(-1, 3), np.arange(P.shape[0] * M).reshape(-1, M))
+        c = twist_cosines(np.arange(P.shape[0] * M).reshape(-1, M), P.reshape(-1, 3), twists)
         with np.errstate(invalid="ignore"):
             low = np.array([np.quantile(col[np.isfinite(col)], 1.0 - share) if np.isfinite(col).any() else np.inf
                             for col in c.T])
