@@ -233,3 +233,33 @@ def test_settings_validation(model):
                dict(max_gap_s=0), dict(heading_snap_deg=-1.0), dict(heading_snap_deg=45.0)]:
         with pytest.raises(ValueError):
             LabelerSettings(**kw)
+
+
+def test_confirmation_counts_the_release_the_published_confidence_caps(model, walker):
+    """labeling/confidence.py: leaving a label unseen can outweigh a labeling only in the strict
+    posterior the subject calibration confirms by; the published one lets it tie at most. A
+    point moved 40 cm off the body: the model would rather release it, so its strict posterior
+    falls near 0 while the published one is 1/2 (one alternative, tied); the labels whose
+    release scores below the labeling are the same in both."""
+    from dtm_labeler.labeling.confidence import CONFIRMED, label_posteriors
+    lab = StreamLabeler(model, LabelerSettings())
+    xyz = walker.positions[3].copy()
+    xyz[5] += [0.4, 0.0, 0.0]
+    r = lab.process(xyz, 0.0)
+    check_result(r, len(xyz), model.n_labels)
+    assert r.confirmation.shape == r.confidence.shape
+    assert (r.confirmation <= r.confidence + 1e-12).all()
+    problems, inp, _ = lab.last_frame
+    problem = problems[0]
+    pos = np.full(len(xyz), problem.n)
+    pos[inp.keep] = np.arange(inp.keep.size)
+    truth = pos[np.arange(model.n_labels)]                 # label l is point l, the moved one too
+    fit = float(problem.fitness(truth[None])[0])
+    published, strict = label_posteriors(problem, truth, fit, np.empty((0, model.n_labels), np.int64), 3.0)
+    assert published[5] == pytest.approx(0.5) and strict[5] < 0.01 < CONFIRMED
+    released = truth[None].repeat(model.n_labels, 0)
+    released[np.arange(model.n_labels), np.arange(model.n_labels)] = problem.n
+    below = problem.fitness(released) < fit
+    assert below.sum() >= model.n_labels // 2 and not below[5]
+    np.testing.assert_allclose(published[below], strict[below])
+    assert (published >= strict).all()

@@ -308,8 +308,8 @@ PARAMS: Tuple[Param, ...] = (
     Param("diagnostics_period_s", 1.0, "Period of the /diagnostics status (steady clock).", "node",
           range=(0.01, 3600.0)),
     Param("calibration_s", 5.0, "Seconds of stream the ~/calibrate service collects: the labels "
-          "published with confidence >= 0.5 in that time set the subject's body terms (segment "
-          "lengths, reach scale; training/calibrate.py), then the calibrated model replaces the "
+          "confirmed in that time (confidence >= 0.5 with the release counted in full) set the "
+          "subject's body terms (segment lengths, reach scale; training/calibrate.py), then the calibrated model replaces the "
           "running one without a reset. Any motion; the model must have body terms.", "node",
           range=(0.5, 120.0)),
     Param("auto_calibrate", False, "Self-calibrate a generic body (not yet calibrated to a person) on "

@@ -160,6 +160,7 @@ class FrameResult:
     recovering: bool = False      # a background search is running after this frame
     posterior: np.ndarray | None = None    # (n,) local posterior of the search's label of each point
     vote_share: np.ndarray | None = None   # (n,) votes of the published label / frames the track was seen
+    confirmation: np.ndarray | None = None  # (n,) confidence counting the release in full (subject calibration)
 
 
 @dataclass
@@ -432,7 +433,8 @@ class TrackedLabeler:
         self._after_frame(problems, found, m_pub, inp)
         best = found.best
         truth_f = self._truth_fitness(problems[m_pub], truth, inp)
-        assign, search_labels, pub, conf, post, share = self._publish(problems[m_pub], best, inp, found.doubtful)
+        assign, search_labels, pub, conf, confirmation, post, share = self._publish(problems[m_pub], best, inp,
+                                                                                   found.doubtful)
         keep, n_in = inp.keep, inp.n_in
         return self.result_type(
             labels=scatter(pub, keep, n_in, -1), confidence=scatter(conf, keep, n_in, 0.0),
@@ -444,6 +446,7 @@ class TrackedLabeler:
             heading=self.heading if self.heading is not None else float("nan"), truth_fitness=truth_f,
             doubtful=found.doubtful, recovered=found.recovered, recovering=self.recovery.busy,
             posterior=scatter(post, keep, n_in, np.nan), vote_share=scatter(share, keep, n_in, 0.0),
+            confirmation=scatter(confirmation, keep, n_in, 0.0),
             **self._result_fields(m_pub))
 
     def _search_frame(self, problems: list[FrameProblem], inp: FrameInput,
@@ -1033,7 +1036,7 @@ class TrackedLabeler:
     def _publish(self, problem: FrameProblem, best: Candidate, inp: FrameInput, doubtful: bool):
         """Votes (eq. 32), confidences (:mod:`.confidence`) and bookkeeping after the search.
         Returns (assignment with -1 for missing, this frame's search labels per point,
-        published labels, confidences, local posteriors, vote shares)."""
+        published labels, confidences, confirmations, local posteriors, vote shares)."""
         n = problem.n
         assignment = best.assignment
         assign = np.where(assignment >= n, -1, assignment)
@@ -1047,13 +1050,16 @@ class TrackedLabeler:
         else:
             pub, share = search_labels.copy(), (search_labels >= 0).astype(float)
         alt, f_alt = best.neighbourhood or (self._moves(problem, assignment)(assignment), None)
-        post = label_posteriors(problem, assignment, best.fitness, alt, self.settings.confidence_temperature, f_alt)
-        post_point = np.full(n, np.nan)
+        post, strict = label_posteriors(problem, assignment, best.fitness, alt, self.settings.confidence_temperature,
+                                        f_alt)
+        post_point, strict_point = np.full(n, np.nan), np.full(n, np.nan)
         post_point[assign[present]] = post[present]
+        strict_point[assign[present]] = strict[present]
         deficit = self._initial_level(problem, "fit_reference_per_label") - \
             best.fitness / label_weight(assignment, problem) \
             if present.any() else 0.0
         conf = published_confidence(post_point, search_labels, pub, share, doubtful, deficit)
+        confirmation = published_confidence(strict_point, search_labels, pub, share, doubtful, deficit)
         # the next frame starts from this frame's search result, not from the votes: a
         # correction must not be undone by the window's older majority. Labels stay with
         # their tracks while they coast (occluded for a few frames).
@@ -1073,7 +1079,7 @@ class TrackedLabeler:
         if present.any():
             self.centre = inp.pts[assign[present]].mean(0)
             self.heading = float(problem.yaw(np.where(assign < 0, n, assign)[None])[0])
-        return assign, search_labels, pub, conf, post_point, share
+        return assign, search_labels, pub, conf, confirmation, post_point, share
 
 
 def _input_index(assign: np.ndarray, keep: np.ndarray) -> np.ndarray:

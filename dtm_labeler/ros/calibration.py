@@ -2,9 +2,9 @@
 
 A call to ``~/calibrate`` opens a :class:`CalibrationWindow` of ``calibration_s`` seconds of
 the node's own time base. Every frame labelled in it adds the positions of the labels
-published with confidence >= ``min_confidence``
-(:func:`~dtm_labeler.training.calibrate.confirmed_positions`, the confirmation the offline
-self-calibration uses); when the window is full, :meth:`CalibrationWindow.add` hands back a
+confirmed with at least ``min_confidence`` (the labeler's ``confirmation``,
+:func:`~dtm_labeler.training.calibrate.confirmation_of` and
+:func:`~dtm_labeler.training.calibrate.confirmed_positions`, as the offline self-calibration); when the window is full, :meth:`CalibrationWindow.add` hands back a
 labelled clip of them (NaN where a label was not confirmed) at the window's own frame rate (the
 velocities the calibrated model's fit reference needs). The node's loader thread then computes
 the calibrated model (:func:`~dtm_labeler.training.calibrate.calibrate`: medians over the window

@@ -18,6 +18,7 @@ from typing import Any, Callable, Dict, Optional
 
 import numpy as np
 
+from ..training.calibrate import confirmation_of
 from .diagnostics import NodeStats
 from .engine import NodeLabeler
 from .messages import LabelledFrame, OccludedLabels, VizThrottle, labeled_marker_array_cdr, mocap4r2_markers
@@ -158,7 +159,7 @@ class FrameHandler:
             return
         self._publish(frame, f, engine, v)
         if self.calibration is not None and res is not None:
-            self._calibrate(f.stamp, labels, conf, f.xyz)
+            self._calibrate(f.stamp, labels, confirmation_of(res), f.xyz)
         self._count(f, res, n, n_finite, t0, t1, carried)
         if not carried:
             with self.lock:

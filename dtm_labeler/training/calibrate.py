@@ -303,6 +303,14 @@ def confirmed_positions(labels: np.ndarray, confidence: np.ndarray, xyz: np.ndar
     return out
 
 
+def confirmation_of(result) -> np.ndarray:
+    """(n,) what a calibration confirms a label by: the labeler's ``confirmation`` (its confidence
+    with the release alternative counted in full, :func:`~dtm_labeler.labeling.confidence.label_posteriors`),
+    else the published confidence."""
+    c = getattr(result, "confirmation", None)
+    return np.asarray(result.confidence if c is None else c, dtype=float)
+
+
 def self_label(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.ndarray, rate: float,
                settings: LabelerSettings | None = None, min_confidence: float = CONFIRMED) -> np.ndarray:
     """Label unlabelled clouds (one (n, 3) array per frame, or (F, N, 3)) with ``model`` in
@@ -314,7 +322,7 @@ def self_label(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.ndarr
         xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         xyz = xyz[np.isfinite(xyz).all(1)]
         res = lab.process(xyz, f / rate)
-        out[f] = confirmed_positions(res.labels, res.confidence, xyz, model.n_labels, min_confidence)
+        out[f] = confirmed_positions(res.labels, confirmation_of(res), xyz, model.n_labels, min_confidence)
     return out
 
 
@@ -489,5 +497,5 @@ def calibrate_from_clip(model: TriangulatedModel, clip: MotionClip, labels: str 
     return out, dict(out.provenance["calibration"])
 
 
-__all__ = ["LABEL_SOURCES", "auto_calibrate", "auto_calibrate_bytes", "auto_calibration_process", "idle_priority", "calibratable", "kept_share", "calibrate_from_clip", "calibrate_on_takes", "confirmed_positions", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "mirror_rows", "wrong_side", "self_label",
+__all__ = ["LABEL_SOURCES", "auto_calibrate", "auto_calibrate_bytes", "auto_calibration_process", "idle_priority", "calibratable", "kept_share", "calibrate_from_clip", "calibrate_on_takes", "confirmed_positions", "confirmation_of", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "mirror_rows", "wrong_side", "self_label",
            "self_calibrate", "labelled_positions"]
