@@ -312,3 +312,35 @@ def test_model_validation():
                           heading_pairs=[[0, 7]])
     assert good.n_labels == 5 and good.components_per_triangle() == [2, 2, 2]
     assert good.heading_bins == 720
+
+
+def test_models_with_the_same_mixtures_share_their_built_patterns():
+    """model/dtm.py shared_triangle_terms: a model rebuilt with mixtures of the same numbers (a
+    subject calibration, a reload, the same noise_mm again) reuses the patterns already built;
+    other numbers, another place in the structure (first triangle or not) or an evicted entry
+    build afresh, and a shared term scores exactly as a fresh one."""
+    from dtm_labeler.model import dtm
+    a = fig3_model(11)
+    b = TriangulatedModel(labels=a.labels, structure=a.structure,
+                          mixtures=[GaussianMixture(np.array(m.weights), np.array(m.means), np.array(m.covariances))
+                                    for m in a.mixtures])
+    assert all(x is y for x, y in zip(a.terms, b.terms))
+    assert a.with_noise(1e-3).terms[0] is a.with_noise(1e-3).terms[0]
+    assert a.with_noise(1e-3).terms[0] is not a.terms[0] and fig3_model(12).terms[0] is not a.terms[0]
+    assert dtm.shared_triangle_terms(a.mixtures[0], first=False) is not a.terms[0]
+    rng = np.random.default_rng(0)
+    s = frame_states(a, 30, rng)
+    s[:5, 2] = np.nan                                    # a missing point: marginal patterns too
+    before = a.frame_log_likelihood(s)
+    fresh = TriangleTerms(a.mixtures[1], first=False)
+    for pid in range(dtm.N_PATTERNS):
+        p, q = a.terms[1].pattern(pid), fresh.pattern(pid)
+        assert (p is None) == (q is None)
+        if p is not None and not p.empty:
+            x = rng.normal(size=(4, 18))
+            np.testing.assert_array_equal(p(x), q(x))
+    for i in range(dtm.SHARED_TERMS_MAX):                 # evicted: built afresh, same values
+        dtm.shared_triangle_terms(random_mixture(5000 + i, K=1), first=False)
+    c = TriangulatedModel(labels=a.labels, structure=a.structure, mixtures=a.mixtures)
+    assert c.terms[1] is not a.terms[1]
+    np.testing.assert_array_equal(c.frame_log_likelihood(s), before)
