@@ -112,7 +112,7 @@ def run(model, clip, cond: str, recovery: str, seed: int = 1) -> dict:
     wall, cpu, m = np.array(wall), np.array(cpu), acc.metrics()
     st = slice((first or 0) + STEADY, None)
     return dict(frames=len(frames), accuracy=m.accuracy, ghost_rejection=m.ghost_rejection,
-                search_errors=m.search_errors, search_checked=m.search_checked, ece=m.calibration_error,
+                search_errors=m.search_errors, search_checked=m.search_checked, ece=m.calibration_error, reliability=m.reliability,
                 full_searches=int(round((m.full_search_rate or 0) * m.frames)), doubtful_frames=doubtful,
                 startup_ms=None if first is None else first * 1e3 / clip.rate,
                 right_ms=None if right is None else right * 1e3 / clip.rate,

@@ -46,7 +46,7 @@ from ..search.label_search import GASearch, LabelSearch, SearchOutcome, make_sea
 from ..search.move_kernels import close_label_pairs, free_points
 from ..search.problem import FrameProblem
 from .config import LabelerSettings
-from .confidence import label_posteriors, published_confidence
+from .confidence import CONFIRMATION_POWER, label_posteriors, published_confidence
 from .fit_check import label_misfit, term_floors
 from .recovery import InlineRecovery, ProcessRecovery, Recovery, RecoveryRequest, RecoveryResult
 from .tracker import Tracker, TrackUpdate
@@ -1059,7 +1059,8 @@ class TrackedLabeler:
             best.fitness / label_weight(assignment, problem) \
             if present.any() else 0.0
         conf = published_confidence(post_point, search_labels, pub, share, doubtful, deficit)
-        confirmation = published_confidence(strict_point, search_labels, pub, share, doubtful, deficit)
+        confirmation = published_confidence(strict_point, search_labels, pub, share, doubtful, deficit,
+                                            CONFIRMATION_POWER)
         # the next frame starts from this frame's search result, not from the votes: a
         # correction must not be undone by the window's older majority. Labels stay with
         # their tracks while they coast (occluded for a few frames).
