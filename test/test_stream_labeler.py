@@ -263,3 +263,34 @@ def test_confirmation_counts_the_release_the_published_confidence_caps(model, wa
     assert below.sum() >= model.n_labels // 2 and not below[5]
     np.testing.assert_allclose(published[below], strict[below])
     assert (published >= strict).all()
+
+
+def test_inline_audit_when_frames_fit_far_below_the_models_reference(model):
+    """labeling/tracked.py _inline_audit: offline, a labeling the model scores LOST_NATS per label
+    below what it expects of a right one (its fit reference, not the running level that adapts)
+    for MISFIT_FRAMES frames gets a full search from scratch; one that found nothing better makes
+    the next wait twice as long, up to AUDIT_BACKOFF_MAX periods. Here the reference is set 100
+    nats per label too high, so every frame looks lost though it is labelled right: the audits
+    come at growing intervals and change no label; with the model's own reference, none come."""
+    from dtm_labeler.labeling.tracked import AUDIT_BACKOFF_MAX, LOST_NATS, MISFIT_FRAMES
+    clip = synthesize(duration=3.0, seed=9, heading=0.5, noise_mm=2)
+    period = 0.1
+    settings = LabelerSettings(audit_period_s=period, recovery="inline")
+    ref = float(model.settings.get("fit_reference_per_label", model.settings.get("loglik_per_label", 0.0)))
+    runs = {}
+    for name, m in (("own", model), ("too high", model.replace(settings=dict(model.settings,
+                                                                            fit_reference_per_label=ref + 100)))):
+        lab = StreamLabeler(m, settings)
+        audits, recover = [], lab.recover
+        lab.recover = lambda req, *a, **k: (audits.append(lab.last_stamp) if req.kind == "audit" else None,
+                                            recover(req, *a, **k))[1]
+        rng = np.random.default_rng(3)
+        accs = [run(lab, clip, [f], rng)[0][0] for f in range(clip.n_frames)]
+        runs[name] = (audits, np.mean(accs), lab._audit_wait)
+    assert runs["own"][0] == [] and runs["own"][1] > 0.97
+    audits, acc, wait = runs["too high"]
+    assert acc > 0.97 and len(audits) >= 4 and LOST_NATS > 0
+    gaps = np.diff(audits)
+    assert audits[0] <= (MISFIT_FRAMES + 3) / clip.rate + 1e-9       # the first comes at once
+    assert (gaps >= period * np.minimum(2.0 ** np.arange(len(gaps)), AUDIT_BACKOFF_MAX) - 1e-9).all()
+    assert wait == pytest.approx(AUDIT_BACKOFF_MAX * period)

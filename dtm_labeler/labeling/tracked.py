@@ -73,6 +73,18 @@ POSITION_ONLY_WEIGHT = 0.5
 AUDITS_PER_PERIOD = 4
 #: frames in a row with a label far below its floors before a background audit is asked at once
 MISFIT_FRAMES = 3
+#: inline: nats per labelled point below the model's own fit reference (what a right labeling of
+#: the training people shows; the confidence's yardstick) past which a frame counts as lost --
+#: right labelings sit 2-6 below it where the model holds, a lost one 13-17 (bank, walk -> dance)
+LOST_NATS = 10.0
+#: inline: nats an audit's labeling must gain per label it changes to replace the carried one.
+#: The model can prefer a wrong labeling by a little (41 HDM05 markers, clean: an audit gained
+#: 24 nats by changing 18 labels, the truth 39 below the carried labeling; taken, 97.4 -> 91.8 %);
+#: a lost labeling's audit gains far more (bank walk -> dance: 64 nats; 41 markers: 347 nats for 9)
+AUDIT_GAIN_PER_LABEL = 3.0
+#: inline: the longest wait between audits, in audit periods (it doubles after an audit that
+#: found nothing better, so a take the model fits badly throughout is not searched every period)
+AUDIT_BACKOFF_MAX = 8
 #: chain moves (:meth:`TrackedLabeler._chain_shifts`): consecutive labels of a chain are
 #: neighbours on the model's mean body -- one among the other's this many nearest
 CHAIN_NEIGHBOURS = 4
@@ -317,6 +329,9 @@ class TrackedLabeler:
         self._provisional = False
         self._epoch = getattr(self, "_epoch", 0) + 1   # results of searches asked before are dropped
         self._last_search_stamp = None
+        self._last_audit_stamp = None              # inline: the last misfit audit (its rate limit)
+        self._audit_wait = None                    # inline: seconds before the next one may run
+        self._lost_run = 0                         # inline: frames in a row fitting LOST_NATS below the reference
         self._audits = 0
         self._misfit_run = 0                       # frames in a row with a label below its floors
         self._fresh_search = False                 # new models under carried labels: search from scratch
@@ -552,24 +567,44 @@ class TrackedLabeler:
         return fast
 
     def _inline_audit(self, problems, inp, searched, fast: FrameSearch) -> FrameSearch:
-        """Inline (offline): no periodic audits -- but a label that stays far below its floors
-        for ``MISFIT_FRAMES`` frames (:meth:`_misfit_centres`) gets the audit now, a full search
-        from scratch in this frame, kept when it fits better; at most one per
-        ``audit_period_s`` of stream time. Without it a wrong labeling the running level has
-        adapted to was carried for the rest of a take (HDM05, 41 markers, clean, 1000 frames:
-        from frame ~600 on, 343 search errors)."""
-        last = self._last_search_stamp
-        if self._misfit_run < MISFIT_FRAMES or self._provisional or self.settings.method != "cbga" or \
-                (last is not None and self.last_stamp - last < self.settings.audit_period_s):
+        """Inline (offline): no periodic audits -- but a labeling that stays lost for
+        ``MISFIT_FRAMES`` frames gets the audit now, a full search from scratch in this frame,
+        kept when it fits better. Lost: a label far below its floors (:meth:`_misfit_centres`),
+        or the whole frame ``LOST_NATS`` per labelled point below what the model expects of a
+        right labeling (its fit reference, not the running level, which adapts to a wrong
+        labeling within frames). Without it a wrong labeling was carried for the rest of a take
+        (HDM05, 41 markers, clean, 1000 frames: from frame ~600 on, 343 search errors) or for a
+        second (``dtm-eval --bank``, run -> walk -> dance, seed 2: at the walk -> dance join the
+        recovery search itself found a wrong labeling; 0-5 of 12 labels right for 122 frames,
+        15 nats per label below the reference, the truth 60-120 nats above them, while the
+        running level fell from 13 to 2 nats per label). At most one per ``audit_period_s`` of
+        stream time after an audit that helped, up to ``AUDIT_BACKOFF_MAX`` periods after ones
+        that did not (a motion the model never saw fits below its reference throughout); an
+        audit's labeling replaces the carried one only when it gains ``AUDIT_GAIN_PER_LABEL``
+        nats per label it changes."""
+        best = fast.best
+        p = problems[fast.best_model]
+        lost = best.fitness / label_weight(best.assignment, p) < \
+            self._initial_level(p, "fit_reference_per_label") - LOST_NATS if (best.assignment < p.n).any() else False
+        self._lost_run = self._lost_run + 1 if lost else 0
+        period = self.settings.audit_period_s
+        wait = self._audit_wait if self._audit_wait is not None else period
+        last = self._last_audit_stamp
+        if max(self._misfit_run, self._lost_run) < MISFIT_FRAMES or self._provisional or period <= 0 or \
+                self.settings.method != "cbga" or (last is not None and self.last_stamp - last < wait):
             return fast
-        self._misfit_run = 0
-        res = self.recover(self._request(problems, inp, searched, fast.best.assignment[None], "audit"),
+        self._misfit_run = self._lost_run = 0
+        self._last_audit_stamp = self.last_stamp
+        res = self.recover(self._request(problems, inp, searched, best.assignment[None], "audit"),
                            problems=problems)
         audit = FrameSearch({m: Candidate(a, f) for m, (a, f) in res.candidates.items()}, res.full,
                             res.generations, res.evaluations)
-        if audit.best.fitness > fast.best.fitness + 1e-9:
+        changed = int((audit.best.assignment != best.assignment).sum())
+        if changed and audit.best.fitness > best.fitness + AUDIT_GAIN_PER_LABEL * changed:
             self._since_search = 0
+            self._audit_wait = period
             return audit
+        self._audit_wait = min(2.0 * wait, AUDIT_BACKOFF_MAX * period)
         return fast
 
     def _request(self, problems, inp, searched, seeds, kind: str) -> RecoveryRequest:
