@@ -281,6 +281,7 @@ def test_inline_audit_when_frames_fit_far_below_the_models_reference(model):
     for name, m in (("own", model), ("too high", model.replace(settings=dict(model.settings,
                                                                             fit_reference_per_label=ref + 100)))):
         lab = StreamLabeler(m, settings)
+        lab.audit_when_lost = True               # the bank's setting (one model: off, tracked.py)
         audits, recover = [], lab.recover
         lab.recover = lambda req, *a, **k: (audits.append(lab.last_stamp) if req.kind == "audit" else None,
                                             recover(req, *a, **k))[1]

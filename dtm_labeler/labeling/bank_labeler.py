@@ -188,6 +188,7 @@ class BankLabeler(TrackedLabeler):
     """Labels a point-cloud stream with every model of a :class:`ModelBank` at once."""
 
     result_type = BankFrameResult
+    audit_when_lost = True       # a change of motion can leave the labeling lost (TrackedLabeler)
 
     def __init__(self, bank: ModelBank, settings: LabelerSettings | None = None,
                  bank_settings: BankSettings | None = None, engine: Engine | None = None):
