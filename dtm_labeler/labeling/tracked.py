@@ -592,9 +592,7 @@ class TrackedLabeler:
         nats per label it changes."""
         best = fast.best
         p = problems[fast.best_model]
-        lost = self.audit_when_lost and bool((best.assignment < p.n).any()) and \
-            best.fitness / label_weight(best.assignment, p) < \
-            self._initial_level(p, "fit_reference_per_label") - LOST_NATS
+        lost = self.audit_when_lost and self._fit_deficit(p, best) > LOST_NATS
         self._lost_run = self._lost_run + 1 if lost else 0
         period = self.settings.audit_period_s
         wait = self._audit_wait if self._audit_wait is not None else period
@@ -827,6 +825,14 @@ class TrackedLabeler:
                 self.spread[m] = float(np.sqrt((1 - sr) * self.spread[m] ** 2 + sr * resid ** 2))
             rate = (LEVEL_RATE_FIT if fits else LEVEL_RATE_MISFIT) * weight
             self.level[m] = (1 - rate) * self.level[m] + rate * c.fitness / label_weight(c.assignment, p)
+
+    def _fit_deficit(self, problem: FrameProblem, c: Candidate) -> float:
+        """Nats per labelled point by which ``c`` fits below what the model expects of a right
+        labeling (its ``fit_reference_per_label``; 0 with no label): the confidence's fit factor
+        (:mod:`.confidence`) and, in a bank, the inline loss check (:meth:`_inline_audit`)."""
+        if not (c.assignment < problem.n).any():
+            return 0.0
+        return self._initial_level(problem, "fit_reference_per_label") - c.fitness / label_weight(c.assignment, problem)
 
     def _initial_level(self, problem: FrameProblem, setting: str = "loglik_per_label") -> float:
         """Typical fitness per labelled point: the model's ``setting`` -- its training
@@ -1099,9 +1105,7 @@ class TrackedLabeler:
         post_point, strict_point = np.full(n, np.nan), np.full(n, np.nan)
         post_point[assign[present]] = post[present]
         strict_point[assign[present]] = strict[present]
-        deficit = self._initial_level(problem, "fit_reference_per_label") - \
-            best.fitness / label_weight(assignment, problem) \
-            if present.any() else 0.0
+        deficit = self._fit_deficit(problem, best)
         conf = published_confidence(post_point, search_labels, pub, share, doubtful, deficit)
         confirmation = published_confidence(strict_point, search_labels, pub, share, doubtful, deficit,
                                             CONFIRMATION_POWER)
