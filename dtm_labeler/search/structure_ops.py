@@ -6,7 +6,10 @@ walking the triangles in order with the used/unused vertex sets of eq. 16-17, 23
 28-29, a gene that keeps the string valid is kept; one that does not is replaced by a
 random admissible value (an unused vertex for a new-vertex gene, an existing edge for a
 parent pair). Initialisation, crossover and mutation all end in :func:`repair`, so every
-offspring is a valid decomposable triangulation.
+offspring is a valid decomposable triangulation. It is compiled (numba), drawing the same
+random numbers as the Python walk it replaced: training at 41 markers spent most of its
+structure search walking Python lists (HDM05, 1200 frames: 49 -> 17.5 s; the 14 body points
+on every CMU clip 22 -> 18.6 s; the same models).
 
 Domain rule (the paper's "custom rules"): with ``root_pairs`` given, the first triangle must
 contain one left/right pair, so a labeling candidate's heading is fixed by its first
@@ -15,6 +18,7 @@ triangle (see :mod:`dtm_labeler.search.problem`).
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 
 def _edge(a: int, b: int) -> tuple[int, int]:
@@ -32,49 +36,112 @@ def repair(genes: np.ndarray, n_vertices: int, rng: np.random.Generator,
            root_pairs: np.ndarray | None = None) -> np.ndarray:
     """Smallest change making ``genes`` (T, 3) valid; valid genes are kept as they are."""
     g = np.array(genes, dtype=np.int64).reshape(-1, 3)
-    g = np.where((g < 0) | (g >= n_vertices), -1, g)
-    if not root_ok(g[0], root_pairs):
-        # keep a proposed vertex that belongs to some pair, put its partner beside it
-        rp = np.asarray(root_pairs)
-        hits = [p for p in rp if p[0] in g[0] or p[1] in g[0]]
-        a, b = hits[rng.integers(len(hits))] if hits else rp[rng.integers(len(rp))]
-        third = [v for v in g[0] if v not in (a, b) and v >= 0]
-        g[0] = (a, b, third[0] if third else -1)
-    unused = list(range(n_vertices))
-    used: list[int] = []
-    edges: list[tuple[int, int]] = []
-    edge_set: set[tuple[int, int]] = set()
+    rp = np.zeros((0, 2), dtype=np.int64) if root_pairs is None else \
+        np.ascontiguousarray(root_pairs, dtype=np.int64).reshape(-1, 2)
+    return _repair(g, n_vertices, rp, rng)
 
-    def take(v: int) -> None:
-        unused.remove(v)
-        used.append(v)
 
+@njit(cache=True)
+def _repair(g, n_vertices, root_pairs, rng):  # pragma: no cover - compiled
+    """:func:`repair`, compiled, on ``g`` (T, 3) int64 in place; ``root_pairs`` (R, 2), R = 0 for
+    none. The random draws are NumPy's (numba's ``Generator`` shares its bit generator and
+    reproduces ``integers``), made in the order and ranges of the Python walk this replaced --
+    including one draw of a kept parent per edge while the candidate edges are listed -- so a
+    seed gives the structures it always gave (HDM05 41 markers: the same model, trained in 17.5 s
+    instead of 49 s)."""
+    n = n_vertices
+    for t in range(g.shape[0]):
+        for i in range(3):
+            if g[t, i] < 0 or g[t, i] >= n:
+                g[t, i] = -1
+    # root rule: keep a proposed vertex that belongs to some pair, put its partner beside it
+    R = root_pairs.shape[0]
+    if R > 0:
+        ok = False
+        for r in range(R):
+            has_a = has_b = False
+            for i in range(3):
+                has_a |= g[0, i] == root_pairs[r, 0]
+                has_b |= g[0, i] == root_pairs[r, 1]
+            ok |= has_a and has_b
+        if not ok:
+            hits = np.empty(R, dtype=np.int64)
+            n_hits = 0
+            for r in range(R):
+                for i in range(3):
+                    if g[0, i] == root_pairs[r, 0] or g[0, i] == root_pairs[r, 1]:
+                        hits[n_hits] = r
+                        n_hits += 1
+                        break
+            r = hits[rng.integers(0, n_hits)] if n_hits > 0 else rng.integers(0, R)
+            a, b = root_pairs[r, 0], root_pairs[r, 1]
+            third = -1
+            for i in range(3):
+                if g[0, i] != a and g[0, i] != b and g[0, i] >= 0:
+                    third = g[0, i]
+                    break
+            g[0, 0], g[0, 1], g[0, 2] = a, b, third
+    unused = np.arange(n)
+    n_unused = n
+    used = np.zeros(n, dtype=np.bool_)
+    n_edges_max = 3 + 2 * max(g.shape[0] - 1, 0)
+    ea = np.empty(n_edges_max, dtype=np.int64)
+    eb = np.empty(n_edges_max, dtype=np.int64)
+    adj = np.zeros((n, n), dtype=np.bool_)
+    n_edges = 0
+    cand = np.empty(n_edges_max, dtype=np.int64)
     # first triangle: three distinct vertices (eq. 16-17)
     for i in range(3):
-        v = int(g[0, i])
-        if v not in unused:
-            v = unused[rng.integers(len(unused))]
+        v = g[0, i]
+        if v < 0 or used[v]:
+            v = unused[rng.integers(0, n_unused)]
             g[0, i] = v
-        take(v)
-    a, b, c = (int(x) for x in g[0])
-    for e in (_edge(a, b), _edge(a, c), _edge(b, c)):
-        edges.append(e)
-        edge_set.add(e)
+        k = 0                                   # take(v): out of the unused list, order kept
+        while unused[k] != v:
+            k += 1
+        unused[k:n_unused - 1] = unused[k + 1:n_unused]
+        n_unused -= 1
+        used[v] = True
+    a, b, c = g[0, 0], g[0, 1], g[0, 2]
+    for x, y in ((a, b), (a, c), (b, c)):
+        lo, hi = min(x, y), max(x, y)
+        ea[n_edges], eb[n_edges] = lo, hi
+        adj[lo, hi] = adj[hi, lo] = True
+        n_edges += 1
     # later triangles: a new vertex from the unused set, parents an existing edge (eq. 22, 27)
     for t in range(1, g.shape[0]):
-        a, b, c = (int(x) for x in g[t])
-        if a not in unused:
-            a = unused[rng.integers(len(unused))]
-        if b == c or _edge(b, c) not in edge_set:
+        a, b, c = g[t, 0], g[t, 1], g[t, 2]
+        if a < 0 or used[a]:
+            a = unused[rng.integers(0, n_unused)]
+        if b < 0 or c < 0 or b == c or not adj[b, c]:
             # keep one proposed parent if possible and pick a partner it shares an edge with
-            keep = [p for p in (b, c) if p in used]
-            cand = [e for e in edges if keep and keep[rng.integers(len(keep))] in e] if keep else []
-            b, c = cand[rng.integers(len(cand))] if cand else edges[rng.integers(len(edges))]
-        g[t] = (a, b, c)
-        take(a)
-        for e in (_edge(a, b), _edge(a, c)):
-            edges.append(e)
-            edge_set.add(e)
+            keep = np.empty(2, dtype=np.int64)
+            n_keep = 0
+            for p in (b, c):
+                if p >= 0 and used[p]:
+                    keep[n_keep] = p
+                    n_keep += 1
+            n_cand = 0
+            if n_keep > 0:
+                for e in range(n_edges):
+                    p = keep[rng.integers(0, n_keep)]
+                    if ea[e] == p or eb[e] == p:
+                        cand[n_cand] = e
+                        n_cand += 1
+            e = cand[rng.integers(0, n_cand)] if n_cand > 0 else rng.integers(0, n_edges)
+            b, c = ea[e], eb[e]
+        g[t, 0], g[t, 1], g[t, 2] = a, b, c
+        k = 0
+        while unused[k] != a:
+            k += 1
+        unused[k:n_unused - 1] = unused[k + 1:n_unused]
+        n_unused -= 1
+        used[a] = True
+        for x in (b, c):
+            lo, hi = min(a, x), max(a, x)
+            ea[n_edges], eb[n_edges] = lo, hi
+            adj[lo, hi] = adj[hi, lo] = True
+            n_edges += 1
     return g
 
 
