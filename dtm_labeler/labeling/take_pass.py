@@ -31,7 +31,8 @@ markers, three 3-s parts: 43.1 -> 50.5 / 60.0 / 61.6 %, 58.8 -> 56.7 / 60.2 / 59
 of 8 labels (96.2 %); after the votes, whole tracks exchanging labels where the sum of the
 fitness change over the track's frames gains > 10 nats (a marker back from a gap labelled from
 a frame whose neighbours were hidden too): HDM05 41 markers, 50 % hidden, 95.05 -> 96.08 %,
-but the Qualisys walk 95.45 -> 92.24 % (the gapped model prefers a hand marker's neighbour
+but the Qualisys walk 95.45 -> 92.24 % (from a live pass that also tried other fast-path
+moves; the gapped model prefers a hand marker's neighbour
 label by 1427 nats over 105 frames, at the take's facing and at each frame's own), and gated
 to tracks the votes held at under 0.5, +0.5 and +0.0 points; branching on points the
 regions' DP gives to two labels (as the full search's sweep does,
