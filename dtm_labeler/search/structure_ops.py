@@ -26,19 +26,55 @@ def _edge(a: int, b: int) -> tuple[int, int]:
 
 
 def root_ok(first: np.ndarray, root_pairs: np.ndarray | None) -> bool:
-    if root_pairs is None or len(root_pairs) == 0:
+    """The first triangle ``first`` (3,) holds both vertices of some root pair (always, with none)."""
+    return bool(_has_root_pair(np.asarray(first, dtype=np.int64).reshape(3), _pairs(root_pairs)))
+
+
+def _pairs(root_pairs: np.ndarray | None) -> np.ndarray:
+    """(R, 2) int64 root pairs (R = 0 for None)."""
+    return np.zeros((0, 2), dtype=np.int64) if root_pairs is None else \
+        np.ascontiguousarray(root_pairs, dtype=np.int64).reshape(-1, 2)
+
+
+@njit(cache=True)
+def _has_root_pair(first, root_pairs):  # pragma: no cover - compiled
+    if root_pairs.shape[0] == 0:
         return True
-    f = set(int(v) for v in first)
-    return any(int(a) in f and int(b) in f for a, b in root_pairs)
+    for r in range(root_pairs.shape[0]):
+        has_a = has_b = False
+        for i in range(3):
+            has_a |= first[i] == root_pairs[r, 0]
+            has_b |= first[i] == root_pairs[r, 1]
+        if has_a and has_b:
+            return True
+    return False
+
+
+@njit(cache=True)
+def _take(unused, n_unused, used, v):  # pragma: no cover - compiled
+    """Vertex ``v`` out of the first ``n_unused`` entries of ``unused`` (order kept) into ``used``;
+    returns the new count."""
+    k = 0
+    while unused[k] != v:
+        k += 1
+    unused[k:n_unused - 1] = unused[k + 1:n_unused]
+    used[v] = True
+    return n_unused - 1
+
+
+@njit(cache=True)
+def _add_edge(ea, eb, adj, n_edges, x, y):  # pragma: no cover - compiled
+    """Edge (x, y), smaller vertex first, appended at ``n_edges``; returns the new count."""
+    lo, hi = min(x, y), max(x, y)
+    ea[n_edges], eb[n_edges] = lo, hi
+    adj[lo, hi] = adj[hi, lo] = True
+    return n_edges + 1
 
 
 def repair(genes: np.ndarray, n_vertices: int, rng: np.random.Generator,
            root_pairs: np.ndarray | None = None) -> np.ndarray:
     """Smallest change making ``genes`` (T, 3) valid; valid genes are kept as they are."""
-    g = np.array(genes, dtype=np.int64).reshape(-1, 3)
-    rp = np.zeros((0, 2), dtype=np.int64) if root_pairs is None else \
-        np.ascontiguousarray(root_pairs, dtype=np.int64).reshape(-1, 2)
-    return _repair(g, n_vertices, rp, rng)
+    return _repair(np.array(genes, dtype=np.int64).reshape(-1, 3), n_vertices, _pairs(root_pairs), rng)
 
 
 @njit(cache=True)
@@ -56,31 +92,23 @@ def _repair(g, n_vertices, root_pairs, rng):  # pragma: no cover - compiled
                 g[t, i] = -1
     # root rule: keep a proposed vertex that belongs to some pair, put its partner beside it
     R = root_pairs.shape[0]
-    if R > 0:
-        ok = False
+    if not _has_root_pair(g[0], root_pairs):
+        hits = np.empty(R, dtype=np.int64)
+        n_hits = 0
         for r in range(R):
-            has_a = has_b = False
             for i in range(3):
-                has_a |= g[0, i] == root_pairs[r, 0]
-                has_b |= g[0, i] == root_pairs[r, 1]
-            ok |= has_a and has_b
-        if not ok:
-            hits = np.empty(R, dtype=np.int64)
-            n_hits = 0
-            for r in range(R):
-                for i in range(3):
-                    if g[0, i] == root_pairs[r, 0] or g[0, i] == root_pairs[r, 1]:
-                        hits[n_hits] = r
-                        n_hits += 1
-                        break
-            r = hits[rng.integers(0, n_hits)] if n_hits > 0 else rng.integers(0, R)
-            a, b = root_pairs[r, 0], root_pairs[r, 1]
-            third = -1
-            for i in range(3):
-                if g[0, i] != a and g[0, i] != b and g[0, i] >= 0:
-                    third = g[0, i]
+                if g[0, i] == root_pairs[r, 0] or g[0, i] == root_pairs[r, 1]:
+                    hits[n_hits] = r
+                    n_hits += 1
                     break
-            g[0, 0], g[0, 1], g[0, 2] = a, b, third
+        r = hits[rng.integers(0, n_hits)] if n_hits > 0 else rng.integers(0, R)
+        a, b = root_pairs[r, 0], root_pairs[r, 1]
+        third = -1
+        for i in range(3):
+            if g[0, i] != a and g[0, i] != b and g[0, i] >= 0:
+                third = g[0, i]
+                break
+        g[0, 0], g[0, 1], g[0, 2] = a, b, third
     unused = np.arange(n)
     n_unused = n
     used = np.zeros(n, dtype=np.bool_)
@@ -96,18 +124,10 @@ def _repair(g, n_vertices, root_pairs, rng):  # pragma: no cover - compiled
         if v < 0 or used[v]:
             v = unused[rng.integers(0, n_unused)]
             g[0, i] = v
-        k = 0                                   # take(v): out of the unused list, order kept
-        while unused[k] != v:
-            k += 1
-        unused[k:n_unused - 1] = unused[k + 1:n_unused]
-        n_unused -= 1
-        used[v] = True
+        n_unused = _take(unused, n_unused, used, v)
     a, b, c = g[0, 0], g[0, 1], g[0, 2]
     for x, y in ((a, b), (a, c), (b, c)):
-        lo, hi = min(x, y), max(x, y)
-        ea[n_edges], eb[n_edges] = lo, hi
-        adj[lo, hi] = adj[hi, lo] = True
-        n_edges += 1
+        n_edges = _add_edge(ea, eb, adj, n_edges, x, y)
     # later triangles: a new vertex from the unused set, parents an existing edge (eq. 22, 27)
     for t in range(1, g.shape[0]):
         a, b, c = g[t, 0], g[t, 1], g[t, 2]
@@ -131,17 +151,9 @@ def _repair(g, n_vertices, root_pairs, rng):  # pragma: no cover - compiled
             e = cand[rng.integers(0, n_cand)] if n_cand > 0 else rng.integers(0, n_edges)
             b, c = ea[e], eb[e]
         g[t, 0], g[t, 1], g[t, 2] = a, b, c
-        k = 0
-        while unused[k] != a:
-            k += 1
-        unused[k:n_unused - 1] = unused[k + 1:n_unused]
-        n_unused -= 1
-        used[a] = True
+        n_unused = _take(unused, n_unused, used, a)
         for x in (b, c):
-            lo, hi = min(a, x), max(a, x)
-            ea[n_edges], eb[n_edges] = lo, hi
-            adj[lo, hi] = adj[hi, lo] = True
-            n_edges += 1
+            n_edges = _add_edge(ea, eb, adj, n_edges, a, x)
     return g
 
 
