@@ -8,7 +8,8 @@ confirmed with at least ``min_confidence`` (the labeler's ``confirmation``,
 labelled clip of them (NaN where a label was not confirmed) at the window's own frame rate (the
 velocities the calibrated model's fit reference needs). The node's loader thread then computes
 the calibrated model (:func:`~dtm_labeler.training.calibrate.calibrate`: medians over the window
--- milliseconds)
+and the placement shift of each triangle's means -- milliseconds; the new means' terms are
+built there too, before the swap)
 and the worker swaps it in between two frames, keeping tracks and votes, like a new
 ``noise_mm``. Nothing here runs a search: collecting costs one (M, 3) copy per frame.
 

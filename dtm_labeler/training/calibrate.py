@@ -35,7 +35,11 @@ lengths replace the generic ones. :func:`calibrate` does that for a model with b
   of its first 2 s), so labels from a capture skip both checks (``check_labels=False``);
 * the **reach** limits are scaled by the subject's size: the median ratio of the calibrated
   segment lengths to the generic ones (clipped to [0.75, 1.33]);
-* the motion mixtures are kept (the motion is not the person's);
+* the **placement** of the person's markers: each triangle mixture's relative-position means
+  move towards the calibration frames' (mean-only MAP adaptation, :mod:`.placement`; weights,
+  covariances and the velocity part are kept -- the motion is not the person's). A marker
+  placed where the training people's never sat (another lab's shank marker 10 cm lower) is
+  otherwise left out also by a calibrated body;
 * the **fit reference** of the confidence -- the fitness per seen label a right labeling
   shows, against which a frame's confidence measures how far the frame fits below the model
   (:mod:`dtm_labeler.labeling.confidence`) -- becomes the lower of the training people's and
@@ -90,6 +94,7 @@ from ..motion.clip import MotionClip
 from ..motion.pointsets import model_points
 from ..search.problem import Background
 from .body_fit import quad_signs
+from .placement import adapted_mixtures
 from .gaps import fill_yaw, loglik_per_label
 
 
@@ -110,6 +115,8 @@ class CalibrationSettings:
     mirror_sd_m: float = 0.01        # spread of a segment length taken from its mirror
     min_kept: float = 0.9            # auto calibration: share of the generic model's confirmed labels the
                                      # calibrated model must keep on the same frames (auto_calibrate)
+    placement_relevance: float = 20.0    # frames: MAP relevance of the motion means' placement adaptation
+                                         # (training/placement.py); 0: the motion mixtures are kept as they are
 
 
 class CalibrationError(ValueError):
@@ -260,17 +267,21 @@ def calibrate(model: TriangulatedModel, source: MotionClip | np.ndarray,
               rate: float | None = None) -> TriangulatedModel:
     """``model`` with the body terms of the person in ``source``: a labelled clip (the
     model's labels or points derivable from it) or (F, M, 3) positions in the model's label
-    order (NaN = unseen). The model's structure and mixtures are kept; the confidence's fit
+    order (NaN = unseen). The model's structure is kept, its mixtures' position means adapted
+    to the frames (``settings.placement_relevance``, :mod:`.placement`); the confidence's fit
     reference (``settings["fit_reference_per_label"]``) is measured on the frames too (module
     doc) when their rate is known (a clip's, or ``rate``). ``check_labels``: check left against right and each
     point's side (labels from a model); False trusts them (an operator-labelled capture)."""
     if model.body is None:
         raise CalibrationError("the model has no body terms to calibrate (format version 1 or trained "
                                "without them); retrain with dtm-train")
+    s = settings or CalibrationSettings()
     P = labelled_positions(model, source)
-    body, summary = calibrated_body(model.body, P, settings, model.mirror_pairs, model.heading_pairs,
-                                    check_labels)
-    out = model.replace(body=body)
+    body, summary = calibrated_body(model.body, P, s, model.mirror_pairs, model.heading_pairs, check_labels)
+    mixtures = model.mixtures
+    if s.placement_relevance > 0:
+        mixtures, summary["placement"] = adapted_mixtures(model, P, s.placement_relevance, s.min_frames)
+    out = model.replace(body=body, mixtures=mixtures)
     out.settings.pop("fit_reference_per_label", None)     # calibrations do not compound
     rate = source.rate if isinstance(source, MotionClip) and rate is None else rate
     ref = fit_per_label(out, P, rate) if rate else None
@@ -337,8 +348,10 @@ def self_calibrate(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.n
 
 
 def _self_calibration(model: TriangulatedModel, clouds, rate: float, settings: CalibrationSettings | None,
-                      labeler: LabelerSettings | None) -> tuple[TriangulatedModel, list[np.ndarray]]:
-    """:func:`self_calibrate`, returning every round's confirmed labels (F, M, 3)."""
+                      labeler: LabelerSettings | None, first: np.ndarray | None = None
+                      ) -> tuple[TriangulatedModel, list[np.ndarray]]:
+    """:func:`self_calibrate`, returning every round's confirmed labels (F, M, 3); ``first``:
+    the first round's, when an earlier self-calibration of the same frames has them."""
     s = settings or CalibrationSettings()
     current = model
     rounds = []
@@ -348,7 +361,8 @@ def _self_calibration(model: TriangulatedModel, clouds, rate: float, settings: C
         wide = np.maximum(b.between_sd, s.open_between_rel * 0.5 * (b.lo + b.hi))
         current = model.replace(body=replace(b, between_sd=wide))
     for k in range(max(1, s.rounds)):
-        rounds.append(self_label(current, clouds, rate, labeler, s.min_confidence))
+        rounds.append(first if k == 0 and first is not None
+                      else self_label(current, clouds, rate, labeler, s.min_confidence))
         # the fit reference joins after the last round (module doc): the rounds confirm with
         # the training reference's confidences
         current = calibrate(model, rounds[-1], s, rate=rate if k == max(1, s.rounds) - 1 else None)
@@ -393,6 +407,12 @@ def auto_calibrate(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.n
     77 %, 69.9 % either way); no cell lower. The check matters: the same windows with the points
     in label order gave two calibrations that would have lowered the cell (subject 9 80.4 ->
     74.1 %, CMU 85 -> HDM05 96.1 -> 73.7 %); both keep under 90 % (83 and 69 %) and are dropped.
+
+    The calibrated model also reads the marker placement from the window (:mod:`.placement`).
+    When that model fails the check, the body alone is tried on the same first-round labels
+    (``placement_dropped`` in the summary says so): a window of floor moves gives each
+    triangle the shift of poses the training never showed, not of a marker's place -- kept
+    59 % with the placement, 95 % without (stream 93.55 % as before the placement).
     """
     s = settings or CalibrationSettings()
     clouds = [np.asarray(x, dtype=np.float64).reshape(-1, 3) for x in clouds]
@@ -412,6 +432,13 @@ def auto_calibrate(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.n
         return model, summary
     labeler = LabelerSettings(background=Background(volume_m3=s.volume_m3))
     kept = kept_share(rounds[0], self_label(calibrated, clouds, rate, labeler, s.min_confidence))
+    if kept < s.min_kept and s.placement_relevance > 0:
+        # the placement read from a window the model labels poorly (floor poses) can carry its
+        # poses rather than the markers' places: the body alone, measured on the same labels
+        summary["placement_dropped"] = f"kept {100 * kept:.0f} % with the placement adapted"
+        s = replace(s, placement_relevance=0.0)
+        calibrated, rounds = _self_calibration(model, clouds, rate, s, None, first=rounds[0])
+        kept = kept_share(rounds[0], self_label(calibrated, clouds, rate, labeler, s.min_confidence))
     info = calibrated.provenance["calibration"]
     summary.update({k: info[k] for k in ("segments", "segments_total", "scale") if k in info}, kept_share=kept)
     if kept < s.min_kept:
