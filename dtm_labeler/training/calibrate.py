@@ -36,8 +36,9 @@ lengths replace the generic ones. :func:`calibrate` does that for a model with b
 * the **reach** limits are scaled by the subject's size: the median ratio of the calibrated
   segment lengths to the generic ones (clipped to [0.75, 1.33]);
 * the **placement** of the person's markers: each triangle mixture's relative-position means
-  move towards the calibration frames' (mean-only MAP adaptation, :mod:`.placement`; weights,
-  covariances and the velocity part are kept -- the motion is not the person's). A marker
+  shift together by the calibration frames' mean residual, shrunk by the evidence
+  (:mod:`.placement`; weights, covariances and the velocity part are kept -- the motion is not
+  the person's). A marker
   placed where the training people's never sat (another lab's shank marker 10 cm lower) is
   otherwise left out also by a calibrated body;
 * the **fit reference** of the confidence -- the fitness per seen label a right labeling
@@ -89,13 +90,12 @@ from ..labeling.confidence import CONFIRMED
 from ..labeling.stream import LabelerSettings, StreamLabeler
 from ..model.body import SEGMENT, BodyModel
 from ..model.dtm import TriangulatedModel
-from ..model.features import canonicalise, lateral_yaw, point_states
 from ..motion.clip import MotionClip
 from ..motion.pointsets import model_points
 from ..search.problem import Background
 from .body_fit import quad_signs
 from .placement import adapted_mixtures
-from .gaps import fill_yaw, loglik_per_label
+from .gaps import facing_states, loglik_per_label
 
 
 @dataclass(frozen=True)
@@ -258,8 +258,7 @@ def fit_per_label(model: TriangulatedModel, positions: np.ndarray, rate: float) 
     seen[1:] &= seen[:-1]                           # velocities need the point in the frame before
     if not (seen.sum(1) >= max(3, P.shape[1] // 2)).any():
         return None
-    yaw = fill_yaw(lateral_yaw(P, model.heading_pairs))
-    return loglik_per_label(model, canonicalise(point_states(P, rate), yaw))
+    return loglik_per_label(model, facing_states(P, model.heading_pairs, rate))
 
 
 def calibrate(model: TriangulatedModel, source: MotionClip | np.ndarray,

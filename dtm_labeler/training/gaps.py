@@ -28,7 +28,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..model.features import STATE_DIM, triangle_features
+from ..model.features import STATE_DIM, canonicalise, lateral_yaw, point_states, triangle_features
 from ..model.mixture_em import FitResult, make_estimator
 from ..model.mixture_missing import PartialSamples, make_partial_estimator
 from ..model.structure import Structure
@@ -88,6 +88,14 @@ def fill_yaw(yaw: np.ndarray) -> np.ndarray:
         return yaw
     t = np.arange(yaw.size)
     return np.interp(t, t[ok], np.unwrap(yaw[ok]))
+
+
+def facing_states(positions: np.ndarray, pairs: np.ndarray, rate: float) -> np.ndarray:
+    """(F, N, 6) point states of labelled frames (F, N, 3) at ``rate``, each frame turned so
+    the body faces +x (eq. 12's frame; the facing from the left/right ``pairs``, frames
+    without one interpolated, :func:`fill_yaw`)."""
+    P = np.asarray(positions, dtype=np.float64)
+    return canonicalise(point_states(P, rate), fill_yaw(lateral_yaw(P, pairs)))
 
 
 def pairwise_covariance(states: np.ndarray) -> np.ndarray:
