@@ -2,15 +2,17 @@
 the markers (training/placement.py): a real HDM05 take whose right shank marker is moved 40 %
 of the way down to the ankle (another session's placement) is labelled in full after a
 calibration on its own labelled first 2 s, where the body-only calibration leaves that marker
-out in every frame."""
+out in every frame; and a self-calibration takes a label it never confirmed from the points it
+left out (``completed_labels``)."""
 import numpy as np
 import pytest
 
 from dtm_labeler.evaluation.pipeline import label_clip_run
 from dtm_labeler.labeling.stream import LabelerSettings
+from dtm_labeler.model.body import SEGMENT
 from dtm_labeler.model.features import FEATURE_DIM
 from dtm_labeler.motion import load_clip
-from dtm_labeler.training.calibrate import CalibrationSettings, calibrate
+from dtm_labeler.training.calibrate import CalibrationSettings, calibrate, completed_labels
 from dtm_labeler.training.placement import POSITION_DIMS, adapted_mixtures
 from dtm_labeler.training.train import TrainConfig, train_model
 
@@ -75,3 +77,31 @@ def test_only_position_means_move_and_only_where_frames_reach(model, hdm):
     assert 0 < np.abs(far[t].means - model.mixtures[t].means).max() < step
     none, s0 = adapted_mixtures(model, P, relevance=0.0)
     assert all(a is b for a, b in zip(none, model.mixtures)) and s0["triangles_adapted"] == 0
+
+
+def test_a_label_never_confirmed_is_taken_from_the_points_left_out(model, hdm):
+    """``completed_labels``: RSHN never confirmed, every other label confirmed; the one point per
+    frame left out stays rigid to RSHN's segment partners and is taken, exactly; a second such
+    point on the same segment makes it a guess, and nothing is taken; a label confirmed often
+    enough is left as it is."""
+    clip = hdm.select(model.labels).slice(2400, 2640)
+    P = clip.positions
+    m = model.labels.index("RSHN")
+    assert np.isfinite(P).all()
+    confirmed = P.copy()
+    confirmed[:, m] = np.nan
+    rng = np.random.default_rng(0)
+    clouds = [x[rng.permutation(len(x))] for x in P]
+    filled, done = completed_labels(model, confirmed, clouds)
+    assert done == ["RSHN"] and np.array_equal(filled, P)
+    # a second point rigid to the same segment (a third of the way to a partner): no choice made
+    rows = (model.body.kind == SEGMENT) & (model.body.pairs == m).any(1)
+    partner = int(model.body.pairs[rows][0].sum() - m)
+    decoy = P[:, m] + (P[:, partner] - P[:, m]) / 3
+    twice, done = completed_labels(model, confirmed, [np.vstack([x, d]) for x, d in zip(clouds, decoy)])
+    assert done == [] and np.isnan(twice[:, m]).all()
+    # confirmed in more than the threshold's share of frames: not looked for
+    some = confirmed.copy()
+    some[::3, m] = P[::3, m]
+    kept, done = completed_labels(model, some, clouds)
+    assert done == [] and np.array_equal(np.isnan(kept[:, m]), np.isnan(some[:, m]))

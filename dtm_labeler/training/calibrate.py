@@ -69,7 +69,9 @@ assumes a sparse background (``volume_m3``) and, in its first round, a generic b
 other proportions (``open_between_rel``): a point that fits the generic body poorly (a forearm
 25 % longer than the training people's, a marker placed 10 cm from where they had it) is
 labelled rather than left out, so its segment can be measured; the medians over frames absorb
-the few wrong labels, and the second round labels with the calibrated body.
+the few wrong labels, and the second round labels with the calibrated body. Before the last
+round's calibration, a label the rounds never confirmed is taken from the points they left out
+when exactly one of them stays rigid to its segment partners (:func:`completed_labels`).
 
 Library entry points for a node service: :func:`calibrate` (labelled frames, e.g. what the
 node published with high confidence) and :func:`self_calibrate` (raw clouds);
@@ -110,6 +112,10 @@ class CalibrationSettings:
                                      # body poorly is still labelled; the medians are robust to a few wrong ones)
     open_between_rel: float = 0.3    # self-labelling, first round: between-person spread of the generic body
     rounds: int = 2                  # self-calibration: label, calibrate, label again, ...
+    complete_below: float = 0.2      # self-calibration, last round: a label confirmed in fewer of the window's
+                                     # frames is looked for among the points left out (completed_labels)
+    complete_present: float = 0.5    # ... in at least this share of the frames, rigid to its segment partners
+    complete_tol_m: float = 0.015    # ... within this of one distance to each partner
     mirror_abs_m: float = 0.02       # left/right segment lengths that differ by more than this ...
     mirror_rel: float = 0.08         # ... and by more than this fraction of their length disagree
     mirror_sd_m: float = 0.01        # spread of a segment length taken from its mirror
@@ -321,6 +327,71 @@ def confirmation_of(result) -> np.ndarray:
     return np.asarray(result.confidence if c is None else c, dtype=float)
 
 
+def completed_labels(model: TriangulatedModel, confirmed: np.ndarray, clouds: Sequence[np.ndarray],
+                     settings: CalibrationSettings | None = None) -> tuple[np.ndarray, list[str]]:
+    """``confirmed`` (F, M, 3) with the labels the self-labelling (almost) never confirmed
+    filled in from the points it left out, where one such point stays rigid to the label's
+    segment partners; and the names of the labels filled.
+
+    A marker placed where the training people's never sat is left out by the generic model in
+    every frame (CMU 85 -> HDM05: the right shank marker 10 cm lower), so none of its segments
+    and none of its triangles' placement can be measured, and the calibrated model leaves it
+    out too. Its point is still in the clouds, and it is on a segment: its distance to each
+    *partner* -- a label the body calls one segment with it (``SEGMENT``) and that was
+    confirmed in at least ``1 - complete_below`` of the frames -- stays the same in every
+    frame, whatever its value. For a label confirmed in under ``complete_below`` of the frames,
+    every left-out point of a frame that shows its partners gives a vector of distances to them;
+    the vectors within ``complete_tol_m`` of the most populous one are one physical marker, and
+    it is taken when it shows in at least ``complete_present`` of the frames and no other such
+    cluster does (a second rigid point would make the choice a guess). One point per frame, the
+    closest to the cluster's centre. Measured on the self-calibration of the generalisation
+    cells: the points taken were the true marker in every frame (RSHN, CMU 85 -> HDM05: 393 of
+    393; RMT5, HDM05 -> CMU 85: 193 of 193)."""
+    s = settings or CalibrationSettings()
+    P = np.array(confirmed, dtype=np.float64)
+    F = P.shape[0]
+    seen = np.isfinite(P[..., 0])
+    share = seen.mean(0)
+    body, done = model.body, []
+    segment = body.kind == SEGMENT
+    for m in np.flatnonzero(share < s.complete_below):
+        rows = segment & (body.pairs == m).any(1)
+        partners = body.pairs[rows].sum(1) - m
+        partners = partners[share[partners] >= 1.0 - s.complete_below]
+        if partners.size == 0:
+            continue
+        vectors, owners = [], []
+        for f in np.flatnonzero(seen[:, partners].all(1)):
+            x = np.asarray(clouds[f], dtype=np.float64).reshape(-1, 3)
+            taken = np.abs(x[:, None, :] - P[f][seen[f]][None]).max(-1).min(1, initial=np.inf) < 1e-9
+            for i in np.flatnonzero(~taken):
+                vectors.append(np.linalg.norm(P[f, partners] - x[i], axis=1))
+                owners.append((f, i))
+        if not vectors:
+            continue
+        V = np.asarray(vectors)
+        owner = np.asarray(owners)
+        close = np.abs(V[:, None] - V[None]).max(-1) < s.complete_tol_m
+        best = int(np.argmax(close.sum(1)))
+        members = np.flatnonzero(close[best])
+        rest = ~close[best]
+        frames = np.unique(owner[members, 0])
+        if frames.size < s.complete_present * F:
+            continue
+        if rest.any():                               # a second rigid point shown as often: no choice
+            sub = close[np.ix_(rest, rest)]
+            second = np.flatnonzero(rest)[int(np.argmax(sub.sum(1)))]
+            if np.unique(owner[close[second] & rest, 0]).size >= s.complete_present * F:
+                continue
+        centre = V[members].mean(0)
+        gap = np.abs(V[members] - centre).max(1)
+        for k in members[np.argsort(gap)][::-1]:     # the closest to the centre written last: kept
+            f, i = owner[k]
+            P[f, m] = np.asarray(clouds[f], dtype=np.float64).reshape(-1, 3)[i]
+        done.append(model.labels[m])
+    return P, done
+
+
 def self_label(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.ndarray, rate: float,
                settings: LabelerSettings | None = None, min_confidence: float = CONFIRMED) -> np.ndarray:
     """Label unlabelled clouds (one (n, 3) array per frame, or (F, N, 3)) with ``model`` in
@@ -359,14 +430,18 @@ def _self_calibration(model: TriangulatedModel, clouds, rate: float, settings: C
         b = model.body
         wide = np.maximum(b.between_sd, s.open_between_rel * 0.5 * (b.lo + b.hi))
         current = model.replace(body=replace(b, between_sd=wide))
+    completed: list[str] = []
     for k in range(max(1, s.rounds)):
         rounds.append(first if k == 0 and first is not None
                       else self_label(current, clouds, rate, labeler, s.min_confidence))
+        positions = rounds[-1]
+        if k > 0:       # after a first calibration: the first round's generic model reads wrong distances
+            positions, completed = completed_labels(model, positions, clouds, s)
         # the fit reference joins after the last round (module doc): the rounds confirm with
         # the training reference's confidences
-        current = calibrate(model, rounds[-1], s, rate=rate if k == max(1, s.rounds) - 1 else None)
+        current = calibrate(model, positions, s, rate=rate if k == max(1, s.rounds) - 1 else None)
     current.provenance["calibration"] = dict(current.provenance["calibration"], source="self-labelled",
-                                             rounds=max(1, s.rounds))
+                                             rounds=max(1, s.rounds), completed=completed)
     return current, rounds
 
 
@@ -439,7 +514,8 @@ def auto_calibrate(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.n
         calibrated, rounds = _self_calibration(model, clouds, rate, s, None, first=rounds[0])
         kept = kept_share(rounds[0], self_label(calibrated, clouds, rate, labeler, s.min_confidence))
     info = calibrated.provenance["calibration"]
-    summary.update({k: info[k] for k in ("segments", "segments_total", "scale") if k in info}, kept_share=kept)
+    summary.update({k: info[k] for k in ("segments", "segments_total", "scale", "completed") if k in info},
+                   kept_share=kept)
     if kept < s.min_kept:
         summary["reason"] = (f"the calibrated model relabels {100 * (1 - kept):.0f} % of the labels it was "
                              f"measured on (at most {100 * (1 - s.min_kept):.0f} %): the generic model is kept")
