@@ -125,6 +125,9 @@ class CalibrationSettings:
                                          # (training/placement.py); 0: the motion mixtures are kept as they are
 
 
+MAX_CENTRES = 300                    # completed_labels: candidate clusters examined per label
+
+
 class CalibrationError(ValueError):
     """Frames that cannot calibrate the model (no body terms, too few frames, wrong points)."""
 
@@ -357,39 +360,34 @@ def completed_labels(model: TriangulatedModel, confirmed: np.ndarray, clouds: Se
     body, done = model.body, []
     segment = body.kind == SEGMENT
     for m in np.flatnonzero(share < s.complete_below):
-        rows = segment & (body.pairs == m).any(1)
-        partners = body.pairs[rows].sum(1) - m
+        partners = body.pairs[segment & (body.pairs == m).any(1)].sum(1) - m
         partners = partners[share[partners] >= 1.0 - s.complete_below]
         if partners.size == 0:
             continue
-        vectors, owners = [], []
+        points, vectors, frames = [], [], []          # every left-out point of a frame showing the partners
         for f in np.flatnonzero(seen[:, partners].all(1)):
             x = np.asarray(clouds[f], dtype=np.float64).reshape(-1, 3)
-            taken = np.abs(x[:, None, :] - P[f][seen[f]][None]).max(-1).min(1, initial=np.inf) < 1e-9
-            for i in np.flatnonzero(~taken):
-                vectors.append(np.linalg.norm(P[f, partners] - x[i], axis=1))
-                owners.append((f, i))
-        if not vectors:
+            left = np.abs(x[:, None, :] - P[f][seen[f]][None]).max(-1).min(1, initial=np.inf) >= 1e-9
+            points.append(x[left])
+            vectors.append(np.linalg.norm(x[left][:, None, :] - P[f, partners][None], axis=-1))
+            frames.append(np.full(int(left.sum()), f))
+        if not points or not sum(len(p) for p in points):
             continue
-        V = np.asarray(vectors)
-        owner = np.asarray(owners)
-        close = np.abs(V[:, None] - V[None]).max(-1) < s.complete_tol_m
-        best = int(np.argmax(close.sum(1)))
+        X, V, owner = np.concatenate(points), np.concatenate(vectors), np.concatenate(frames)
+        # clusters around at most MAX_CENTRES of the vectors (bounded memory with many left-out points)
+        centres = np.unique(np.linspace(0, len(V) - 1, min(len(V), MAX_CENTRES)).astype(np.int64))
+        close = np.abs(V[centres][:, None] - V[None]).max(-1) < s.complete_tol_m          # (C, N)
+        shows = np.array([np.unique(owner[c]).size for c in close])                        # frames per cluster
+        best = int(np.argmax(shows))
+        if shows[best] < s.complete_present * F:
+            continue
+        apart = ~close[:, close[best]].any(1)            # clusters sharing no point with the best one
+        if (shows[apart] >= s.complete_present * F).any():
+            continue                                     # a second rigid point shown as often: no choice
         members = np.flatnonzero(close[best])
-        rest = ~close[best]
-        frames = np.unique(owner[members, 0])
-        if frames.size < s.complete_present * F:
-            continue
-        if rest.any():                               # a second rigid point shown as often: no choice
-            sub = close[np.ix_(rest, rest)]
-            second = np.flatnonzero(rest)[int(np.argmax(sub.sum(1)))]
-            if np.unique(owner[close[second] & rest, 0]).size >= s.complete_present * F:
-                continue
-        centre = V[members].mean(0)
-        gap = np.abs(V[members] - centre).max(1)
-        for k in members[np.argsort(gap)][::-1]:     # the closest to the centre written last: kept
-            f, i = owner[k]
-            P[f, m] = np.asarray(clouds[f], dtype=np.float64).reshape(-1, 3)[i]
+        gap = np.abs(V[members] - V[members].mean(0)).max(1)
+        for k in members[np.argsort(gap)[::-1]]:         # the closest to the centre written last: kept
+            P[owner[k], m] = X[k]
         done.append(model.labels[m])
     return P, done
 
