@@ -69,9 +69,9 @@ assumes a sparse background (``volume_m3``) and, in its first round, a generic b
 other proportions (``open_between_rel``): a point that fits the generic body poorly (a forearm
 25 % longer than the training people's, a marker placed 10 cm from where they had it) is
 labelled rather than left out, so its segment can be measured; the medians over frames absorb
-the few wrong labels, and the second round labels with the calibrated body. Before the last
-round's calibration, a label the rounds never confirmed is taken from the points they left out
-when exactly one of them stays rigid to its segment partners (:func:`completed_labels`).
+the few wrong labels, and the second round labels with the calibrated body. From the second
+round on, a label the round never confirmed is taken from the points it left out when exactly
+one of them stays rigid to its segment partners (:func:`completed_labels`).
 
 Library entry points for a node service: :func:`calibrate` (labelled frames, e.g. what the
 node published with high confidence) and :func:`self_calibrate` (raw clouds);
@@ -371,9 +371,11 @@ def completed_labels(model: TriangulatedModel, confirmed: np.ndarray, clouds: Se
             points.append(x[left])
             vectors.append(np.linalg.norm(x[left][:, None, :] - P[f, partners][None], axis=-1))
             frames.append(np.full(int(left.sum()), f))
-        if not points or not sum(len(p) for p in points):
+        if not points:
             continue
         X, V, owner = np.concatenate(points), np.concatenate(vectors), np.concatenate(frames)
+        if not len(X):
+            continue
         # clusters around at most MAX_CENTRES of the vectors (bounded memory with many left-out points)
         centres = np.unique(np.linspace(0, len(V) - 1, min(len(V), MAX_CENTRES)).astype(np.int64))
         close = np.abs(V[centres][:, None] - V[None]).max(-1) < s.complete_tol_m          # (C, N)
