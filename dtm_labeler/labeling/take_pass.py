@@ -40,6 +40,10 @@ regions' DP gives to two labels (as the full search's sweep does,
 94.56 % (the gap-free model's: 88.93 -> 89.66 %), 12 upper-body markers 70.8 -> 65.4 %, twice
 the time.
 
+Last, whole track pieces are relabelled by the take's own rigid marker pairs
+(:mod:`.rigid_tracks`: distances that do not change over the take, summed over each piece's
+frames): HDM05 41 markers, 50 % hidden, 95.05 -> 98.89 %, the Qualisys walk 94.81 -> 99.36 %.
+
 States: positions and backward-difference velocities along the labeler's tracks (a point
 without a previous frame on its track has no velocity, as live). Single-model labelers only
 (a bank's frames were scored by different models).
@@ -54,6 +58,7 @@ from ..model.dtm import TriangulatedModel
 from ..model.features import STATE_DIM, lateral_yaw
 from ..search.label_search import sweep_regions
 from ..search.problem import Background, FrameProblem
+from .rigid_tracks import relabel_tracks
 from .take_votes import take_votes
 
 __all__ = ["filled_trajectories", "take_heading", "track_states", "take_pass"]
@@ -117,11 +122,14 @@ def track_states(xyz: Sequence[np.ndarray], track_ids: Sequence[np.ndarray], rat
 def take_pass(model: TriangulatedModel, background: Background, xyz: Sequence[np.ndarray],
               track_ids: Sequence[np.ndarray], labels: Sequence[np.ndarray], rate: float, half_window: int,
               region_size: int = 6, polish_rounds: int = 4, sweeps: int = 2, heading_snap_deg: float = 4.0,
-              progress: Callable[[int, int], None] | None = None) -> tuple[list[np.ndarray], list[np.ndarray]]:
+              progress: Callable[[int, int], None] | None = None,
+              rigid_tracks: bool = True) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Per frame, the labels and confidences of its points after the second pass (module doc).
     ``labels``: the take-voted labels the pass starts from (-1 none); ``track_ids``: the
     labeler's track per point (-1 untracked: left unlabelled by the votes); ``progress(done,
-    total)`` after every frame of each of the two searches."""
+    total)`` after every frame of each of the two searches. ``rigid_tracks``: then whole track
+    pieces relabelled by the take's rigid pairs (:mod:`.rigid_tracks`; a moved point keeps the
+    confidence its votes gave)."""
     F = len(xyz)
     states = track_states(xyz, track_ids, rate)
     yaw = take_heading(model, xyz, labels)
@@ -139,7 +147,10 @@ def take_pass(model: TriangulatedModel, background: Background, xyz: Sequence[np
     tracks2 = [t for t in track_ids for _ in (0, 1)]
     both = [x for pair in zip(own, take) for x in pair]
     lab2, conf2 = take_votes(tracks2, both, model.n_labels, 2 * half_window + 1)
-    return lab2[0::2], conf2[0::2]
+    lab, conf = lab2[0::2], conf2[0::2]
+    if rigid_tracks:
+        lab, _ = relabel_tracks(xyz, track_ids, lab, model.n_labels)
+    return lab, conf
 
 
 def _searched(model, background, states, labels, region_size, polish_rounds, sweeps, heading_snap_deg,

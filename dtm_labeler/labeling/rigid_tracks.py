@@ -1,0 +1,275 @@
+"""Whole tracks relabelled by the take's own rigid marker pairs, offline, after the take pass.
+
+Why. With half of a capture's markers hidden at once, a marker back from a gap is labelled
+from a frame whose neighbours are often hidden too, and the triangle mixtures (eq. 6-7 over
+eq. 12, marginalised as eq. 30-31) cannot tell it from the next marker of its cluster: after
+the take pass (:mod:`.take_pass`) 5 % of the points of a 50 %-gapped take are still wrong,
+most of them whole tracks given a neighbour's label (HDM05, 41 markers: right toe / fifth
+metatarsal, the back of the head; the Qualisys walk: the hand markers).
+
+What does not change over a take is the body (:mod:`dtm_labeler.model.body`): two markers on
+one rigid segment keep their distance, for this person in this session. The labels the take
+pass gives are right for 95 % of the points, so the take measures its own rigid pairs: every
+label pair seen together in enough frames whose distance's robust spread (1.4826 MAD) is
+small and whose length is short (:func:`rigid_pairs`; a long pair that held still is a pose
+of this take, not a segment). It is the body terms' segment model with the person's own
+lengths (a self-calibration of every rigid pair at once), read across frames instead of
+within one.
+
+The model. A track is one marker while it is seen (the premise of the votes, eq. 32), so the
+variables are the pieces of tracks that hold one label, and each pair of pieces seen in the
+same frame at distance ``d`` adds, when their labels ``(a, b)`` are a rigid pair of length
+``D_ab`` and spread ``S_ab``, the log-likelihood ratio of that distance against a distance
+spread evenly over a metre,
+
+    e_ab(d) = log N(d; D_ab, S_ab) - log(1 / 1 m),   z = |d - D_ab| / S_ab capped at 4,
+
+so a matching distance gains about 5 nats (spread 3 mm) and a broken one costs at most about 3
+(a wrong partner label elsewhere cannot veto a track). The energy of a labeling is the sum of
+these terms over all co-visible piece pairs. It is raised by coordinate ascent from the take
+pass's labels with one move: a piece takes a label; the pieces holding that label in its
+frames take the piece's old label where that leaves no frame with it twice and their own
+distances support it (their evidence for it above 0), else none. Each step's change of the
+energy is exact given the labels at that step (the neighbours' scores are updated after
+every step), a move is kept only when it gains more than ``min_gain`` nats (else undone), so
+the energy rises with every move and the pass ends. A piece moves only to a label its
+distances support (its own evidence for it above ``min_gain``): a pair rigid for most of a
+take breaks when the pose changes (an arm held still, then raised), and then every label
+with rigid partners in view scores below one with fewer, which is no reason to take it.
+
+Measured (cached runs of ``benchmarks/bench_captures.py``'s gaps section: trained on the
+gapped first half, 50 % hidden, labelling the gapped second half with the capture's track
+ids; the labels after the take pass -> after this pass): HDM05 41 markers 95.05 -> 98.89 %,
+the Qualisys walk 94.81 -> 99.36 %; started from the true labels of those HDM05 frames it
+changes nothing. Tried and not kept:
+
+* every pair with a small spread regardless of length: HDM05 97.14 % (a shoulder and an
+  upper-arm marker of an arm held still for the take made a wrist into a shoulder);
+* only a label no piece holds, or an exchange of two whole pieces: 98.51 / 99.00 %;
+* each frame's points assigned to labels by their pieces' scores (Hungarian, per frame):
+  97.37 % in one round and lower in each further round, the pieces fragmenting;
+* a partner's share of a piece's evidence floored at -10 nats (a pair broken by a pose
+  change counted once): 98.70 / 99.49 %, and right labels moved (99.74 % from the truth);
+* a move also needing more matching evidence (the terms above 0) than the old label:
+  99.07 / 98.74 %; at least two partner labels speaking for the new label: 98.53 / 98.57 %;
+* pairs needing 90 % of their frames within 1.5-3 cm: 98.4-98.8 / 98.0-98.2 %;
+  blocks of 2-3 s: 96.8-97.6 %.
+
+What remains (HDM05): a head marker whose trunk pairs broke as the head turned, moved to a
+label whose one rigid partner happens to sit at its distance; tracks of the upper arm, whose
+only rigid partner in the take is C7.
+
+Bounded: takes are relabelled in blocks of ``block`` frames (pieces cut at block edges), the
+pairs measured on at most ``table_frames`` frames of each block.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+__all__ = ["RigidPairs", "rigid_pairs", "relabel_tracks"]
+
+Z_CAP = 4.0                 # a broken distance costs at most Z_CAP^2 / 2 nats
+BACKGROUND_M = 1.0          # the alternative: a distance spread evenly over this many metres
+
+
+@dataclass(frozen=True)
+class RigidPairs:
+    """(M, M) symmetric: which label pairs are rigid in the take, their length and spread (m)."""
+
+    rigid: np.ndarray
+    length: np.ndarray
+    spread: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return int(self.rigid.sum() // 2)
+
+    def evidence(self, d: np.ndarray, a: np.ndarray | slice, b: np.ndarray) -> np.ndarray:
+        """(len(d), len(a)) e_ab(d) of each distance ``d[k]`` with partner label ``b[k]`` for
+        the labels ``a`` (module doc; 0 where (a, b) is not rigid)."""
+        R, D, S = self.rigid[a][:, b].T, self.length[a][:, b].T, self.spread[a][:, b].T
+        z = np.minimum(np.abs(d[:, None] - D) / S, Z_CAP)
+        e = -np.log(np.sqrt(2.0 * np.pi) * S / BACKGROUND_M) - z * z / 2.0
+        return np.where(R, e, 0.0)
+
+
+def label_positions(xyz: Sequence[np.ndarray], labels: Sequence[np.ndarray], n_labels: int) -> np.ndarray:
+    """(F, n_labels, 3) each label's point per frame, NaN where no point holds it."""
+    P = np.full((len(xyz), n_labels, 3), np.nan)
+    for f, (x, lab) in enumerate(zip(xyz, labels)):
+        lab = np.asarray(lab)
+        ok = lab >= 0
+        P[f, lab[ok]] = np.asarray(x)[ok]
+    return P
+
+
+def rigid_pairs(positions: np.ndarray, max_spread_m: float = 0.008, max_length_m: float = 0.4,
+                min_frames: int = 20, spread_floor_m: float = 0.003) -> RigidPairs:
+    """The rigid label pairs of a take from ``positions`` (F, M, 3) (:func:`label_positions`):
+    seen together in at least ``min_frames`` frames, median distance at most ``max_length_m``,
+    robust spread (1.4826 MAD) at most ``max_spread_m``; spread floored at ``spread_floor_m``."""
+    F, M, _ = positions.shape
+    d = np.linalg.norm(positions[:, :, None] - positions[:, None], axis=-1)       # (F, M, M)
+    n = np.isfinite(d).sum(0)
+    length = np.full((M, M), np.nan)
+    spread = np.full((M, M), np.nan)
+    some = n > 0
+    length[some] = np.nanmedian(d[:, some], axis=0)
+    spread[some] = 1.4826 * np.nanmedian(np.abs(d[:, some] - length[some]), axis=0)
+    rigid = some & (n >= min_frames) & (spread <= max_spread_m) & (length <= max_length_m)
+    np.fill_diagonal(rigid, False)
+    return RigidPairs(rigid=rigid, length=np.nan_to_num(length),
+                      spread=np.maximum(np.nan_to_num(spread, nan=1.0), spread_floor_m))
+
+
+def relabel_tracks(xyz: Sequence[np.ndarray], track_ids: Sequence[np.ndarray], labels: Sequence[np.ndarray],
+                   n_labels: int, min_gain: float = 10.0, block: int = 2400, table_frames: int = 1200,
+                   max_sweeps: int = 20, **pair_kw) -> tuple[list[np.ndarray], int]:
+    """Per frame, the labels (-1 none) after the rigid-pair relabelling of whole track pieces
+    (module doc), and the number of moves made. Points without a track (-1) keep their label.
+    ``pair_kw``: :func:`rigid_pairs`'s thresholds."""
+    F = len(xyz)
+    out, moves = [], 0
+    for start in range(0, F, max(1, block)):
+        stop = min(F, start + block)
+        lab, m = _relabel_block(xyz[start:stop], track_ids[start:stop], labels[start:stop], n_labels,
+                                min_gain, table_frames, max_sweeps, pair_kw)
+        out += lab
+        moves += m
+    return out, moves
+
+
+def _pieces(track_ids: Sequence[np.ndarray], labels: Sequence[np.ndarray]) -> tuple[list[np.ndarray], int]:
+    """Per frame, each point's piece: a run of consecutive frames of one (track, label);
+    -1 for untracked points."""
+    pid, last, n = [], {}, 0
+    for f, (tid, lab) in enumerate(zip(track_ids, labels)):
+        p = np.full(len(tid), -1, dtype=np.int64)
+        for i, key in enumerate(zip(np.asarray(tid).tolist(), np.asarray(lab).tolist())):
+            if key[0] < 0:
+                continue
+            prev = last.get(key)
+            if prev is not None and prev[1] == f - 1:
+                p[i] = prev[0]
+            else:
+                p[i], n = n, n + 1
+            last[key] = (int(p[i]), f)
+        pid.append(p)
+    return pid, n
+
+
+def _relabel_block(xyz, track_ids, labels, M, min_gain, table_frames, max_sweeps, pair_kw):
+    F = len(xyz)
+    labels = [np.asarray(lab, dtype=np.int64) for lab in labels]
+    positions = label_positions(xyz, labels, M)
+    sample = np.unique(np.linspace(0, F - 1, min(F, table_frames)).round().astype(np.int64)) if F else []
+    pairs = rigid_pairs(positions[sample], **pair_kw)
+    pid, n_pieces = _pieces(track_ids, labels)
+    if not pairs.count or not n_pieces:
+        return labels, 0
+    reach = float(np.max(np.where(pairs.rigid, pairs.length + Z_CAP * pairs.spread, 0.0)))
+    lab = np.full(n_pieces, -1, dtype=np.int64)
+    members: list[list[int]] = [[] for _ in range(n_pieces)]
+    P, Q, D = [], [], []                   # co-visible piece pairs within reach: piece, partner, distance
+    for f in range(F):
+        p = pid[f]
+        tracked = p >= 0
+        lab[p[tracked]] = labels[f][tracked]
+        for q in p[tracked]:
+            members[q].append(f)
+        x = np.asarray(xyz[f], dtype=np.float64)[tracked]
+        pp = p[tracked]
+        d = np.linalg.norm(x[:, None] - x[None], axis=-1)
+        i, j = np.nonzero((d <= reach) & ~np.eye(len(pp), dtype=bool))
+        P.append(pp[i])
+        Q.append(pp[j])
+        D.append(d[i, j])
+    P, Q, D = np.concatenate(P), np.concatenate(Q), np.concatenate(D)
+    frames = [np.asarray(m, dtype=np.int64) for m in members]
+    by_partner = np.split(np.argsort(Q, kind="stable"), np.cumsum(np.bincount(Q, minlength=n_pieces))[:-1])
+
+    def evidence(entries: np.ndarray, partner_label: np.ndarray) -> np.ndarray:
+        return pairs.evidence(D[entries], slice(None), partner_label)
+
+    score = np.zeros((n_pieces, M))       # score[p, a]: evidence for piece p holding label a, others as they are
+    known = lab[Q] >= 0
+    np.add.at(score, P[known], evidence(np.flatnonzero(known), lab[Q][known]))
+    holder = np.full((F, M), -1, dtype=np.int64)
+    for p in np.flatnonzero(lab >= 0):
+        holder[frames[p], lab[p]] = p
+
+    def relabel(p: int, new: int) -> None:
+        old = lab[p]
+        if old >= 0:
+            holder[frames[p], old] = -1
+        if new >= 0:
+            holder[frames[p], new] = p
+        e = by_partner[p]
+        if len(e):
+            change = np.zeros((len(e), M))
+            if old >= 0:
+                change -= evidence(e, np.full(len(e), old))
+            if new >= 0:
+                change += evidence(e, np.full(len(e), new))
+            np.add.at(score, P[e], change)
+        lab[p] = new
+
+    def attempt(p: int, a: int) -> float:
+        """Piece p takes label a; the pieces holding a in p's frames take p's old label where
+        that leaves no frame with it twice, else none. Returns the energy gained (each step's
+        change is exact given the labels at that step); the caller undoes a move not worth it."""
+        old = int(lab[p])
+        others = sorted(set(holder[frames[p], a].tolist()) - {-1})
+        steps = [(p, -1)] + [(q, -1) for q in others]
+        for q in others:
+            if old >= 0 and not (set(holder[frames[q], old].tolist()) - {-1, p} - set(others)):
+                steps.append((q, old))
+        steps.append((p, a))
+        gained = 0.0
+        done.clear()
+        for q, new in steps:
+            prev = int(lab[q])
+            if prev == new or (q != p and new >= 0 and score[q, new] <= 0.0):   # displaced: only where it fits
+                continue
+            gained += (score[q, new] if new >= 0 else 0.0) - (score[q, prev] if prev >= 0 else 0.0)
+            relabel(q, new)
+            done.append((q, prev))
+        return gained
+
+    def undo() -> None:
+        for q, prev in reversed(done):
+            relabel(q, prev)
+        done.clear()
+
+    done: list[tuple[int, int]] = []
+    moves = 0
+    for _ in range(max_sweeps):
+        made = 0
+        held = np.where(lab >= 0, score[np.arange(n_pieces), np.maximum(lab, 0)], 0.0)
+        for p in np.argsort(-(score.max(1) - held)):
+            old = lab[p]
+            gain = score[p] - (score[p, old] if old >= 0 else 0.0)
+            if old >= 0:
+                gain[old] = -np.inf
+            for a in np.argsort(-gain)[:5]:
+                if gain[a] <= min_gain:
+                    break
+                if score[p, a] <= min_gain:                      # no evidence for it: only against the old
+                    continue
+                if attempt(p, int(a)) > min_gain:
+                    made += 1
+                    break
+                undo()
+        moves += made
+        if not made:
+            break
+    out = []
+    for f in range(F):
+        new = labels[f].copy()
+        tracked = pid[f] >= 0
+        new[tracked] = lab[pid[f][tracked]]
+        out.append(new)
+    return out, moves

@@ -1,0 +1,126 @@
+"""Whole tracks relabelled by the take's rigid pairs (labeling/rigid_tracks.py) on a real take:
+HDM05's 41 markers, half of them hidden at a time, the capture's trajectories as tracks."""
+import numpy as np
+import pytest
+
+from dtm_labeler.labeling.rigid_tracks import label_positions, relabel_tracks, rigid_pairs
+from dtm_labeler.motion.load import load_clip
+from test_gappy_training import HDM, _gapped
+
+GHOST = "LFIN"          # a real marker the labels do not know: fed as an unlabelled point
+
+
+@pytest.fixture(scope="module")
+def take(data_dir):
+    """Per frame: points, true labels (-1: the unknown marker), track ids (one per seen run of
+    a channel, as a C3D's trajectories)."""
+    clip = load_clip(data_dir / HDM)
+    clip = _gapped(clip.slice(2960, 3560), missing=0.5, seed=1, gap_s=0.25)
+    names = list(clip.names)
+    ghost = names.index(GHOST)
+    known = [n for n in names if n != GHOST]
+    label_of = np.array([known.index(n) if n != GHOST else -1 for n in names])
+    seen = np.isfinite(clip.positions[..., 0])                       # (F, C)
+    run = np.cumsum(np.vstack([seen[:1], seen[1:] & ~seen[:-1]]), axis=0)
+    xyz, truth, tracks = [], [], []
+    for f in range(clip.n_frames):
+        c = np.flatnonzero(seen[f])
+        xyz.append(clip.positions[f, c])
+        truth.append(label_of[c])
+        tracks.append(c * 10_000 + run[f, c])
+    return dict(xyz=xyz, truth=truth, tracks=tracks, n_labels=len(known), names=known, ghost=ghost)
+
+
+def _pieces(take):
+    """{track id: [(frame, row)]} of the known markers."""
+    out = {}
+    for f, (tid, tr) in enumerate(zip(take["tracks"], take["truth"])):
+        for i, (t, lab) in enumerate(zip(tid, tr)):
+            if lab >= 0:
+                out.setdefault(int(t), []).append((f, i))
+    return out
+
+
+def _accuracy(take, labels):
+    t = np.concatenate(take["truth"])
+    lab = np.concatenate(labels)
+    known = t >= 0
+    return float((lab[known] == t[known]).mean())
+
+
+def test_rigid_pairs_are_short_and_steady(take):
+    P = label_positions(take["xyz"], take["truth"], take["n_labels"])
+    pairs = rigid_pairs(P)
+    names = take["names"]
+    R = pairs.rigid
+    assert R[names.index("LFHD"), names.index("LBHD")]                 # one head
+    assert R[names.index("RANK"), names.index("RHEE")]                 # one foot
+    assert not R[names.index("LFHD"), names.index("LANK")]             # head to ankle: longer than a segment
+    assert (pairs.length[R] <= 0.4).all() and (R == R.T).all() and not R.diagonal().any()
+    assert 50 < pairs.count < 400
+
+
+def test_misplaced_tracks_get_their_labels_back(take):
+    """Pieces given a neighbour's free label, pairs of pieces with exchanged labels and a
+    track left unlabelled get their own labels back; the unknown real marker stays unlabelled
+    and next to nothing that was right goes wrong."""
+    rng = np.random.default_rng(0)
+    labels = [t.copy() for t in take["truth"]]
+    for lab in labels:
+        lab[lab < 0] = -1
+    names = take["names"]
+    pieces = {t: fr for t, fr in _pieces(take).items() if len(fr) >= 30}
+    P = label_positions(take["xyz"], take["truth"], take["n_labels"])
+    busy = np.isfinite(P[..., 0])                                         # (F, M): label held
+    apart = np.nanmedian(np.linalg.norm(P[:, :, None] - P[:, None], axis=-1), axis=0)   # (M, M)
+    moved = []
+    for t in rng.permutation(list(pieces)):
+        fr = pieces[int(t)]
+        frames = [f for f, _ in fr]
+        own = int(take["truth"][fr[0][0]][fr[0][1]])
+        near = apart[own].copy()
+        near[own] = np.inf
+        free = ~busy[frames].any(0)
+        cand = np.flatnonzero(free & (near < 0.25))
+        if not len(cand) or len(moved) >= 8:
+            continue
+        a = int(cand[np.argmin(near[cand])])
+        for f, i in fr:
+            labels[f][i] = a
+        busy[frames, a] = True
+        busy[frames, own] = False
+        moved.append((names[own], names[a], len(fr)))
+    assert len(moved) == 8
+    blanked = next(t for t in rng.permutation(list(pieces))
+                   if labels[pieces[int(t)][0][0]][pieces[int(t)][0][1]] == take["truth"][pieces[int(t)][0][0]][pieces[int(t)][0][1]])
+    for f, i in pieces[int(blanked)]:
+        labels[f][i] = -1
+    before = _accuracy(take, labels)
+    assert before < 0.97
+
+    new, moves = relabel_tracks(take["xyz"], take["tracks"], labels, take["n_labels"])
+    after = _accuracy(take, new)
+    assert after > 0.99, (before, after, moved)
+    assert moves >= 8
+    was_right = np.concatenate([lab == t for lab, t in zip(labels, take["truth"])])
+    now = np.concatenate(new)
+    truth = np.concatenate(take["truth"])
+    assert (now[was_right & (truth >= 0)] != truth[was_right & (truth >= 0)]).mean() < 0.005
+    assert (now[truth < 0] == -1).all()                                   # the unknown marker: left out
+
+
+def test_right_labels_stay_and_untracked_points_are_kept(take):
+    labels = [np.where(t >= 0, t, -1) for t in take["truth"]]
+    new, moves = relabel_tracks(take["xyz"], take["tracks"], labels, take["n_labels"])
+    assert _accuracy(take, new) > 0.999
+    untracked = [np.full(len(t), -1) for t in take["tracks"]]
+    same, none = relabel_tracks(take["xyz"], untracked, labels, take["n_labels"])
+    assert none == 0 and all((a == b).all() for a, b in zip(same, labels))
+
+
+def test_blocks_bound_the_work_and_agree_with_one_block(take):
+    labels = [np.where(t >= 0, t, -1) for t in take["truth"]]
+    whole, _ = relabel_tracks(take["xyz"], take["tracks"], labels, take["n_labels"])
+    parts, _ = relabel_tracks(take["xyz"], take["tracks"], labels, take["n_labels"], block=300)
+    agree = np.mean(np.concatenate(whole) == np.concatenate(parts))
+    assert agree > 0.99
