@@ -61,15 +61,15 @@ def test_rigid_pairs_are_short_and_steady(take):
 
 
 def test_misplaced_tracks_get_their_labels_back(take):
-    """Pieces given a neighbour's free label, pairs of pieces with exchanged labels and a
-    track left unlabelled get their own labels back; the unknown real marker stays unlabelled
-    and next to nothing that was right goes wrong."""
+    """Trajectory pieces of 15-40 frames (what the take pass leaves wrong) given the label of
+    a nearby marker hidden meanwhile, and a track left unlabelled, get their own labels back;
+    the unknown real marker stays unlabelled and next to nothing that was right goes wrong."""
     rng = np.random.default_rng(0)
     labels = [t.copy() for t in take["truth"]]
     for lab in labels:
         lab[lab < 0] = -1
     names = take["names"]
-    pieces = {t: fr for t, fr in _pieces(take).items() if len(fr) >= 30}
+    pieces = {t: fr for t, fr in _pieces(take).items() if 15 <= len(fr) <= 40}
     P = label_positions(take["xyz"], take["truth"], take["n_labels"])
     busy = np.isfinite(P[..., 0])                                         # (F, M): label held
     apart = np.nanmedian(np.linalg.norm(P[:, :, None] - P[:, None], axis=-1), axis=0)   # (M, M)
@@ -96,11 +96,11 @@ def test_misplaced_tracks_get_their_labels_back(take):
     for f, i in pieces[int(blanked)]:
         labels[f][i] = -1
     before = _accuracy(take, labels)
-    assert before < 0.97
+    assert before < 0.985
 
     new, moves = relabel_tracks(take["xyz"], take["tracks"], labels, take["n_labels"])
     after = _accuracy(take, new)
-    assert after > 0.99, (before, after, moved)
+    assert after > 0.997, (before, after, moved)
     assert moves >= 8
     was_right = np.concatenate([lab == t for lab, t in zip(labels, take["truth"])])
     now = np.concatenate(new)
@@ -124,3 +124,22 @@ def test_blocks_bound_the_work_and_agree_with_one_block(take):
     parts, _ = relabel_tracks(take["xyz"], take["tracks"], labels, take["n_labels"], block=300)
     agree = np.mean(np.concatenate(whole) == np.concatenate(parts))
     assert agree > 0.99
+
+
+def test_many_short_pieces_make_shorter_blocks(take, monkeypatch):
+    """Memory stays bounded: over MAX_CELLS evidence cells a block is halved, and the labels
+    barely change for it."""
+    import dtm_labeler.labeling.rigid_tracks as rt
+    labels = [np.where(t >= 0, t, -1) for t in take["truth"]]
+    whole, _ = relabel_tracks(take["xyz"], take["tracks"], labels, take["n_labels"])
+    sizes = []
+    real = rt._relabel_block
+
+    def spy(xyz, *a):
+        sizes.append(len(xyz))
+        return real(xyz, *a)
+    monkeypatch.setattr(rt, "MAX_CELLS", 100 * take["n_labels"] ** 2)
+    monkeypatch.setattr(rt, "_relabel_block", spy)
+    parts, _ = relabel_tracks(take["xyz"], take["tracks"], labels, take["n_labels"])
+    assert sum(sizes) == len(take["xyz"]) and max(sizes) < len(take["xyz"]) // 2
+    assert np.mean(np.concatenate(whole) == np.concatenate(parts)) > 0.99

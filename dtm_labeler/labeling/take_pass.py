@@ -42,7 +42,8 @@ the time.
 
 Last, whole track pieces are relabelled by the take's own rigid marker pairs
 (:mod:`.rigid_tracks`: distances that do not change over the take, summed over each piece's
-frames): HDM05 41 markers, 50 % hidden, 95.05 -> 98.89 %, the Qualisys walk 94.81 -> 99.36 %.
+frames, what one partner says clipped): HDM05 41 markers, 50 % hidden, 95.05 -> 98.33 %, the Qualisys
+walk 94.81 -> 99.25 %; from the true labels it moves under 0.1 %.
 
 States: positions and backward-difference velocities along the labeler's tracks (a point
 without a previous frame on its track has no velocity, as live). Single-model labelers only
