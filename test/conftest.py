@@ -79,3 +79,15 @@ def pytest_runtest_makereport(item, call):
             except OSError as e:
                 tail = f"(log unreadable: {e})"
             report.sections.append((f"node {proc.fqn} ({state}, log {proc.log_path})", tail))
+
+
+#: Modules whose tests take longest (tens of seconds of CPU each), run first so that under
+#: ``pytest -n 2`` the workers end together instead of one finishing a long test alone.
+LONG_FIRST = ("test_node_colcon.py", "test_training_augment.py", "test_calibrate_cli.py",
+              "test_accuracy_floors.py", "test_take_pass.py", "test_archive.py", "test_settings_honoured.py",
+              "test_e2e_replay.py", "test_structure_search.py", "test_label_cli.py", "test_take_votes.py")
+
+
+def pytest_collection_modifyitems(session, config, items):
+    rank = {name: i for i, name in enumerate(LONG_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(LONG_FIRST)))
