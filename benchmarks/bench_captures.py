@@ -300,7 +300,7 @@ def write_md(res: dict, meta: dict) -> str:
               "trajectories carry; `--track-ids`); *own tracker*: no ids. Each cell: the labels as published "
               f"live (votes over past frames) → votes over ±{TAKE_VOTES_S:g} s around each frame (`--take-votes`) "
               "→ `dtm-label`'s default, the second pass over the take (every frame searched again at the take's "
-              "facing, voted again).", "",
+              "facing, voted again; then whole trajectory pieces relabelled by the take's rigid marker pairs).", "",
               "| take | hidden (train / test) | complete train frames | model | train s | structure on | "
               "coverage min / median | gappy, capture ids % | gappy, own tracker % | gap-free % |",
               "|---|---|---:|---|---:|---|---|---:|---:|---:|"]
