@@ -36,9 +36,10 @@ The energy of a labeling is the sum of these scores over the pieces. It is raise
 coordinate ascent from the take pass's labels with one move: a piece takes a label; the
 pieces holding that label in its frames take the piece's old label where that leaves no
 frame with it twice and their own distances support it (their score for it above 0), else
-none. Each step's change is computed from the scores at that step (the neighbours' scores
-are updated after every step), a move is kept only when it gains more than ``min_gain`` (15
-nats: more than one partner's worth) and else undone, and the sweeps are bounded. A piece
+none. The moved pieces' scores are read at each step (every piece's scores are updated
+after each step), a move is kept only when they gain more than ``min_gain`` (15 nats: more
+than one partner's worth) and else undone, and the sweeps are bounded (without the clip the
+gain would be the energy's exact change and every move would raise it). A piece
 moves only to a label its distances support (its own score for it above ``min_gain``): a
 pair rigid for most of a take breaks when the pose changes (an arm held still, then raised),
 and then every label with rigid partners in view scores below one with fewer, which is no
@@ -244,8 +245,9 @@ def _relabel_block(xyz, track_ids, labels, M, min_gain, partner_cap, table_frame
 
     def attempt(p: int, a: int) -> float:
         """Piece p takes label a; the pieces holding a in p's frames take p's old label where
-        that leaves no frame with it twice, else none. Returns the energy gained (each step's
-        change is exact given the labels at that step); the caller undoes a move not worth it."""
+        that leaves no frame with it twice and their scores for it are above 0, else none.
+        Returns what the moved pieces' scores gained, each read at its step; the caller undoes
+        a move not worth it."""
         old = int(lab[p])
         others = sorted(set(holder[frames[p], a].tolist()) - {-1})
         steps = [(p, -1)] + [(q, -1) for q in others]
