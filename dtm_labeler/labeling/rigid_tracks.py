@@ -145,9 +145,11 @@ def relabel_tracks(xyz: Sequence[np.ndarray], track_ids: Sequence[np.ndarray], l
     start = 0
     while start < F:
         stop = min(F, start + max(1, block))
-        while stop - start > 1 and _pieces(track_ids[start:stop], labels[start:stop])[1] * n_labels ** 2 > MAX_CELLS:
+        pieces = _pieces(track_ids[start:stop], labels[start:stop])
+        while stop - start > 1 and pieces[1] * n_labels ** 2 > MAX_CELLS:
             stop = start + (stop - start) // 2             # many short pieces (flicker): a shorter block
-        lab, m = _relabel_block(xyz[start:stop], track_ids[start:stop], labels[start:stop], n_labels,
+            pieces = _pieces(track_ids[start:stop], labels[start:stop])
+        lab, m = _relabel_block(xyz[start:stop], pieces, labels[start:stop], n_labels,
                                 min_gain, partner_cap, table_frames, max_sweeps, pair_kw)
         out += lab
         moves += m
@@ -174,13 +176,14 @@ def _pieces(track_ids: Sequence[np.ndarray], labels: Sequence[np.ndarray]) -> tu
     return pid, n
 
 
-def _relabel_block(xyz, track_ids, labels, M, min_gain, partner_cap, table_frames, max_sweeps, pair_kw):
+def _relabel_block(xyz, pieces, labels, M, min_gain, partner_cap, table_frames, max_sweeps, pair_kw):
+    """One block: ``pieces`` = :func:`_pieces` of its frames."""
     F = len(xyz)
     labels = [np.asarray(lab, dtype=np.int64) for lab in labels]
     positions = label_positions(xyz, labels, M)
     sample = np.unique(np.linspace(0, F - 1, min(F, table_frames)).round().astype(np.int64)) if F else []
     pairs = rigid_pairs(positions[sample], **pair_kw)
-    pid, n_pieces = _pieces(track_ids, labels)
+    pid, n_pieces = pieces
     if not pairs.count or not n_pieces:
         return labels, 0
     reach = float(np.max(np.where(pairs.rigid, pairs.length + Z_CAP * pairs.spread, 0.0)))

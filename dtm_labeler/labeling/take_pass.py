@@ -59,7 +59,7 @@ from ..model.dtm import TriangulatedModel
 from ..model.features import STATE_DIM, lateral_yaw
 from ..search.label_search import sweep_regions
 from ..search.problem import Background, FrameProblem
-from .rigid_tracks import relabel_tracks
+from .rigid_tracks import label_positions, relabel_tracks
 from .take_votes import take_votes
 
 __all__ = ["filled_trajectories", "take_heading", "track_states", "take_pass"]
@@ -69,13 +69,9 @@ def filled_trajectories(xyz: Sequence[np.ndarray], labels: Sequence[np.ndarray],
     """(F, n_labels, 3) position of each label per frame from the frames' labelled points,
     each label's gaps filled linearly in time between the frames that show it (before its
     first / after its last sighting: held); a label never given stays NaN."""
-    F = len(xyz)
-    P = np.full((F, n_labels, 3), np.nan)
-    for f, (x, lab) in enumerate(zip(xyz, labels)):
-        ok = np.asarray(lab) >= 0
-        P[f, np.asarray(lab)[ok]] = np.asarray(x)[ok]
+    P = label_positions(xyz, labels, n_labels)
     seen = np.isfinite(P[..., 0])
-    t = np.arange(F)
+    t = np.arange(len(xyz))
     for m in np.flatnonzero(seen.any(0) & ~seen.all(0)):
         ok = seen[:, m]
         for c in range(3):
