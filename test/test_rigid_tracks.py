@@ -143,3 +143,51 @@ def test_many_short_pieces_make_shorter_blocks(take, monkeypatch):
     parts, _ = relabel_tracks(take["xyz"], take["tracks"], labels, take["n_labels"])
     assert sum(sizes) == len(take["xyz"]) and max(sizes) < len(take["xyz"]) // 2
     assert np.mean(np.concatenate(whole) == np.concatenate(parts)) > 0.99
+
+
+def _two_segments(frames: int = 100, seed: int = 3):
+    """Two rigid clusters turning independently: A, B, C (labels 0-2) on one, D, E, F, G
+    (3-6) on the other, 8 cm apart (within reach of each other's pairs); (F, 7, 3) positions
+    in metres."""
+    rng = np.random.default_rng(seed)
+    one = rng.normal(scale=0.04, size=(3, 3))
+    two = rng.normal(scale=0.04, size=(4, 3)) + [0.08, 0.0, 0.0]
+    t = np.linspace(0.0, 2.0 * np.pi, frames)
+
+    def turn(pts, angle, centre):
+        c, s = np.cos(angle), np.sin(angle)
+        R = np.stack([np.stack([c, -s, 0 * c], -1), np.stack([s, c, 0 * c], -1),
+                      np.broadcast_to([0.0, 0.0, 1.0], c.shape + (3,))], -2)    # about z
+        return np.einsum("fij,pj->fpi", R, pts - centre) + centre
+    return np.concatenate([turn(one, 1.5 * np.sin(t), one.mean(0)),
+                           turn(two, 1.5 * np.cos(1.3 * t), two.mean(0))], axis=1)
+
+
+def test_a_refuted_label_yields_to_one_confirming_partner():
+    """A's track is labelled D for 20 frames while D and C are hidden: D's three partners
+    E, F, G refute it (-30 nats, each clipped at -10), and only B confirms A (+10, under the
+    15 nats a move needs). The refuted label gives way to A; with the old rule (no lower
+    support for a refuted label) it stays D."""
+    pos = _two_segments()
+    F = len(pos)
+    xyz, labels, tracks = [], [], []
+    for f in range(F):
+        shown = np.arange(7)
+        wrong = 60 <= f < 80
+        if wrong:
+            shown = shown[(shown != 2) & (shown != 3)]                   # C and D hidden
+        lab = shown.copy()
+        tid = shown.copy()
+        if wrong:
+            lab[shown == 0] = 3                                          # A labelled D
+            tid[shown == 0] = 100                                        # a new trajectory
+        xyz.append(pos[f, shown])
+        labels.append(lab)
+        tracks.append(tid)
+    new, moves = relabel_tracks(xyz, tracks, labels, 7)
+    assert moves >= 1
+    assert all((n == s).all() for n, s in ((new[f], np.arange(7)[(np.arange(7) != 2) & (np.arange(7) != 3)])
+                                           for f in range(60, 80)))
+    assert all((new[f] == labels[f]).all() for f in range(F) if not 60 <= f < 80)
+    kept, _ = relabel_tracks(xyz, tracks, labels, 7, refuted_support=15.0)
+    assert all((kept[f] == labels[f]).all() for f in range(F))
