@@ -3,7 +3,8 @@ HDM05's 41 markers, half of them hidden at a time, the capture's trajectories as
 import numpy as np
 import pytest
 
-from dtm_labeler.labeling.rigid_tracks import label_positions, relabel_tracks, rigid_pairs
+from dtm_labeler.labeling.rigid_tracks import body_pairs, label_positions, relabel_tracks, rigid_pairs
+from dtm_labeler.model.body import SEGMENT, BodyModel
 from dtm_labeler.motion.load import load_clip
 from test_gappy_training import HDM, _gapped
 
@@ -191,3 +192,33 @@ def test_a_refuted_label_yields_to_one_confirming_partner():
     assert all((new[f] == labels[f]).all() for f in range(F) if not 60 <= f < 80)
     kept, _ = relabel_tracks(xyz, tracks, labels, 7, refuted_support=15.0)
     assert all((kept[f] == labels[f]).all() for f in range(F))
+
+
+def test_a_label_the_take_never_shows_gets_its_pairs_from_the_body(take):
+    """The labeler left one marker out in every frame (the Qualisys walk under a gapped model,
+    own tracker: two markers unlabelled for the whole take). The take's own labels then say
+    nothing about that label's pairs; the model's body, which knows the person's segment
+    lengths, does: with it the marker's tracks get their label where two of its partners are in
+    view (a new label needs more than one partner's worth; at 50 % hidden, two thirds of its
+    points), without it they stay out."""
+    names = take["names"]
+    gone = names.index("LBHD")
+    P = label_positions(take["xyz"], take["truth"], take["n_labels"])
+    measured = rigid_pairs(P[:300])                                  # "calibration": the first 300 frames
+    partners = np.flatnonzero(measured.rigid[gone])
+    assert len(partners) >= 3
+    u, v = np.minimum(gone, partners), np.maximum(gone, partners)
+    body = BodyModel(n_labels=take["n_labels"], pairs=np.stack([u, v], 1), kind=np.full(len(u), SEGMENT),
+                     lo=measured.length[gone, partners], hi=measured.length[gone, partners],
+                     within_sd=np.full(len(u), 0.005), between_sd=np.zeros(len(u)))
+    labels = [np.where((t >= 0) & (t != gone), t, -1) for t in take["truth"]]
+    truth = np.concatenate(take["truth"])
+    without, _ = relabel_tracks(take["xyz"], take["tracks"], labels, take["n_labels"])
+    with_body, _ = relabel_tracks(take["xyz"], take["tracks"], labels, take["n_labels"], prior=body_pairs(body))
+    assert (np.concatenate(without)[truth == gone] == gone).mean() < 0.05
+    assert (np.concatenate(with_body)[truth == gone] == gone).mean() > 0.6
+    others = (truth >= 0) & (truth != gone)
+    assert (np.concatenate(with_body)[others] == truth[others]).mean() > 0.999
+    generic = BodyModel(n_labels=take["n_labels"], pairs=body.pairs, kind=body.kind, lo=body.lo * 0.8,
+                        hi=body.hi * 1.2, within_sd=body.within_sd, between_sd=body.between_sd)
+    assert body_pairs(generic) is None                               # lengths over people: not one person's

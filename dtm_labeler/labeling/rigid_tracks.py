@@ -16,6 +16,15 @@ of this take, not a segment). It is the body terms' segment model with the perso
 lengths (a self-calibration of every rigid pair at once), read across frames instead of
 within one.
 
+A label the take never shows. When the labeler leaves one marker out of every frame (the
+Qualisys walk labelled by a model of its gapped first half, own tracker: the fifth
+metacarpal and a heel marker unlabelled for the whole take), the take's labels measure no
+pair of that label, and no track could ever take it. The model's body
+(:mod:`dtm_labeler.model.body`) knows this person's segments when it is calibrated or was
+trained on one person (each segment's length range within 1 cm): those pairs fill in where
+the take did not measure a pair (:func:`body_pairs`, :meth:`RigidPairs.filled_from`). The
+take's own measurements win wherever it has them.
+
 The model. A track is one marker while it is seen (the premise of the votes, eq. 32), so the
 variables are the pieces of tracks that hold one label, and each pair of pieces seen in the
 same frame at distance ``d`` adds, when their labels ``(a, b)`` are a rigid pair of length
@@ -54,9 +63,11 @@ the upper back broke it, +7 in all.)
 
 Measured. The take pass's labels of ``benchmarks/bench_captures.py``'s gaps runs (trained on
 the gapped first half, 50 % hidden, the gapped second half labelled with the capture's track
-ids; own tracker) -> after this pass: HDM05 41 markers 95.05 -> 99.03 % (95.92 -> 99.15 %),
-the Qualisys walk 94.81 -> 99.32 % (93.89 -> 97.61 %); without the lower support for a
-refuted label 98.33 % (98.78 %) and 99.25 % (97.61 %). Started from the true labels of
+ids; own tracker) -> after this pass: HDM05 41 markers 95.05 -> 99.03 % (95.92 -> 99.24 %),
+the Qualisys walk 94.81 -> 99.34 % (93.89 -> 97.91 %); without the lower support for a
+refuted label 98.33 % (98.78 %) and 99.25 % (97.61 %), without the body's pairs 99.03 %
+(99.15 %) and 99.32 % (97.61 %). The gap-free second half, own tracker: Qualisys 96.36 ->
+100 % (the two markers left out, with the body's pairs). Started from the true labels of
 50 %-gapped copies of every shared marker take (their trajectories as tracks), what it
 changes: HDM05 0.29 % of the labels (0.07 % without the refuted rule), CMU 85 jump + twist
 0.04 %, breakdance 0.10 % (0.08 %), the Qualisys walk and the MoCap Toolbox takes none.
@@ -90,7 +101,9 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["RigidPairs", "Support", "rigid_pairs", "relabel_tracks"]
+from ..model.body import SEGMENT, BodyModel
+
+__all__ = ["RigidPairs", "Support", "body_pairs", "rigid_pairs", "relabel_tracks"]
 
 Z_CAP = 4.0                 # a broken distance costs at most Z_CAP^2 / 2 nats
 MAX_CELLS = 20_000_000      # evidence cells (pieces x labels^2) of one block: 160 MB
@@ -99,11 +112,13 @@ BACKGROUND_M = 1.0          # the alternative: a distance spread evenly over thi
 
 @dataclass(frozen=True)
 class RigidPairs:
-    """(M, M) symmetric: which label pairs are rigid in the take, their length and spread (m)."""
+    """(M, M) symmetric: which label pairs are rigid in the take, their length and spread (m);
+    ``measured``: the pairs the take showed together often enough to judge (None: all)."""
 
     rigid: np.ndarray
     length: np.ndarray
     spread: np.ndarray
+    measured: np.ndarray | None = None
 
     @property
     def count(self) -> int:
@@ -116,6 +131,36 @@ class RigidPairs:
         z = np.minimum(np.abs(d[:, None] - D) / S, Z_CAP)
         e = -np.log(np.sqrt(2.0 * np.pi) * S / BACKGROUND_M) - z * z / 2.0
         return np.where(R, e, 0.0)
+
+    def filled_from(self, prior: "RigidPairs | None") -> "RigidPairs":
+        """These pairs, and ``prior``'s where the take did not measure the pair (a label the
+        take's labels never or seldom show: module doc)."""
+        if prior is None or self.measured is None:
+            return self
+        fill = prior.rigid & ~self.measured
+        return RigidPairs(rigid=self.rigid | fill, length=np.where(fill, prior.length, self.length),
+                          spread=np.where(fill, prior.spread, self.spread), measured=self.measured)
+
+
+def body_pairs(body: BodyModel | None, max_range_m: float = 0.01, spread_floor_m: float = 0.003) -> RigidPairs | None:
+    """The segments of a model's body (:mod:`dtm_labeler.model.body`) whose length it knows for
+    one person -- a calibrated body, or a model of one person: range ``hi - lo`` at most
+    ``max_range_m`` -- as rigid pairs of that length, spread the within-person spread (floored
+    at ``spread_floor_m``). None without such segments."""
+    if body is None:
+        return None
+    seg = (body.kind == SEGMENT) & (body.hi - body.lo <= max_range_m)
+    if not seg.any():
+        return None
+    M = body.n_labels
+    rigid = np.zeros((M, M), dtype=bool)
+    length, spread = np.zeros((M, M)), np.ones((M, M))
+    u, v = body.pairs[seg].T
+    for a, b in ((u, v), (v, u)):
+        rigid[a, b] = True
+        length[a, b] = (body.lo[seg] + body.hi[seg]) / 2.0
+        spread[a, b] = np.maximum(body.within_sd[seg], spread_floor_m)
+    return RigidPairs(rigid=rigid, length=length, spread=spread)
 
 
 def label_positions(xyz: Sequence[np.ndarray], labels: Sequence[np.ndarray], n_labels: int) -> np.ndarray:
@@ -144,18 +189,19 @@ def rigid_pairs(positions: np.ndarray, max_spread_m: float = 0.008, max_length_m
     rigid = some & (n >= min_frames) & (spread <= max_spread_m) & (length <= max_length_m)
     np.fill_diagonal(rigid, False)
     return RigidPairs(rigid=rigid, length=np.nan_to_num(length),
-                      spread=np.maximum(np.nan_to_num(spread, nan=1.0), spread_floor_m))
+                      spread=np.maximum(np.nan_to_num(spread, nan=1.0), spread_floor_m), measured=n >= min_frames)
 
 
 def relabel_tracks(xyz: Sequence[np.ndarray], track_ids: Sequence[np.ndarray], labels: Sequence[np.ndarray],
                    n_labels: int, min_gain: float = 15.0, partner_cap: float = 10.0, refuted: float = 20.0,
                    refuted_support: float = 5.0, block: int = 2400, table_frames: int = 1200,
-                   max_sweeps: int = 20, **pair_kw) -> tuple[list[np.ndarray], int]:
+                   max_sweeps: int = 20, prior: RigidPairs | None = None, **pair_kw) -> tuple[list[np.ndarray], int]:
     """Per frame, the labels (-1 none) after the rigid-pair relabelling of whole track pieces
     (module doc), and the number of moves made. Points without a track (-1) keep their label.
     Nats: ``min_gain`` a move's gain and the support a new label needs, ``refuted_support``
     the support it needs when the old label scores at or below ``-refuted``; ``partner_cap`` the
-    clip of one partner label's share. ``pair_kw``: :func:`rigid_pairs`'s thresholds."""
+    clip of one partner label's share. ``prior``: rigid pairs for those the take does not
+    measure (:func:`body_pairs` of the model). ``pair_kw``: :func:`rigid_pairs`'s thresholds."""
     support = Support(min_gain, refuted, refuted_support)
     F = len(xyz)
     out, moves = [], 0
@@ -167,7 +213,7 @@ def relabel_tracks(xyz: Sequence[np.ndarray], track_ids: Sequence[np.ndarray], l
             stop = start + (stop - start) // 2             # many short pieces (flicker): a shorter block
             pieces = _pieces(track_ids[start:stop], labels[start:stop])
         lab, m = _relabel_block(xyz[start:stop], pieces, labels[start:stop], n_labels,
-                                support, partner_cap, table_frames, max_sweeps, pair_kw)
+                                support, partner_cap, table_frames, max_sweeps, prior, pair_kw)
         out += lab
         moves += m
         start = stop
@@ -210,14 +256,14 @@ class Support:
         return self.min_gain
 
 
-def _relabel_block(xyz, pieces, labels, M, support, partner_cap, table_frames, max_sweeps, pair_kw):
+def _relabel_block(xyz, pieces, labels, M, support, partner_cap, table_frames, max_sweeps, prior, pair_kw):
     """One block: ``pieces`` = :func:`_pieces` of its frames."""
     min_gain = support.min_gain
     F = len(xyz)
     labels = [np.asarray(lab, dtype=np.int64) for lab in labels]
     positions = label_positions(xyz, labels, M)
     sample = np.unique(np.linspace(0, F - 1, min(F, table_frames)).round().astype(np.int64)) if F else []
-    pairs = rigid_pairs(positions[sample], **pair_kw)
+    pairs = rigid_pairs(positions[sample], **pair_kw).filled_from(prior)
     pid, n_pieces = pieces
     if not pairs.count or not n_pieces:
         return labels, 0

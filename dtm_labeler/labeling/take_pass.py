@@ -59,7 +59,7 @@ from ..model.dtm import TriangulatedModel
 from ..model.features import STATE_DIM, lateral_yaw
 from ..search.label_search import sweep_regions
 from ..search.problem import Background, FrameProblem
-from .rigid_tracks import label_positions, relabel_tracks
+from .rigid_tracks import body_pairs, label_positions, relabel_tracks
 from .take_votes import take_votes
 
 __all__ = ["filled_trajectories", "take_heading", "track_states", "take_pass"]
@@ -146,7 +146,7 @@ def take_pass(model: TriangulatedModel, background: Background, xyz: Sequence[np
     lab2, conf2 = take_votes(tracks2, both, model.n_labels, 2 * half_window + 1)
     lab, conf = lab2[0::2], conf2[0::2]
     if rigid_tracks:
-        lab, _ = relabel_tracks(xyz, track_ids, lab, model.n_labels)
+        lab, _ = relabel_tracks(xyz, track_ids, lab, model.n_labels, prior=body_pairs(model.body))
     return lab, conf
 
 
