@@ -147,3 +147,25 @@ def test_new_input_ids_continue_a_lost_track():
     assert u.track_ids.tolist() == [10, 11, 12]
     far = tr.update(np.vstack([p + [0.04, 0, 0], [[5.0, 5.0, 1.0]]]), 0.04, ids=np.array([10, 99, 12, 50]))
     assert far.track_ids.tolist() == [10, 11, 12, 50] and far.new.tolist() == [False, False, False, True]
+
+
+def test_warm_up_loads_the_kernel_the_tracker_calls():
+    """A fresh process: after tracker.warm_up() (Engine.prepare calls it) the matching kernel is
+    loaded with the very signature Tracker.update calls it with, so a stream's second frame
+    does not load it (20-50 ms, several frame budgets)."""
+    import subprocess
+    import sys
+    code = (
+        "import numpy as np\n"
+        "from dtm_labeler.labeling import tracker\n"
+        "assert not tracker.gated_cost.signatures\n"
+        "tracker.warm_up()\n"
+        "warm = list(tracker.gated_cost.signatures)\n"
+        "tr = tracker.Tracker()\n"
+        "x = np.random.default_rng(0).normal(size=(5, 3))\n"
+        "tr.update(x, 0.0)\n"
+        "tr.update(x + 0.001, 1 / 120)\n"
+        "assert len(warm) == 1 and list(tracker.gated_cost.signatures) == warm, (warm, tracker.gated_cost.signatures)\n"
+        "print('ok')\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]

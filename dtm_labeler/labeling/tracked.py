@@ -49,6 +49,7 @@ from .config import LabelerSettings
 from .confidence import CONFIRMATION_POWER, label_posteriors, published_confidence
 from .fit_check import label_misfit, term_floors
 from .recovery import InlineRecovery, ProcessRecovery, Recovery, RecoveryRequest, RecoveryResult
+from . import tracker
 from .tracker import Tracker, TrackUpdate
 from .voting import VoteBook
 
@@ -124,6 +125,7 @@ class Engine:
         frame_kernels.warm_up()
         dp_kernels.warm_up()
         move_kernels.warm_up()
+        tracker.warm_up()
         return cls(names, base, models, float(noise_mm), tuple(term_floors(m) for m in models))
 
     def with_noise(self, noise_mm: float) -> "Engine":

@@ -60,6 +60,13 @@ def gated_cost(pos, vel, last_t, gate, t, xyz, match):  # pragma: no cover - com
     return cost
 
 
+def warm_up() -> None:
+    """Load (or compile) :func:`gated_cost` now: lazily, the stream's second frame paid it
+    (20-50 ms, the first frame with tracks to match), a live node's budget several times over."""
+    one = np.zeros((1, 3))
+    gated_cost(one, one, np.zeros(1), np.ones(1), 0.0, one, np.full(1, -1, dtype=np.int64))
+
+
 @dataclass
 class TrackerSettings:
     gate_m: float = 0.06               # base association radius (metres)
