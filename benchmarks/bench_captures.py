@@ -12,6 +12,9 @@ Sections (``--only``):
   (``--track-ids``: what the trajectories of a C3D carry), the gapped stream with the
   labeler's own tracker, and the full (gap-free) second half; the same for a model trained
   on the gap-free first half, to tell training from labeling.
+* ``gapseeds`` -- the gapped-half row (gapped model, gapped second half, ``dtm-label``'s
+  default) under other draws of the gaps (``--gap-seeds``, default 2, 3, 4): how much one draw
+  moves the figure. Not in the default ``--only``.
 * ``ghosts``  -- real markers as ghosts: a take's markers are split into the model's and
   "unknown" ones; the unknown ones are written as ``*`` channels of a C3D of the second
   half (real trajectories next to the body), which ``dtm-label`` feeds to the labeler as
@@ -27,6 +30,7 @@ Sections (``--only``):
 Writes results/captures.json and results/captures.md.
 
     .venv/bin/python benchmarks/bench_captures.py [--quick] [--only gaps,ghosts,unnamed,archive]
+    .venv/bin/python benchmarks/bench_captures.py --only gapseeds --update
 """
 from __future__ import annotations
 
@@ -117,14 +121,20 @@ def label(model, path: Path, **kw):
 
 
 # -- sections ---------------------------------------------------------------------------------------
+def gapped_halves(key: str, quick: bool, seed: int | None = None):
+    """(clip, train frames, label frames, gap settings, gapped clip) of one take."""
+    rel, _ = TAKES[key]
+    clip = load_clip(DATA / rel)
+    tr, la = halves(clip.n_frames, 600 if quick else TRAIN_FRAMES, 120 if quick else LABEL_FRAMES)
+    gaps = GAPS | {"mean_gap_s": GAP_S.get(key, GAPS["mean_gap_s"])} | ({} if seed is None else {"seed": seed})
+    return clip, tr, la, gaps, gapped(clip, **gaps)
+
+
 def run_gaps(tmp: Path, keys, quick: bool) -> dict:
     out = {}
     for key in keys:
-        rel, title = TAKES[key]
-        clip = load_clip(DATA / rel)
-        tr, la = halves(clip.n_frames, 600 if quick else TRAIN_FRAMES, 120 if quick else LABEL_FRAMES)
-        gaps = GAPS | {"mean_gap_s": GAP_S.get(key, GAPS["mean_gap_s"])}
-        gap = gapped(clip, **gaps)
+        title = TAKES[key][1]
+        clip, tr, la, gaps, gap = gapped_halves(key, quick)
         test_gappy = write_take(tmp / f"{key}_gappy_test.c3d", gap.slice(la.start, la.stop))
         test_clean = write_take(tmp / f"{key}_clean_test.c3d", clip.slice(la.start, la.stop))
         res = {"title": title, "mean_gap_s": gaps["mean_gap_s"],
@@ -158,6 +168,27 @@ def run_gaps(tmp: Path, keys, quick: bool) -> dict:
                 log(f"gaps {key} sweep {miss}: " + ", ".join(f"{t} {100 * r['accuracy']:.2f} %"
                                                              for t, r in res["sweep"][miss].items()))
         out[key] = res
+    return out
+
+
+def run_gap_seeds(tmp: Path, keys, seeds, quick: bool) -> dict:
+    """The gapped-half row under other draws of the gaps: the gapped first half trains, the gapped
+    second half is labelled by `dtm-label`'s default with capture ids and with its own tracker.
+    How much one draw moves the figure (a 170-frame take: one trajectory piece is 1 %)."""
+    out = {}
+    for key in keys:
+        out[key] = {}
+        for seed in seeds:
+            _, tr, la, _, gap = gapped_halves(key, quick, seed)
+            model, _, secs = train(gap.slice(tr.start, tr.stop))
+            test = write_take(tmp / f"{key}_seed{seed}_test.c3d", gap.slice(la.start, la.stop))
+            row = {"missing_test": float(np.isnan(gap.slice(la.start, la.stop).positions[..., 0]).mean()),
+                   "train_s": secs}
+            for tag, kw in (("capture ids", dict(use_ids=True)), ("own tracker", {})):
+                row[tag] = label(model, test, take_votes_s=TAKE_VOTES_S, **kw)
+            out[key][seed] = row
+            log(f"gap seeds {key} {seed}: capture ids {100 * row['capture ids']['accuracy']:.2f} %, "
+                f"own tracker {100 * row['own tracker']['accuracy']:.2f} %")
     return out
 
 
@@ -327,6 +358,24 @@ def write_md(res: dict, meta: dict) -> str:
                          f"{pct(v['own tracker']['accuracy'])} | {v['capture ids']['search_errors']} of "
                          f"{v['capture ids']['frames']} |")
             L.append("")
+    if "gapseeds" in res:
+        L += ["Other draws of the gaps (same settings, `--gap-seeds`; seed 1 is the table above), the "
+              "gapped first half's model, `dtm-label`'s default:", "",
+              "| take | gap seed | hidden (test) | capture ids % | own tracker % |", "|---|---:|---:|---:|---:|"]
+        for key, rows in res["gapseeds"].items():
+            cells = {t: [] for t in ("capture ids", "own tracker")}
+            first = res.get("gaps", {}).get(key, {}).get("model_gappy")
+            if first is not None:
+                for t, tag in (("capture ids", "gappy, capture ids"), ("own tracker", "gappy, own tracker")):
+                    cells[t].append(first[tag]["accuracy"])
+            for seed, r in rows.items():
+                L.append(f"| {key} | {seed} | {100 * r['missing_test']:.0f} % | {pct(r['capture ids']['accuracy'])} | "
+                         f"{pct(r['own tracker']['accuracy'])} |")
+                for t in cells:
+                    cells[t].append(r[t]["accuracy"])
+            L.append(f"| {key} | all ({len(cells['capture ids'])}) | | " + " | ".join(
+                f"min {pct(min(v))}, mean {pct(float(np.mean(v)))}" for v in cells.values()) + " |")
+        L.append("")
     if "ghosts" in res:
         L += ["## Real ghosts from `*` channels", "",
               "Markers the model does not know, written as `*` channels of the second half's C3D (real "
@@ -373,6 +422,7 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="small budgets (smoke test)")
     ap.add_argument("--only", default="gaps,ghosts,unnamed,archive")
     ap.add_argument("--gap-takes", default="hdm05,qualisys")
+    ap.add_argument("--gap-seeds", default="2,3,4", help="gapseeds: the gap draws (seeds) besides the gaps section's 1")
     ap.add_argument("--ghost-takes", default="hdm05,qualisys")
     ap.add_argument("--repeats", type=int, default=2, help="archive runs per variant")
     ap.add_argument("--out", default=str(RESULTS / "captures"), help="output stem (.json, .md)")
@@ -390,6 +440,9 @@ def main(argv=None) -> int:
         tmp = Path(d)
         if "gaps" in only:
             res["gaps"] = run_gaps(tmp, args.gap_takes.split(","), args.quick)
+        if "gapseeds" in only:
+            res["gapseeds"] = run_gap_seeds(tmp, args.gap_takes.split(","),
+                                            [int(x) for x in args.gap_seeds.split(",")], args.quick)
         if "ghosts" in only:
             res["ghosts"] = run_ghosts(tmp, args.ghost_takes.split(","), args.quick)
         if "unnamed" in only:
