@@ -194,31 +194,70 @@ def test_a_refuted_label_yields_to_one_confirming_partner():
     assert all((kept[f] == labels[f]).all() for f in range(F))
 
 
+def _body_of(take, frames: slice, scale: float = 1.0) -> BodyModel:
+    """A one-person body from the true labels of ``frames`` (what a calibration measures): every
+    rigid pair a segment at its length (times ``scale``: another person's proportions)."""
+    P = label_positions(take["xyz"][frames], take["truth"][frames], take["n_labels"])
+    measured = rigid_pairs(P)
+    u, v = np.nonzero(np.triu(measured.rigid))
+    L = measured.length[u, v] * scale
+    return BodyModel(n_labels=take["n_labels"], pairs=np.stack([u, v], 1), kind=np.full(len(u), SEGMENT),
+                     lo=L, hi=L, within_sd=np.full(len(u), 0.005), between_sd=np.zeros(len(u)))
+
+
 def test_a_label_the_take_never_shows_gets_its_pairs_from_the_body(take):
     """The labeler left one marker out in every frame (the Qualisys walk under a gapped model,
     own tracker: two markers unlabelled for the whole take). The take's own labels then say
     nothing about that label's pairs; the model's body, which knows the person's segment
     lengths, does: with it the marker's tracks get their label where two of its partners are in
     view (a new label needs more than one partner's worth; at 50 % hidden, two thirds of its
-    points), without it they stay out."""
+    points), without it they stay out -- and with another person's body (15 % longer
+    segments: the take's segments disagree with it) too."""
     names = take["names"]
     gone = names.index("LBHD")
-    P = label_positions(take["xyz"], take["truth"], take["n_labels"])
-    measured = rigid_pairs(P[:300])                                  # "calibration": the first 300 frames
-    partners = np.flatnonzero(measured.rigid[gone])
-    assert len(partners) >= 3
-    u, v = np.minimum(gone, partners), np.maximum(gone, partners)
-    body = BodyModel(n_labels=take["n_labels"], pairs=np.stack([u, v], 1), kind=np.full(len(u), SEGMENT),
-                     lo=measured.length[gone, partners], hi=measured.length[gone, partners],
-                     within_sd=np.full(len(u), 0.005), between_sd=np.zeros(len(u)))
+    body = _body_of(take, slice(0, 300))                               # "calibration": the first 300 frames
+    assert (body.pairs == gone).any(1).sum() >= 3
     labels = [np.where((t >= 0) & (t != gone), t, -1) for t in take["truth"]]
     truth = np.concatenate(take["truth"])
     without, _ = relabel_tracks(take["xyz"], take["tracks"], labels, take["n_labels"])
     with_body, _ = relabel_tracks(take["xyz"], take["tracks"], labels, take["n_labels"], prior=body_pairs(body))
+    other, _ = relabel_tracks(take["xyz"], take["tracks"], labels, take["n_labels"],
+                              prior=body_pairs(_body_of(take, slice(0, 300), scale=1.15)))
     assert (np.concatenate(without)[truth == gone] == gone).mean() < 0.05
     assert (np.concatenate(with_body)[truth == gone] == gone).mean() > 0.6
+    assert (np.concatenate(other)[truth == gone] == gone).mean() < 0.05
     others = (truth >= 0) & (truth != gone)
     assert (np.concatenate(with_body)[others] == truth[others]).mean() > 0.999
     generic = BodyModel(n_labels=take["n_labels"], pairs=body.pairs, kind=body.kind, lo=body.lo * 0.8,
                         hi=body.hi * 1.2, within_sd=body.within_sd, between_sd=body.between_sd)
     assert body_pairs(generic) is None                               # lengths over people: not one person's
+
+
+def test_the_body_corrects_pairs_the_take_measured_on_a_wrong_marker(take):
+    """A marker carries its neighbour's label for most of the take (its own marker hidden
+    meanwhile): the take then measures that label's pairs on the wrong marker and defends the
+    error. The person's body, which the rest of the take agrees with, gives those pairs their
+    lengths back, and the marker its label."""
+    names = take["names"]
+    own, wrong = names.index("RANK"), names.index("RHEE")
+    truth = take["truth"]
+    labels, xyz, tracks = [], [], []
+    for f, (t, x, tid) in enumerate(zip(truth, take["xyz"], take["tracks"])):
+        keep = t != wrong                                              # the true RHEE hidden throughout
+        lab = np.where(t[keep] >= 0, t[keep], -1)
+        lab[lab == own] = wrong                                        # RANK labelled RHEE
+        labels.append(lab)
+        xyz.append(x[keep])
+        tracks.append(tid[keep])
+    truth_kept = [t[t != wrong] for t in truth]
+    right = np.concatenate(truth_kept)
+
+    def acc(new):
+        lab = np.concatenate(new)
+        return (lab[right == own] == own).mean()
+    assert acc(labels) == 0.0
+    alone, _ = relabel_tracks(xyz, tracks, labels, take["n_labels"])
+    body = body_pairs(_body_of(take, slice(0, 600)))
+    fixed, _ = relabel_tracks(xyz, tracks, labels, take["n_labels"], prior=body)
+    assert acc(alone) < 0.05
+    assert acc(fixed) > 0.95
