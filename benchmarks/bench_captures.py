@@ -15,6 +15,9 @@ Sections (``--only``):
 * ``gapseeds`` -- the gapped-half row (gapped model, gapped second half, ``dtm-label``'s
   default) under other draws of the gaps (``--gap-seeds``, default 2, 3, 4): how much one draw
   moves the figure. Not in the default ``--only``.
+* ``labelseeds`` -- the same row (gaps of seed 1) under other seeds of the labeler's searches
+  (``--label-seeds``), for takes whose other gap draws cannot train (``--label-seed-takes``,
+  default the 170-frame Qualisys walk). Not in the default ``--only``.
 * ``ghosts``  -- real markers as ghosts: a take's markers are split into the model's and
   "unknown" ones; the unknown ones are written as ``*`` channels of a C3D of the second
   half (real trajectories next to the body), which ``dtm-label`` feeds to the labeler as
@@ -105,7 +108,8 @@ def train(clip, **over):
 def label(model, path: Path, **kw):
     """One take through dtm-label's path (``take_votes_s`` as its ``--take-votes``, default 0 here:
     the labels as published live); ``live_accuracy`` = before the take votes."""
-    job = LabelJob(index=0, source=str(path), settings=LabelerSettings(), **kw)
+    kw.setdefault("settings", LabelerSettings())
+    job = LabelJob(index=0, source=str(path), **kw)
     r = label_take(job, model_to_bytes(model))
     if r.error:
         raise RuntimeError(r.error)
@@ -193,6 +197,23 @@ def run_gap_seeds(tmp: Path, keys, seeds, quick: bool) -> dict:
             out[key][seed] = row
             log(f"gap seeds {key} {seed}: capture ids {100 * row['capture ids']['accuracy']:.2f} %, "
                 f"own tracker {100 * row['own tracker']['accuracy']:.2f} %")
+    return out
+
+
+def run_label_seeds(tmp: Path, keys, seeds, quick: bool) -> dict:
+    """The gapped-half row (the gaps of seed 1) under other seeds of the labeler's searches: for
+    a take whose other gap draws leave the first half untrainable (the 170-frame Qualisys walk)."""
+    out = {}
+    for key in keys:
+        _, tr, la, _, gap = gapped_halves(key, quick)
+        model, _, _ = train(gap.slice(tr.start, tr.stop))
+        test = write_take(tmp / f"{key}_labelseeds_test.c3d", gap.slice(la.start, la.stop))
+        out[key] = {}
+        for seed in seeds:
+            out[key][seed] = {tag: label(model, test, take_votes_s=TAKE_VOTES_S, settings=LabelerSettings(seed=seed), **kw)
+                              for tag, kw in (("capture ids", dict(use_ids=True)), ("own tracker", {}))}
+            log(f"label seeds {key} {seed}: " + ", ".join(f"{t} {100 * r['accuracy']:.2f} %"
+                                                          for t, r in out[key][seed].items()))
     return out
 
 
@@ -381,9 +402,19 @@ def write_md(res: dict, meta: dict) -> str:
                          f"{pct(r['own tracker']['accuracy'])} |")
                 for t in cells:
                     cells[t].append(r[t]["accuracy"])
-            L.append(f"| {key} | all ({len(cells['capture ids'])}) | | " + " | ".join(
-                f"min {pct(min(v))}, mean {pct(float(np.mean(v)))}" for v in cells.values()) + " |")
+            if cells["capture ids"]:
+                L.append(f"| {key} | all ({len(cells['capture ids'])}) | | " + " | ".join(
+                    f"min {pct(min(v))}, mean {pct(float(np.mean(v)))}" for v in cells.values()) + " |")
         L.append("")
+        if res.get("labelseeds"):
+            L += ["The same row under other seeds of the labeler's searches (`--seed`; the gaps of seed 1, the "
+                  "gapped first half's model; 0 is the table above):", "",
+                  "| take | search seed | capture ids % | own tracker % |", "|---|---:|---:|---:|"]
+            for key, rows in res["labelseeds"].items():
+                for seed, r in rows.items():
+                    L.append(f"| {key} | {seed} | {pct(r['capture ids']['accuracy'])} | "
+                             f"{pct(r['own tracker']['accuracy'])} |")
+            L.append("")
     if "ghosts" in res:
         L += ["## Real ghosts from `*` channels", "",
               "Markers the model does not know, written as `*` channels of the second half's C3D (real "
@@ -431,6 +462,8 @@ def main(argv=None) -> int:
     ap.add_argument("--only", default="gaps,ghosts,unnamed,archive")
     ap.add_argument("--gap-takes", default="hdm05,qualisys")
     ap.add_argument("--gap-seeds", default="2,3,4", help="gapseeds: the gap draws (seeds) besides the gaps section's 1")
+    ap.add_argument("--label-seeds", default="1,2,3", help="labelseeds: the labeler's search seeds besides 0")
+    ap.add_argument("--label-seed-takes", default="qualisys")
     ap.add_argument("--ghost-takes", default="hdm05,qualisys")
     ap.add_argument("--repeats", type=int, default=2, help="archive runs per variant")
     ap.add_argument("--out", default=str(RESULTS / "captures"), help="output stem (.json, .md)")
@@ -451,6 +484,9 @@ def main(argv=None) -> int:
         if "gapseeds" in only:
             res["gapseeds"] = run_gap_seeds(tmp, args.gap_takes.split(","),
                                             [int(x) for x in args.gap_seeds.split(",")], args.quick)
+        if "labelseeds" in only:
+            res["labelseeds"] = run_label_seeds(tmp, args.label_seed_takes.split(","),
+                                                [int(x) for x in args.label_seeds.split(",")], args.quick)
         if "ghosts" in only:
             res["ghosts"] = run_ghosts(tmp, args.ghost_takes.split(","), args.quick)
         if "unnamed" in only:
