@@ -406,15 +406,15 @@ def write_md(res: dict, meta: dict) -> str:
                 L.append(f"| {key} | all ({len(cells['capture ids'])}) | | " + " | ".join(
                     f"min {pct(min(v))}, mean {pct(float(np.mean(v)))}" for v in cells.values()) + " |")
         L.append("")
-        if res.get("labelseeds"):
-            L += ["The same row under other seeds of the labeler's searches (`--seed`; the gaps of seed 1, the "
-                  "gapped first half's model; 0 is the table above):", "",
-                  "| take | search seed | capture ids % | own tracker % |", "|---|---:|---:|---:|"]
-            for key, rows in res["labelseeds"].items():
-                for seed, r in rows.items():
-                    L.append(f"| {key} | {seed} | {pct(r['capture ids']['accuracy'])} | "
-                             f"{pct(r['own tracker']['accuracy'])} |")
-            L.append("")
+    if res.get("labelseeds"):
+        L += ["The same row under other seeds of the labeler's searches (`--seed`; the gaps of seed 1, the "
+              "gapped first half's model; 0 is the table above):", "",
+              "| take | search seed | capture ids % | own tracker % |", "|---|---:|---:|---:|"]
+        for key, rows in res["labelseeds"].items():
+            for seed, r in rows.items():
+                L.append(f"| {key} | {seed} | {pct(r['capture ids']['accuracy'])} | "
+                         f"{pct(r['own tracker']['accuracy'])} |")
+        L.append("")
     if "ghosts" in res:
         L += ["## Real ghosts from `*` channels", "",
               "Markers the model does not know, written as `*` channels of the second half's C3D (real "
