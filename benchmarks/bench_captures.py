@@ -125,6 +125,10 @@ def label(model, path: Path, **kw):
 
 
 # -- sections ---------------------------------------------------------------------------------------
+#: how a take's points are tracked: the capture's trajectories as ids, or the labeler's own tracker
+TRACKING = (("capture ids", dict(use_ids=True)), ("own tracker", {}))
+
+
 def gapped_halves(key: str, quick: bool, seed: int | None = None):
     """(clip, train frames, label frames, gap settings, gapped clip) of one take."""
     rel, _ = TAKES[key]
@@ -167,8 +171,7 @@ def run_gaps(tmp: Path, keys, quick: bool) -> dict:
             for miss in SWEEP:
                 test = write_take(tmp / f"{key}_sweep.c3d", gapped(clip, **(gaps | {"missing": miss})).slice(
                     la.start, la.stop))
-                res["sweep"][miss] = {t: label(model, test, **kw) for t, kw in
-                                      (("capture ids", dict(use_ids=True)), ("own tracker", {}))}
+                res["sweep"][miss] = {t: label(model, test, **kw) for t, kw in TRACKING}
                 log(f"gaps {key} sweep {miss}: " + ", ".join(f"{t} {100 * r['accuracy']:.2f} %"
                                                              for t, r in res["sweep"][miss].items()))
         out[key] = res
@@ -192,7 +195,7 @@ def run_gap_seeds(tmp: Path, keys, seeds, quick: bool) -> dict:
                 log(f"gap seeds {key} {seed}: training refused: {e}")
                 continue
             test = write_take(tmp / f"{key}_seed{seed}_test.c3d", gap.slice(la.start, la.stop))
-            for tag, kw in (("capture ids", dict(use_ids=True)), ("own tracker", {})):
+            for tag, kw in TRACKING:
                 row[tag] = label(model, test, take_votes_s=TAKE_VOTES_S, **kw)
             out[key][seed] = row
             log(f"gap seeds {key} {seed}: capture ids {100 * row['capture ids']['accuracy']:.2f} %, "
@@ -211,7 +214,7 @@ def run_label_seeds(tmp: Path, keys, seeds, quick: bool) -> dict:
         out[key] = {}
         for seed in seeds:
             out[key][seed] = {tag: label(model, test, take_votes_s=TAKE_VOTES_S, settings=LabelerSettings(seed=seed), **kw)
-                              for tag, kw in (("capture ids", dict(use_ids=True)), ("own tracker", {}))}
+                              for tag, kw in TRACKING}
             log(f"label seeds {key} {seed}: " + ", ".join(f"{t} {100 * r['accuracy']:.2f} %"
                                                           for t, r in out[key][seed].items()))
     return out

@@ -222,8 +222,9 @@ def relabel_tracks(xyz: Sequence[np.ndarray], track_ids: Sequence[np.ndarray], l
     (module doc), and the number of moves made. Points without a track (-1) keep their label.
     Nats: ``min_gain`` a move's gain and the support a new label needs, ``refuted_support``
     the support it needs when the old label scores at or below ``-refuted``; ``partner_cap`` the
-    clip of one partner label's share. ``prior``: rigid pairs for those the take does not
-    measure (:func:`body_pairs` of the model). ``pair_kw``: :func:`rigid_pairs`'s thresholds."""
+    clip of one partner label's share. ``prior``: the person's segments (:func:`body_pairs` of
+    the model), used where the take is that person (:meth:`RigidPairs.with_body`). ``pair_kw``:
+    :func:`rigid_pairs`'s thresholds."""
     support = Support(min_gain, refuted, refuted_support)
     F = len(xyz)
     out, moves = [], 0
