@@ -3,7 +3,6 @@ the track ids, skipped frames observed by the tracker, and confidences that mean
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -58,42 +57,43 @@ def test_deferred_recovery_publishes_doubtful_frames_then_joins(model, walker):
         if r.doubtful:
             assert (r.confidence <= 0.5 + 1e-9).all()          # doubtful frames are not published as certain
     first = recovered.index(True)
-    assert first == 6                      # asked in frame 0 (nothing known: positions only), 6 frames later
+    assert first == 7                      # asked in frame 1 (the first with velocities), 6 frames later
     assert all(doubt[1:first]) and not any(r for r in recovered[first + 1:first + 3])
     assert all(a == 0 for a in acc[:first])                    # nothing known, nothing labelled
     assert np.mean(acc[first:]) >= 0.97
 
 
-def test_first_frame_gets_one_short_search(model, walker):
+def test_first_search_waits_for_velocities(model, walker):
     """Background recovery: the stream's first frame (no velocities, nothing carried) asks for
-    one short GA (``first``: the warm GA's generations, no restarts), a later frame that needs a
-    search the full one with velocities, and the stream is labelled right once a result joins
-    (DeferredRecovery: each search runs when asked and joins 3 frames later). Inline the first
-    frame keeps its full search (:meth:`TrackedLabeler._search_kind`)."""
+    no search; the second asks for the full one, with velocities, and the stream is labelled
+    right once it joins (DeferredRecovery: each search runs when asked and joins 3 frames
+    later). A reset starts the same way. Inline the first frame keeps its full search."""
     lab = StreamLabeler(model, LabelerSettings(recovery="background", audit_period_s=0))
     lab.recovery.close()
     lab.recovery = DeferredRecovery(lab, delay_frames=3)
-    kinds, gens, recover = [], [], lab.recover
-    def spy(request, **kw):
-        kinds.append(request.kind)
-        out = recover(request, **kw)
-        gens.append(out.generations)
-        return out
-    lab.recover = spy
+    asked, recover = [], lab.recover
+    lab.recover = lambda request, **kw: asked.append((request.kind, request.frame)) or recover(request, **kw)
     rng = np.random.default_rng(3)
     acc = []
     for k in range(16):
         xyz, truth = shuffled(walker, k, rng)
         r = lab.process(xyz, k / walker.rate)
         acc.append(float(np.mean(r.labels[truth >= 0] == truth[truth >= 0])))
-    assert kinds[0] == "first" and "first" not in kinds[1:]      # then a full search if the stream needs one
-    assert gens[0] <= lab.settings.warm.max_generations < lab.settings.full.max_generations
-    assert min(acc[8:]) >= 0.9 and np.mean(acc[8:]) >= 0.97
+        if k == 0:
+            assert not asked and r.doubtful and (r.labels < 0).all()
+    assert asked[0] == ("full", 1)               # asked in the stream's second frame
+    assert min(acc[6:]) >= 0.9 and np.mean(acc[6:]) >= 0.97
+    n = len(asked)
+    lab.reset()
+    lab.process(shuffled(walker, 0, rng)[0], 0.0)
+    assert len(asked) == n                       # after a reset too: nothing without velocities
+    lab.process(shuffled(walker, 1, rng)[0], 1 / walker.rate)
+    assert asked[n][0] == "full"
     inline = StreamLabeler(model, LabelerSettings(recovery="inline"))
-    asked, rec2 = [], inline.recover
-    inline.recover = lambda request, **kw: asked.append(request.kind) or rec2(request, **kw)
+    asked2, rec2 = [], inline.recover
+    inline.recover = lambda request, **kw: asked2.append(request.kind) or rec2(request, **kw)
     inline.process(shuffled(walker, 0, rng)[0], 0.0)
-    assert asked == ["recover"]                  # inline: the full search (nothing to seed it)
+    assert asked2 == ["recover"]                 # inline: the full search (nothing to seed it)
 
 
 def test_process_recovery_worker_joins_and_stops(model, walker):
@@ -123,8 +123,7 @@ def test_process_recovery_worker_joins_and_stops(model, walker):
 
 
 def _first_request(model, walker) -> RecoveryRequest:
-    """A full search of the stream's first frame (what it asks for is a short one, ``first``;
-    the full GA has the generations these tests watch)."""
+    """The full search the stream asks for in its second frame (the first with velocities)."""
     lab = StreamLabeler(model, LabelerSettings(recovery="background", audit_period_s=0))
     lab.recovery.close()
     lab.recovery = DeferredRecovery(lab, delay_frames=100)
@@ -133,8 +132,8 @@ def _first_request(model, walker) -> RecoveryRequest:
         xyz, _ = shuffled(walker, k, rng, ghosts=2)
         lab.process(xyz, k / walker.rate)
     req = lab.recovery._result.request
-    assert req.kind == "first"
-    return replace(req, kind="full")
+    assert req.kind == "full"
+    return req
 
 
 def test_interim_results_report_the_best_so_far(model, walker):

@@ -34,13 +34,12 @@ from multiprocessing.connection import Client, Connection, Listener
 
 import numpy as np
 
-#: recovery kinds: a warm-started search (full GA when it falls short), a full search, one short GA
-#: of a frame without velocities (the stream's first), audits: a region sweep of the current
-#: labeling or a full search from scratch while the labeling looks fine
-KINDS = ("recover", "full", "first", "sweep", "audit")
+#: recovery kinds: a warm-started search (full GA when it falls short), a full search, audits: a
+#: region sweep of the current labeling or a full search from scratch while the labeling looks fine
+KINDS = ("recover", "full", "sweep", "audit")
 #: kinds whose best-so-far is worth publishing: searches the stream asked for because it had no
 #: labeling it could vouch for (an audit checks a labeling that already fits)
-INTERIM_KINDS = ("recover", "full", "first")
+INTERIM_KINDS = ("recover", "full")
 
 
 @dataclass

@@ -512,36 +512,31 @@ class TrackedLabeler:
 
     def _search_kind(self, seeds: np.ndarray | None) -> str:
         """What a frame that needs a search asks for: a warm GA from the carried labeling
-        (``recover``), a full search when nothing is carried (``full``) -- and, for a frame
-        without velocities and nothing carried (the stream's first), one short GA (``first``,
-        the warm GA's budget from fresh samples): positions alone rarely single out a labeling
-        of many markers among ghosts, and the next frame is searched with velocities anyway.
-        Measured at 41 markers (HDM05, flicker + ghosts): the full search of the first frame took
-        0.9 s (126 generations: without a fitness level yet, every run looks short and restarts)
-        and was wrong in 39 of 41 labels; in the background it held the worker, so the search
-        with velocities that labels the stream right (0.26 s) began only after it -- the first
-        1.1 s of the stream wrong. Background recovery, real-time feed, 1000 frames, mean of 3
-        runs, full first search -> short: flicker + 2 ghosts 82.1 -> 91.7 %, gaps + 2 ghosts
-        92.4 -> 92.4 %, clean 95.1 -> 93.0 % (on a clean stream the positions alone found the
-        labeling in 0.13 s); 14 points with flicker 99.6 -> 99.7 %. Kept out: the full GA for
-        one run (clean 94.7, flicker 89.1 %) or within 150 ms (94.5, 92.0 %, 14 points 99.3 %).
-        Background recovery only: inline (offline) a long first search holds nothing, and the
-        searches after it start from the random state they always had (12 HDM05 markers with
-        half the samples hidden: a short first search left the stream on a wrong labeling its
-        later warm searches did not leave -- 89 % -> 5 % -- where the usual random path found
-        the way out; the same fragility, not a better first frame)."""
+        (``recover``), a full search when nothing is carried (``full``); new models under a
+        carried labeling are audited from scratch (``audit``)."""
         if seeds is not None:
             return "audit" if self._fresh_search else "recover"
-        return "first" if self._provisional else "full"
+        return "full"
 
     def _while_recovering(self, problems, inp, searched, seeds, fast) -> FrameSearch:
         """Background mode, the frame needs a search: ask for one (unless one runs) and publish
         the best labeling known meanwhile -- the hill-climbed carried one, else the carried one,
-        else none -- flagged doubtful (confidence 0, not learnt from). A frame without velocities
-        (the stream's first) is searched too when nothing at all is known: its interim results
-        label the next frames a frame period sooner, and the fast path judges them with the
-        velocities those frames have."""
-        if not self.recovery.busy and (not self._provisional or seeds is None):
+        else none -- flagged doubtful (confidence 0, not learnt from).
+
+        A frame without velocities (the stream's first, or the first after a reset) asks for
+        nothing: the next frame, a frame period later, asks for the full search with them.
+        Searching the first frame on positions alone (one short GA) held the worker for 25 ms
+        at 14 points and its labeling was wrong (1 of 12 labels right on the demo walker, a
+        limb chain shifted by one); the warm GA that followed from it stayed wrong too, so
+        the full search began 70 ms into the stream. Measured side by side, background
+        recovery on a real-time feed (first frame fully right; 8 runs):
+        demo walker, 2 flickering + 2 ghosts: frames 6-17 (median 10) -> 3-4;
+        41 HDM05 markers, flicker + 2 ghosts, 12 seeds, 200 frames: median first right
+        0.54 -> 0.34 s, accuracy after it 80.6 -> 89.2 % (a short first search, then a
+        full one: 0.70 s, 78.9 %). In the node, ``dtm-demo --occlude 2 --gap-frames 1 --clutter 2
+        --duration 8`` (``frames_with_errors``): 7-24 frames wrong at the start -> 3-4,
+        accuracy 98.7-99.3 -> 99.5-99.6 %."""
+        if not self.recovery.busy and not self._provisional:
             self.recovery.submit(self._request(problems, inp, searched, seeds, self._search_kind(seeds)))
         self._init_levels(problems, searched)
         if fast is None:
@@ -651,11 +646,6 @@ class TrackedLabeler:
                     p.anchor_heading(seeds[0])
         if request.kind == "sweep":
             return self._sweep(problems, searched, seeds[0], request)
-        if request.kind == "first":            # positions only: one short GA (:meth:`_search_kind`)
-            found = self._ga(self.warm_search, problems, searched, None)
-            self._init_levels(problems, searched)
-            return RecoveryResult(request, {m: (c.assignment, c.fitness) for m, c in found.candidates.items()},
-                                  True, found.generations, found.evaluations, self._search_state())
         found = None
         if seeds is not None and request.kind == "recover":
             found = self._ga(self.warm_search, problems, searched, seeds)
