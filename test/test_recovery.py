@@ -158,6 +158,30 @@ def test_interim_results_report_the_best_so_far(model, walker):
         assert np.array_equal(res.candidates[m][0], again.candidates[m][0])
 
 
+def test_the_finished_search_is_sent_before_the_turned_round_check(model, walker):
+    """A cold full search sends its finished result (GA, restarts, region sweeps) as an interim
+    one before it checks the body turned round -- that check is a whole-body DP, ~1 s at 41
+    markers, and the stream should not wait for it -- and the final result is never worse."""
+    req = _first_request(model, walker)
+    worker = StreamLabeler(model, LabelerSettings(recovery="inline"))
+    sent, at_check = [], []
+    turn = worker._turn_round
+    def spy(problems, found):
+        at_check.append((len(sent), {m: c.fitness for m, c in found.candidates.items()}))
+        turn(problems, found)
+    worker._turn_round = spy
+    class FinishedOnly(InterimReporter):       # no per-generation reports: only what is sent for itself
+        def hook(self, searched, inner=None):
+            return inner
+    res = worker.recover(req, rng=np.random.default_rng(0), interim=FinishedOnly(req, sent.append))
+    assert len(at_check) == 1
+    n_sent, fits = at_check[0]
+    assert n_sent == 1 and sent[0].interim
+    last = sent[n_sent - 1].candidates
+    assert max(f for _, f in last.values()) == pytest.approx(max(fits.values()))   # what the check starts from
+    assert max(f for _, f in res.candidates.values()) >= max(fits.values()) - 1e-9
+
+
 def test_worker_sends_interim_results_before_the_final_one(model, walker):
     """The real worker process: polling while a full search runs returns interim results
     (classes of the package module, not of the worker's __main__) while the request stays

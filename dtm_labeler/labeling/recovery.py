@@ -96,14 +96,17 @@ class InterimReporter:
             now = time.perf_counter()
             if now - self._last_t < self.period_s:
                 return evals
-            bests = {searched[i]: isl.best() for i, isl in enumerate(islands) if len(isl.pop)}
-            top = max((f for _, f in bests.values()), default=-np.inf)
-            if top > self._sent_f:
-                self.send(RecoveryResult(self.request, bests, False, gen, 0, interim=True))
-                self._last_t, self._sent_f = now, top
-                self.sent += 1
+            self.report({searched[i]: isl.best() for i, isl in enumerate(islands) if len(isl.pop)}, gen, now)
             return evals
         return report
+
+    def report(self, bests: dict, generations: int, now: float | None = None) -> None:
+        """Send ``bests`` (model -> (assignment, fitness)) when it is better than what was sent."""
+        top = max((f for _, f in bests.values()), default=-np.inf)
+        if top > self._sent_f:
+            self.send(RecoveryResult(self.request, bests, False, generations, 0, interim=True))
+            self._last_t, self._sent_f = time.perf_counter() if now is None else now, top
+            self.sent += 1
 
 
 class Recovery:

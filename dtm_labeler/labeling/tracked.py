@@ -757,7 +757,12 @@ class TrackedLabeler:
         frame could label, not only those labelled: a stalled run often leaves several points
         unlabelled, which a per-labelled-point level forgives. A search without seeds (a cold
         start; ``turn``: not the background's periodic audits, ~1 s more each at 41 markers)
-        also checks the body turned round (:meth:`_turn_round`)."""
+        also checks the body turned round (:meth:`_turn_round`). In a worker the finished
+        result is sent as an interim one before that check, so the stream does not wait for
+        it: at 41 markers the check is 1.2-1.5 s of a 1.6-2.3 s cold search, and the
+        finished labeling, often better than the GA's last interim one by its region sweeps
+        (662 -> 764 nats on an HDM05 start), joined at 0.42 s instead of 1.26 s. 12 starts
+        with flicker + 2 ghosts, first 200 frames: 84.8 -> 87.7 % right."""
         found = self._ga(self.full_search, problems, searched, seeds)
         restarts = self.settings.restarts if self.settings.method in ("cbga", "sga") else 0   # others: deterministic
         for _ in range(restarts):
@@ -766,6 +771,9 @@ class TrackedLabeler:
                 break
             found.merge(self._ga(self.full_search, problems, searched, None))
         if turn and self.settings.turn_check and seeds is None and self.settings.method == "cbga":
+            if self._interim is not None:       # the GA's finished result joins before the check's second
+                self._interim.report({m: (c.assignment, c.fitness) for m, c in found.candidates.items()},
+                                     found.generations)
             self._turn_round(problems, found)
         return found
 
