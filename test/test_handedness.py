@@ -12,7 +12,7 @@ from dtm_labeler.model.io import FORMAT_VERSION, load_model, model_from_arrays, 
 from dtm_labeler.motion.load import load_clip
 from dtm_labeler.search.problem import Background, FrameProblem
 from dtm_labeler.training.body_fit import handedness_quads, quad_signs
-from dtm_labeler.training.calibrate import calibrate_on_takes, labelled_positions
+from dtm_labeler.training.calibrate import calibrate_on_takes, calibrated_body, labelled_positions
 from dtm_labeler.training.train import TrainConfig, train_model
 
 HDM = "markers_c3d/hdm05_bd_05-01_01_120.c3d"
@@ -120,3 +120,24 @@ def test_real_wrist_cluster_learnt_and_applied_once_calibrated(models, hdm, tmp_
     assert v2.provenance["format_version_read"] == 2 and v2.body.quads.shape == (0, 4)
     assert v2.body_handedness is None
     assert np.allclose(FrameProblem(v2, states, Background()).fitness(pop), without)
+
+
+def test_self_labelled_frames_do_not_flip_a_trained_quadruple(models, hdm):
+    """A self-calibration's frames carry the model's own labels: a quadruple they show mirrored
+    (here the wrist bar's ends exchanged in every frame) is dropped, not learnt the other way
+    round -- it would hold the exchange from then on. Labels from a capture are trusted and
+    keep the sign they show."""
+    generic, _ = models
+    names = list(generic.labels)
+    a, b = names.index("LWRA"), names.index("LWRB")
+    P = labelled_positions(generic, hdm.slice(1200, 1900))
+    P[:, [a, b]] = P[:, [b, a]]
+    trained = {tuple(q): s for q, s in zip(generic.body.quads.tolist(), generic.body.quad_sign)}
+    own, summary = calibrated_body(generic.body, P, check_labels=True)
+    assert summary["handedness_flips_dropped"] >= 2                  # both bar ends' quadruples
+    assert all(trained[tuple(q)] == s for q, s in zip(own.quads.tolist(), own.quad_sign))
+    assert len(own.quads) == summary["handedness_quads"] > 0          # the rest of the clusters stay
+    capture, _ = calibrated_body(generic.body, P, check_labels=False)
+    flipped = [tuple(q) for q, s in zip(capture.quads.tolist(), capture.quad_sign) if trained[tuple(q)] != s]
+    assert len(flipped) == summary["handedness_flips_dropped"]
+    assert all({a, b} & set(q) for q in flipped)
