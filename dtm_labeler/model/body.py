@@ -327,8 +327,10 @@ class Handedness:
     Whose handedness. The sign depends on where a lab puts its markers as much as on the body:
     a generic body keeps the training's quadruples but does not apply them; a subject
     calibration measures each quadruple's sign again on the person's frames and keeps those
-    that hold (:func:`~dtm_labeler.training.calibrate.calibrated_body`), and from then on the
-    factor applies, as the segment lengths do. Measured (stream %, 2 flickering + 2 ghosts +
+    that hold (:func:`~dtm_labeler.training.calibrate.calibrated_body`; on self-labelled
+    frames only those that hold with the training's sign,
+    :func:`~dtm_labeler.training.calibrate.unflipped_quads`), and from then on the factor
+    applies, as the segment lengths do. Measured (stream %, 2 flickering + 2 ghosts +
     1 mm unless said, inline search, handedness applied / not):
 
     * HDM05 41 markers, model of the take's first 70 %, calibrated on them, the next 1000
