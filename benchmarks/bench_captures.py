@@ -129,6 +129,11 @@ def label(model, path: Path, **kw):
 TRACKING = (("capture ids", dict(use_ids=True)), ("own tracker", {}))
 
 
+def label_tracked(model, path: Path, **kw) -> dict:
+    """:func:`label` once per way of tracking (:data:`TRACKING`), by its name."""
+    return {tag: label(model, path, **kw, **tk) for tag, tk in TRACKING}
+
+
 def gapped_halves(key: str, quick: bool, seed: int | None = None):
     """(clip, train frames, label frames, gap settings, gapped clip) of one take."""
     rel, _ = TAKES[key]
@@ -171,7 +176,7 @@ def run_gaps(tmp: Path, keys, quick: bool) -> dict:
             for miss in SWEEP:
                 test = write_take(tmp / f"{key}_sweep.c3d", gapped(clip, **(gaps | {"missing": miss})).slice(
                     la.start, la.stop))
-                res["sweep"][miss] = {t: label(model, test, **kw) for t, kw in TRACKING}
+                res["sweep"][miss] = label_tracked(model, test)
                 log(f"gaps {key} sweep {miss}: " + ", ".join(f"{t} {100 * r['accuracy']:.2f} %"
                                                              for t, r in res["sweep"][miss].items()))
         out[key] = res
@@ -195,8 +200,7 @@ def run_gap_seeds(tmp: Path, keys, seeds, quick: bool) -> dict:
                 log(f"gap seeds {key} {seed}: training refused: {e}")
                 continue
             test = write_take(tmp / f"{key}_seed{seed}_test.c3d", gap.slice(la.start, la.stop))
-            for tag, kw in TRACKING:
-                row[tag] = label(model, test, take_votes_s=TAKE_VOTES_S, **kw)
+            row.update(label_tracked(model, test, take_votes_s=TAKE_VOTES_S))
             out[key][seed] = row
             log(f"gap seeds {key} {seed}: capture ids {100 * row['capture ids']['accuracy']:.2f} %, "
                 f"own tracker {100 * row['own tracker']['accuracy']:.2f} %")
@@ -213,8 +217,7 @@ def run_label_seeds(tmp: Path, keys, seeds, quick: bool) -> dict:
         test = write_take(tmp / f"{key}_labelseeds_test.c3d", gap.slice(la.start, la.stop))
         out[key] = {}
         for seed in seeds:
-            out[key][seed] = {tag: label(model, test, take_votes_s=TAKE_VOTES_S, settings=LabelerSettings(seed=seed), **kw)
-                              for tag, kw in TRACKING}
+            out[key][seed] = label_tracked(model, test, take_votes_s=TAKE_VOTES_S, settings=LabelerSettings(seed=seed))
             log(f"label seeds {key} {seed}: " + ", ".join(f"{t} {100 * r['accuracy']:.2f} %"
                                                           for t, r in out[key][seed].items()))
     return out
