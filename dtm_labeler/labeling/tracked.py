@@ -225,6 +225,10 @@ class FrameSearch:
         self.generations += other.generations
         self.evaluations += other.evaluations
 
+    def bests(self) -> dict[int, tuple[np.ndarray, float]]:
+        """Model -> (assignment, fitness): what a :class:`RecoveryResult` carries."""
+        return {m: (c.assignment, c.fitness) for m, c in self.candidates.items()}
+
 
 def _find(keys: np.ndarray, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(index into the sorted ``keys``, found) of each of ``tracks`` (vectorised dict lookup)."""
@@ -660,8 +664,8 @@ class TrackedLabeler:
                 found = full
             else:
                 found.merge(full)
-        return RecoveryResult(request, {m: (c.assignment, c.fitness) for m, c in found.candidates.items()},
-                              found.full, found.generations, found.evaluations, self._search_state())
+        return RecoveryResult(request, found.bests(), found.full, found.generations, found.evaluations,
+                              self._search_state())
 
     def _sweep(self, problems, searched, ind, request) -> RecoveryResult:
         """The sweep audit: exact region relabelling of every label's region from ``ind``
@@ -772,8 +776,7 @@ class TrackedLabeler:
             found.merge(self._ga(self.full_search, problems, searched, None))
         if turn and self.settings.turn_check and seeds is None and self.settings.method == "cbga":
             if self._interim is not None:       # the GA's finished result joins before the check's second
-                self._interim.report({m: (c.assignment, c.fitness) for m, c in found.candidates.items()},
-                                     found.generations)
+                self._interim.report(found.bests(), found.generations)
             self._turn_round(problems, found)
         return found
 

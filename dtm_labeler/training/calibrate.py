@@ -269,8 +269,9 @@ def unflipped_quads(body: BodyModel, quads: np.ndarray, signs: np.ndarray) -> tu
     every quadruple (HDM05's training signs against CMU 85's true labels: 45 of the 46 that its
     first 5 s show at 99 %), while the HDM05 model self-calibrated on that window learnt 4
     quadruples the other way round (the trunk's C7-CLAV-LSHO-RSHO, the left wrist bar's
-    LUPA-LELB-LWRA-LWRB, one of the right arm, one across the knees). So a quadruple whose sign flipped in self-labelled frames is taken as the
-    labels' error rather than the person's cluster: it is dropped (neither sign applies).
+    LUPA-LELB-LWRA-LWRB, one of the right arm, one across the knees). So a quadruple whose sign
+    flipped in self-labelled frames is taken as the labels' error rather than the person's
+    cluster: it is dropped (neither sign applies).
     ``dtm-eval``'s 41-marker generalisation cells (``dtm-label`` default, stream): HDM05 -> CMU
     85 92.18 -> 92.86 % (the LTOE/LMT5 exchange of 82 frames gone; the wrist bars still
     exchanged in ~80 frames each), the other four identical (100, 99.50, 99.92, 93.55 %).
