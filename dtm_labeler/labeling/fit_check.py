@@ -42,7 +42,21 @@ _F_PINV = np.linalg.pinv(FEATURE_MATRIX)
 def term_floors(model: TriangulatedModel, quantile: float = FLOOR_QUANTILE, samples: int = FLOOR_SAMPLES,
                 seed: int = 0) -> np.ndarray:
     """(T,) the ``quantile`` of each triangle's fully observed term under the model itself
-    (kernel term, without the background density a root triangle adds in the fitness)."""
+    (kernel term, without the background density a root triangle adds in the fitness).
+
+    Drawn once per model and arguments (~70 ms for 13 triangles), then kept on the model: a
+    model is never changed in place, and every labeler made with it (a bank's, a reload's, an
+    archive's takes) gets the same read-only floors."""
+    cache = model.__dict__.setdefault("_term_floors", {})
+    key = (float(quantile), int(samples), int(seed))
+    if key not in cache:
+        floors = _draw_floors(model, quantile, samples, seed)
+        floors.flags.writeable = False
+        cache[key] = floors
+    return cache[key]
+
+
+def _draw_floors(model: TriangulatedModel, quantile: float, samples: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     T = model.structure.n_triangles
     X = np.concatenate([m.sample(samples, rng) for m in model.mixtures])            # (T s, 15)

@@ -270,7 +270,8 @@ class WorkerProcess:
             conn.close()
         if self.proc.poll() is None:
             try:
-                self.proc.wait(1.0)
+                # a worker that never connected holds nothing: no need to wait for it to start
+                self.proc.wait(1.0 if conn is not None else 0.0)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
