@@ -1,5 +1,6 @@
 """``dtm-calibrate`` and ``dtm-label --calibrate`` as a user runs them (their ``main`` with a
 command line, on real recordings)."""
+import dataclasses
 import json
 import re
 
@@ -121,10 +122,31 @@ def test_dtm_label_self_calibrates_a_generic_body_by_default(models, data_dir, r
     assert auto["frames"] == off["frames"] == 240 and auto["inputs"][0]["frame_range"] == [0, 240]
     assert "calibration" not in off["inputs"][0]
     assert auto["accuracy"] > off["accuracy"] + 0.2 and auto["accuracy"] > 0.95
-    # the text summary says so too (on a shorter take: the same path, a third of the time)
+    # the text summary says so too (on a shorter take: the same path, a third of the time). Its
+    # first 26 frames never show the wrists to the generic body (this person's forearm is 27 %
+    # shorter); the calibrated model keeps those segments open and labels them: 85.7 % (both
+    # wrists left out) when it kept their generic spread
     text = run("dtm-label", model_path, data_dir / PIROUETTE, "--frames", "0:80", "--no-take-pass", "--quiet").stdout
     line = re.search(r"calibration +(\d+) of (\d+) segment lengths set on the first (\d+) frames, (\d+) % of", text)
     assert line and int(line[1]) > 5 and int(line[3]) in (26, 80) and int(line[4]) >= 90, text
+    assert float(re.search(r"accuracy +([\d.]+) %", text)[1]) >= 95.0, text
+
+
+def test_segments_the_self_calibration_could_not_measure_stay_open(models):
+    """A segment left at its generic range (between-person spread > 0) after a calibration
+    gets the self-labelling's open spread; measured ones (spread 0) stay as they are."""
+    from dtm_labeler.training.calibrate import _unmeasured_kept_open
+    generic = load_model(models[0])
+    b = generic.body
+    seg = np.flatnonzero(b.kind == SEGMENT)
+    between = b.between_sd.copy()
+    between[seg[1:]] = 0.0                                        # all but the first segment measured
+    cal = generic.replace(body=dataclasses.replace(b, between_sd=between))
+    wide = np.maximum(b.between_sd, 0.3 * 0.5 * (b.lo + b.hi))
+    out, n_open = _unmeasured_kept_open(cal, wide)
+    assert n_open == 1 and out.body.between_sd[seg[0]] == wide[seg[0]] > b.between_sd[seg[0]]
+    np.testing.assert_array_equal(np.delete(out.body.between_sd, seg[0]), np.delete(between, seg[0]))
+    assert _unmeasured_kept_open(cal, None) == (cal, 0)
 
 
 def test_auto_calibration_keeps_the_model_when_it_cannot_or_should_not_calibrate(models, data_dir):
