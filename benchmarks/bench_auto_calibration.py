@@ -12,7 +12,11 @@ the labels the model confirmed there (:func:`dtm_labeler.training.calibrate.auto
 Accuracy over every frame of the window and after it (the labels as published live: no take
 votes). Writes results/auto_calibration.{json,md}.
 
-    .venv/bin/python benchmarks/bench_auto_calibration.py [--cases loso_5,loso_9]
+``--short 80,150,240``: short takes instead -- only the test take's first N frames, as a user
+labels a short trial (``dtm-label`` calibrates on its first third or all of it, the better
+reproduced kept); writes results/auto_calibration_short.{json,md}.
+
+    .venv/bin/python benchmarks/bench_auto_calibration.py [--cases loso_5,loso_9] [--short 80,150]
 """
 from __future__ import annotations
 
@@ -48,6 +52,46 @@ def run_case(case: G.Case) -> dict:
                 auto=auto.metrics.accuracy, calibration=auto.settings["calibration"])
 
 
+def run_short(case: G.Case, lengths: list[int]) -> dict:
+    """The test take's first N frames for each N: accuracy off and auto, and the calibration."""
+    train, test = G.case_clips(DATA, case)
+    model, _ = G.train_case_model(train, G.train_config(case, "body", 0))
+    out = dict(group=case.group, title=case.title, takes={})
+    for n in lengths:
+        clip = test.slice(0, min(n, test.n_frames))
+        off = label_clip_run(model, clip, LabelerSettings(seed=0), seed=0, keep_records=False)
+        auto = label_clip_run(model, clip, LabelerSettings(seed=0), seed=0, keep_records=False,
+                              calibrate_s=AUTO_CALIBRATION_S)
+        out["takes"][str(clip.n_frames)] = dict(off=off.metrics.accuracy, auto=auto.metrics.accuracy,
+                                                calibration=auto.settings["calibration"],
+                                                weakest=sorted((v, k) for k, v in auto.metrics.per_label.items()
+                                                               if v is not None)[:2])
+    return out
+
+
+def write_short_md(res: dict, meta: dict) -> str:
+    lengths = sorted({int(n) for r in res.values() for n in r["takes"]})
+    L = ["# dtm-label's default subject calibration on short takes", "",
+         f"{meta['when']}, commit {meta['commit']}, 2 cores. Each case of the generalisation section "
+         "(models as there); the test take's first N frames labelled as `dtm-label` feeds a short "
+         "trial, with the model as it is (off) and with the default self-calibration (auto: the "
+         "take's first third or all of it, the better reproduced kept; applied only when the "
+         "calibrated model keeps >= 90 % of the labels the model confirmed). Stream accuracy over "
+         "every frame, labels as published live. `benchmarks/bench_auto_calibration.py --short`.", "",
+         "| group | case | " + " | ".join(f"{n} frames off / auto %" for n in lengths) + " | weakest labels (auto, longest) |",
+         "|---|---|" + "---:|" * len(lengths) + "---|"]
+    for r in res.values():
+        cells = []
+        for n in lengths:
+            t = r["takes"].get(str(n))
+            cells.append("-" if t is None else f"{100 * t['off']:.1f} / {100 * t['auto']:.1f}"
+                         + ("" if t["calibration"].get("applied") else " (not applied)"))
+        last = r["takes"][max(r["takes"], key=int)]
+        weak = ", ".join(f"{k} {100 * v:.0f} %" for v, k in last["weakest"] if v < 0.995) or "-"
+        L.append(f"| {r['group']} | {r['title']} | " + " | ".join(cells) + f" | {weak} |")
+    return "\n".join(L) + "\n"
+
+
 def write_md(res: dict, meta: dict) -> str:
     L = ["# dtm-label's default subject calibration (`--calibrate auto`)", "",
          f"{meta['when']}, commit {meta['commit']}, 2 cores. {__doc__.split(chr(10) + chr(10))[1]}", ""]
@@ -73,8 +117,11 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", default=",".join(c.key for c in G.CASES))
     ap.add_argument("--merge", action="store_true", help="keep the cases of results/auto_calibration.json "
                     "that this run does not redo (their rows keep the commit they were measured at)")
+    ap.add_argument("--short", default="", help="comma-separated take lengths (frames): short takes instead")
     args = ap.parse_args(argv)
     keys = args.cases.split(",")
+    if args.short:
+        return main_short([c for c in G.CASES if c.key in keys], [int(x) for x in args.short.split(",")])
     res, kept = {}, {}
     if args.merge and (RESULTS / "auto_calibration.json").is_file():
         old = json.loads((RESULTS / "auto_calibration.json").read_text())
@@ -96,6 +143,24 @@ def main(argv=None) -> int:
     (RESULTS / "auto_calibration.json").write_text(json.dumps({"meta": meta, "cases": res}, indent=1))
     (RESULTS / "auto_calibration.md").write_text(write_md(res, meta))
     print(write_md(res, meta))
+    return 0
+
+
+def main_short(cases: list, lengths: list[int]) -> int:
+    res = {}
+    for case in cases:
+        t = time.perf_counter()
+        res[case.key] = r = run_short(case, lengths)
+        print(f"{case.key}: " + ", ".join(f"{n}: {100 * x['off']:.1f} -> {100 * x['auto']:.1f} %"
+                                         for n, x in r["takes"].items())
+              + f" ({time.perf_counter() - t:.0f} s)", flush=True)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
+                            text=True).stdout.strip()
+    meta = {"when": time.strftime("%Y-%m-%d %H:%M"), "commit": commit, "lengths": lengths}
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "auto_calibration_short.json").write_text(json.dumps({"meta": meta, "cases": res}, indent=1))
+    (RESULTS / "auto_calibration_short.md").write_text(write_short_md(res, meta))
+    print(write_short_md(res, meta))
     return 0
 
 
