@@ -302,6 +302,49 @@ def _responsibilities(log_dens: np.ndarray, weights: np.ndarray) -> tuple[np.nda
         return np.log(total) + top, joint
 
 
+class _ScaledDensities:
+    """``D[k, i] = exp(log_dens[k, i] - top_i)`` of a CEM^2 sweep (see ``MDLMixture._m_step``)."""
+
+    #: a changed row may exceed the sweep's reference by this much (nats) before D is rebuilt
+    HEADROOM = 300.0
+    #: ... and a sample's mixture density may fall this far below it
+    FLOOR = 1e-250
+
+    def __init__(self, log_dens: np.ndarray):
+        self._rebuild(log_dens)
+
+    def _rebuild(self, log_dens: np.ndarray) -> None:
+        top = log_dens.max(axis=0)
+        self.top = np.where(np.isfinite(top), top, 0.0)
+        self.D = np.exp(log_dens - self.top)
+
+    def supports(self, weights: np.ndarray, w: np.ndarray):
+        """``(s, resp_of)``: expected samples per component ``s_k = sum_i w_i alpha_k(x_i)``
+        and a function giving one component's responsibilities (n,)."""
+        mix = weights @ self.D
+        v = w / mix
+        s = weights * (self.D @ v)
+        return s, lambda k: weights[k] * self.D[k] / mix
+
+    def update(self, m: int, log_dens: np.ndarray) -> None:
+        """Row ``m`` of ``log_dens`` changed."""
+        row = log_dens[m] - self.top
+        if row.max(initial=-np.inf) > self.HEADROOM:
+            self._rebuild(log_dens)
+            return
+        self.D[m] = np.exp(row)
+        self._check(log_dens)
+
+    def drop(self, m: int, log_dens: np.ndarray) -> None:
+        """Row ``m`` removed (``log_dens``: what is left)."""
+        self.D = np.delete(self.D, m, axis=0)
+        self._check(log_dens)
+
+    def _check(self, log_dens: np.ndarray) -> None:
+        if self.D.max(axis=0).min(initial=np.inf) < self.FLOOR:
+            self._rebuild(log_dens)
+
+
 def _standardise(X, w):
     mean = (w @ X) / w.sum()
     std = np.sqrt((w @ (X - mean) ** 2) / w.sum())
@@ -456,34 +499,42 @@ class MDLMixture(MixtureEstimator):
         return best
 
     def _m_step(self, X, w, state: _State, resp: np.ndarray) -> None:
-        """One CEM^2 sweep: per component, eq. 8 E-step, eq. 9 weight (annihilate at 0), eq. 10."""
+        """One CEM^2 sweep: per component, eq. 8 E-step, eq. 9 weight (annihilate at 0), eq. 10.
+
+        The E-step before each component's update is incremental: with ``D[k, i] =
+        exp(log N_k(x_i) - top_i)`` (``top_i`` fixed for the sweep) the responsibilities are
+        ``alpha_k D[k, i] / sum_j alpha_j D[j, i]``, and an update of component ``m`` changes
+        row ``m`` of ``D`` only -- n exponentials per step instead of K n (the same eq. 8;
+        ``D`` is rebuilt when a changed row leaves the range where it is exact)."""
         half_n = 0.5 * params_per_component(X.shape[1])
         m = 0
-        fresh = resp
+        dens = _ScaledDensities(state.log_dens)
         while m < state.k:
-            resp = fresh if fresh is not None else _responsibilities(state.log_dens, state.weights)[1]
-            fresh = None
-            s = resp @ w
+            s, resp_of = dens.supports(state.weights, w)
             support = np.maximum(0.0, s - half_n)
             total = support.sum()
             if total <= 0.0:
                 j = int(np.argmax(s))
                 self._note("every component fell below N/2 expected samples; kept the best-supported one")
+                rj = resp_of(j)
                 state.keep([j])
-                self._update_gaussian(X, resp[j] * w, state, 0)
+                self._update_gaussian(X, rj * w, state, 0)
                 return
             wm = support[m] / total
             if wm == 0.0 and state.k <= self._k_floor:
                 self._note(f"annihilation stopped at k_min={self._k_floor}; "
                            "component kept with its EM weight")
                 wm = s[m] / s.sum()
+            rm = resp_of(m)
             weights = state.weights.copy()
             weights[m] = wm
             state.weights = weights / weights.sum()
             if wm == 0.0:
                 state.keep([i for i in range(state.k) if i != m])
+                dens.drop(m, state.log_dens)
                 continue
-            self._update_gaussian(X, resp[m] * w, state, m)
+            self._update_gaussian(X, rm * w, state, m)
+            dens.update(m, state.log_dens)
             m += 1
 
     def _fit(self, X, w, rng) -> FitResult:
