@@ -69,9 +69,11 @@ assumes a sparse background (``volume_m3``) and, in its first round, a generic b
 other proportions (``open_between_rel``): a point that fits the generic body poorly (a forearm
 25 % longer than the training people's, a marker placed 10 cm from where they had it) is
 labelled rather than left out, so its segment can be measured; the medians over frames absorb
-the few wrong labels, and the second round labels with the calibrated body. From the second
-round on, a label the round never confirmed is taken from the points it left out when exactly
-one of them stays rigid to its segment partners (:func:`completed_labels`).
+the few wrong labels, and the second round labels with the calibrated body -- in which a
+segment the first round could not measure stays that open (:func:`_unmeasured_kept_open`), as it
+does in the model returned. From the second round on, a label the round never confirmed is
+taken from the points it left out when exactly one of them stays rigid to its segment partners
+(:func:`completed_labels`).
 
 Library entry points for a node service: :func:`calibrate` (labelled frames, e.g. what the
 node published with high confidence) and :func:`self_calibrate` (raw clouds);
@@ -110,7 +112,8 @@ class CalibrationSettings:
     min_confidence: float = CONFIRMED    # self-labelling: confidence a label needs to count as confirmed
     volume_m3: float = 1000.0        # self-labelling: clutter density (larger: a point that fits the generic
                                      # body poorly is still labelled; the medians are robust to a few wrong ones)
-    open_between_rel: float = 0.3    # self-labelling, first round: between-person spread of the generic body
+    open_between_rel: float = 0.3    # self-labelling: between-person spread of the generic body in the first
+                                     # round, and of a segment no round could measure (relative to its length)
     rounds: int = 2                  # self-calibration: label, calibrate, label again, ...
     complete_below: float = 0.2      # self-calibration, last round: a label confirmed in fewer of the window's
                                      # frames is looked for among the points left out (completed_labels)
