@@ -505,7 +505,8 @@ class MDLMixture(MixtureEstimator):
         exp(log N_k(x_i) - top_i)`` (``top_i`` fixed for the sweep) the responsibilities are
         ``alpha_k D[k, i] / sum_j alpha_j D[j, i]``, and an update of component ``m`` changes
         row ``m`` of ``D`` only -- n exponentials per step instead of K n (the same eq. 8;
-        ``D`` is rebuilt when a changed row leaves the range where it is exact)."""
+        ``D`` is rebuilt when a changed row leaves the range where it is exact). The sweep
+        starts from ``state.log_dens``; the E-step's ``resp`` is not needed."""
         half_n = 0.5 * params_per_component(X.shape[1])
         m = 0
         dens = _ScaledDensities(state.log_dens)
