@@ -178,22 +178,3 @@ def test_canonical_features_are_heading_invariant(yaw, dx, dy):
     # the facing direction is +x after canonicalisation: the walker moves along +x
     v = out[1:, :, 3:].mean(axis=(0, 1))
     assert v[0] > 1.0 and abs(v[1]) < 0.15
-
-
-def test_facing_pairs_weight_the_trunk_over_a_turned_limb():
-    """A stable limb pair turned 90 deg from the trunk moves the facing by 45 deg when it
-    counts as much as the trunk; with the trunk's pairs counted 3 times, by much less."""
-    from dtm_labeler.training.train import TRUNK_WEIGHT, facing_pairs
-    pairs = heading_pairs(BODY14)
-    I = {n: i for i, n in enumerate(BODY14)}
-    stable = np.array([(I["lshoulder"], I["rshoulder"]), (I["lhip"], I["rhip"]), (I["lankle"], I["rankle"])])
-    weighted = facing_pairs(BODY14, stable, pairs)
-    assert {tuple(q) for q in weighted} == {tuple(q) for q in stable}
-    assert sum(tuple(q) == (I["lhip"], I["rhip"]) for q in weighted) == TRUNK_WEIGHT
-    P = np.zeros((14, 3))
-    for side, y in (("l", 0.15), ("r", -0.15)):            # trunk facing +x (left on +y) ...
-        P[I[side + "shoulder"], 1] = P[I[side + "hip"], 1] = y
-    P[I["lankle"], 0], P[I["rankle"], 0] = -0.3, 0.3          # ... ankles turned 90 deg, the stance wide
-    plain = abs(np.degrees(lateral_yaw(P, stable)))
-    trunk = abs(np.degrees(lateral_yaw(P, weighted)))
-    assert plain > 25.0 and trunk < 0.6 * plain

@@ -32,7 +32,6 @@ Other people (the augmentation of step 1)
 from __future__ import annotations
 
 import datetime as _dt
-import re
 import time
 from pathlib import Path
 from dataclasses import asdict, dataclass, field, replace
@@ -158,39 +157,6 @@ def heading_pairs(labels: Sequence[str]) -> np.ndarray:
     """(Q, 2) index pairs (left, right) found by name."""
     idx = {n: i for i, n in enumerate(labels)}
     return np.array([(idx[a], idx[b]) for a, b in left_right_pairs(labels)], dtype=np.int64).reshape(-1, 2)
-
-
-#: left/right pairs on the trunk, by name: body14's shoulders and hips, marker sets' shoulder
-#: (``*SHO``) and pelvis markers (``*FWT``, ``*BWT``, ``*ASI(S)``, ``*PSI(S)``)
-TRUNK_PAIR = re.compile(r"(?i)shoulder|hip$|SHO$|FWT$|BWT$|ASIS?$|PSIS?$")
-#: how many times a trunk pair counts in the facing (:func:`facing_pairs`)
-TRUNK_WEIGHT = 3
-
-
-def facing_pairs(labels: Sequence[str], stable: np.ndarray, all_pairs: np.ndarray,
-                 trunk_weight: int = TRUNK_WEIGHT) -> np.ndarray:
-    """The heading pairs a model stores: the ``stable`` ones (:func:`stable_heading_pairs`)
-    and every trunk pair of ``all_pairs`` (:data:`TRUNK_PAIR`) ``trunk_weight - 1`` times more,
-    so that a stable trunk pair counts ``trunk_weight`` times in the facing's mean lateral
-    vector (:func:`lateral_yaw`).
-
-    Which limb pairs are stable is learned from the training motions; on a motion they did
-    not show, the limbs turn far from the trunk (lambada -> whirl: ankles 19.8 -> 39.9 deg rms
-    from the consensus; an HDM05 part that hardly moves its arms -> CMU 85 jump and twist:
-    LWRA 5.3 -> 29.8 deg), and a candidate labeling's facing then moves with the limb labels
-    it gives -- every triangle is scored in another frame (the right ankle of the whirl's
-    start left out: 16 nats of the arms' and shoulders' triangles against it). The trunk
-    turns with the body whatever the motion. Weighted 3x, measured with the default
-    self-calibration (``bench_auto_calibration``, against the stable pairs alone): subject 9
-    run 99.74 -> 100 %, lambada -> whirl 99.89 -> 100 %, CMU 85 jump + twist -> breakdance
-    99.12 -> 99.44 %, HDM05 -> CMU 85 97.16 -> 97.43 %, subject 5 pirouette 100 -> 99.99 %;
-    the trunk alone lost HDM05 -> CMU 85 (80.6 %): at 41 markers the limbs' pairs steady
-    the trunk's few. Repetition keeps the stored pairs a plain (Q, 2) array: every reader of
-    ``heading_pairs`` takes the weighted mean as it is."""
-    trunk = np.array([q for q in all_pairs if TRUNK_PAIR.search(labels[q[0]])], dtype=np.int64).reshape(-1, 2)
-    if not len(trunk) or trunk_weight <= 1:
-        return stable
-    return np.concatenate([stable] + [trunk] * (trunk_weight - 1)).astype(np.int64)
 
 
 def stable_heading_pairs(clips: Sequence[MotionClip], pairs: np.ndarray, max_rms_deg: float = 20.0,
@@ -399,7 +365,7 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         raise ValueError("a triangulated model needs at least 3 points")
     config = config.resolved(labels)
     all_pairs = heading_pairs(labels)
-    pairs = facing_pairs(labels, stable_heading_pairs(clips, all_pairs), all_pairs)
+    pairs = stable_heading_pairs(clips, all_pairs)
     states, train_states, parents = training_states(clips, pairs, config)
     codes = observation_state(states)
     complete = (codes == FULL).all(axis=1)
