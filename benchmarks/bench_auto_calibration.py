@@ -52,6 +52,11 @@ def run_case(case: G.Case) -> dict:
                 auto=auto.metrics.accuracy, calibration=auto.settings["calibration"])
 
 
+def head_commit() -> str:
+    return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
+                          text=True).stdout.strip()
+
+
 def run_short(case: G.Case, lengths: list[int]) -> dict:
     """The test take's first N frames for each N: accuracy off and auto, and the calibration."""
     train, test = G.case_clips(DATA, case)
@@ -134,8 +139,7 @@ def main(argv=None) -> int:
               f"({'applied' if r['calibration']['applied'] else 'not applied'}, "
               f"kept {r['calibration'].get('kept_share', float('nan')):.3f}; {time.perf_counter() - t:.0f} s)",
               flush=True)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
-                            text=True).stdout.strip()
+    commit = head_commit()
     meta = {"when": time.strftime("%Y-%m-%d %H:%M"), "commit": commit,
             "commits": {**{k: commit for k in res if k not in kept}, **kept}}
     res = {c.key: res[c.key] for c in G.CASES if c.key in res}          # the section's order
@@ -154,8 +158,7 @@ def main_short(cases: list, lengths: list[int]) -> int:
         print(f"{case.key}: " + ", ".join(f"{n}: {100 * x['off']:.1f} -> {100 * x['auto']:.1f} %"
                                          for n, x in r["takes"].items())
               + f" ({time.perf_counter() - t:.0f} s)", flush=True)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
-                            text=True).stdout.strip()
+    commit = head_commit()
     meta = {"when": time.strftime("%Y-%m-%d %H:%M"), "commit": commit, "lengths": lengths}
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "auto_calibration_short.json").write_text(json.dumps({"meta": meta, "cases": res}, indent=1))
