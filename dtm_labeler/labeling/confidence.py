@@ -144,7 +144,7 @@ def published_confidence(posterior_of_point: np.ndarray, search_labels: np.ndarr
     the search's local posterior for the label it gave the point (NaN if none);
     ``fit_deficit`` nats per labelled point below the model's training fit; ``power`` the
     tempering (:data:`CONFIDENCE_POWER`; :data:`CONFIRMATION_POWER` for the confirmation)."""
-    p = np.nan_to_num(posterior_of_point, nan=0.0)
+    p = np.where(np.isnan(posterior_of_point), 0.0, posterior_of_point)
     agree = published == search_labels
     fit = float(np.exp(-max(fit_deficit - FIT_SLACK, 0.0) / FIT_SCALE)) if np.isfinite(fit_deficit) else 1.0
     conf = np.clip(np.where(agree, p, 1.0 - p) * vote_share * fit, 0.0, 1.0) ** power

@@ -901,7 +901,7 @@ class TrackedLabeler:
         pts = xyz[keep]
         upd = self.tracker.update(pts, stamp, None if ids is None else np.asarray(ids)[keep])
         # points whose velocity is first known this frame (their track began last frame)
-        self._event_points = np.flatnonzero(np.isin(upd.track_ids, self._new_tracks))
+        self._event_points = np.flatnonzero((upd.track_ids[:, None] == self._new_tracks[None]).any(1))
         self._new_tracks = upd.track_ids[upd.new]
         out_ids = upd.track_ids if ids is None else np.asarray(ids, dtype=np.int64)[keep]
         return FrameInput(xyz.shape[0], finite, keep, pts, upd, reason, n_ignored, dt, out_ids)

@@ -149,8 +149,7 @@ class Tracker:
         states[:, :3] = xyz
         mm = match[m]
         dt = t - self.last_t[mm]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            v = (xyz[m] - self.pos[mm]) / np.where(dt > 0, dt, np.nan)[:, None]
+        v = np.divide(xyz[m] - self.pos[mm], dt[:, None], out=np.full((mm.size, 3), np.nan), where=dt[:, None] > 0)
         states[m, 3:] = v
         track_ids = np.empty(n, dtype=np.int64)
         track_ids[m] = self.ids[mm]

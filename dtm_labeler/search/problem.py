@@ -75,7 +75,9 @@ class FrameProblem:
         self.heading_hint = 0.0 if heading_hint is None or not np.isfinite(heading_hint) else float(heading_hint)
         self.snap = float(np.radians(heading_snap_deg))
         self.anchor: float | None = None           # yaw that candidates within ``snap`` of it are scored at
-        self.states = np.vstack([states, np.full((1, STATE_DIM), np.nan)])       # row n = missing
+        self.states = np.empty((self.n + 1, STATE_DIM))                        # row n = missing
+        self.states[:-1] = states
+        self.states[-1] = np.nan
         self.codes = observation_state(self.states)
         xyz = self.states[:, :3]
         diff = xyz[:, None] - xyz[None]
@@ -94,8 +96,10 @@ class FrameProblem:
         b = background
         has_v = self.codes[:-1] == 2
         # gain of labelling point p (relative to it being clutter), before model terms
-        self.label_gain = np.append(np.log(b.detection_probability) - (b.log_position + has_v * b.log_velocity),
-                                    np.log1p(-b.detection_probability))
+        log_detect, log_pos = np.log(b.detection_probability), b.log_position
+        self.label_gain = np.empty(self.n + 1)
+        self.label_gain[:-1] = np.where(has_v, log_detect - (log_pos + b.log_velocity), log_detect - log_pos)
+        self.label_gain[-1] = np.log1p(-b.detection_probability)
         self.cache = TermTable()
         self.evaluations = 0
 
