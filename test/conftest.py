@@ -81,11 +81,14 @@ def pytest_runtest_makereport(item, call):
             report.sections.append((f"node {proc.fqn} ({state}, log {proc.log_path})", tail))
 
 
-#: Modules whose tests take longest (tens of seconds of CPU each), run first so that under
-#: ``pytest -n 2`` the workers end together instead of one finishing a long test alone.
-LONG_FIRST = ("test_node_colcon.py", "test_training_augment.py", "test_calibrate_cli.py",
-              "test_accuracy_floors.py", "test_take_pass.py", "test_archive.py", "test_settings_honoured.py",
-              "test_e2e_replay.py", "test_structure_search.py", "test_label_cli.py", "test_take_votes.py")
+#: Modules whose tests take longest (tens of seconds each, measured with ``--durations``), run first
+#: so that under ``pytest -n 2`` the workers end together instead of one finishing a long test
+#: alone. pytest.ini's ``--no-loadscope-reorder`` makes xdist keep this order: by default it hands
+#: out the files with the most tests first, which put the single 30-s colcon test last.
+LONG_FIRST = ("test_calibrate_cli.py", "test_archive.py", "test_accuracy_floors.py", "test_label_cli.py",
+              "test_node_colcon.py", "test_training_augment.py", "test_e2e_replay.py", "test_placement.py",
+              "test_take_votes.py", "test_recovery.py", "test_settings_honoured.py", "test_take_pass.py",
+              "test_node_reload.py", "test_structure_search.py", "test_generalisation.py", "test_evaluate.py")
 
 
 def pytest_collection_modifyitems(session, config, items):
