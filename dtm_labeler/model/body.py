@@ -372,6 +372,9 @@ class Handedness:
 HANDEDNESS_SHARE = 0.99
 #: nats a labeling pays per quadruple it shows mirrored (measured: 1 gained little, 3 best)
 HANDEDNESS_NATS = 3.0
+#: a quadruple is a cluster when its six distances spread (sd / median) at most this much
+#: (one segment's markers: under 0.25; across two limbs: 0.6-0.8 in a take that moves them)
+RIGID_SPREAD = 0.3
 
 
 class TrunkTwist:
