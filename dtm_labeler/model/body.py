@@ -310,7 +310,8 @@ class Handedness:
     cluster: the sign of the signed volume ``det[x_b - x_a, x_c - x_a, x_d - x_a]`` of four
     neighbouring points, which no rotation changes, so no motion of a (nearly) rigid cluster
     does. The training fixes, for quadruples ``q`` of neighbouring labels (each label and three
-    of its four nearest by median distance) that show one sign in at least
+    of the four whose distance to it varies least: its own segment's markers) that hold together
+    (six distances within ``RIGID_SPREAD``) and show one sign in at least
     ``HANDEDNESS_SHARE`` of the training frames, that sign; a labeling whose points show the
     other sign pays ``HANDEDNESS_NATS`` per quadruple -- one more factor of the product of
     experts, as :class:`CrossSegments`:
