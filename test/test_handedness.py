@@ -162,3 +162,19 @@ def test_only_rigid_clusters_get_a_handedness(hdm):
     learnt = {tuple(q) for q in handedness_quads([P])[0].tolist()}
     assert tuple(sorted(forearm)) in learnt and tuple(sorted(across)) not in learnt
     assert rigid_quads(P, np.array(sorted(learnt))).all()
+
+
+def test_toe_quadruples_do_not_take_in_the_other_foot(data_dir):
+    """Partners are the labels whose distance varies least, not the nearest: in the part of the
+    HDM05 take the generalisation cells train on (its first 30 %), the feet stand close together
+    and a toe marker's nearest by median distance took in the other foot's toe (LANK-LHEE-LTOE-
+    RTOE among others). Such a quadruple's sign is the pose's, not a cluster's: no learnt
+    quadruple may hold toe markers of both feet, while each foot's own cluster is learnt."""
+    clip = load_clip(data_dir / HDM)
+    P = clip.slice(0, int(0.3 * clip.n_frames)).positions
+    names = list(clip.names)
+    toes = {side: {names.index(side + m) for m in ("TOE", "MT5")} for side in "LR"}
+    learnt = {tuple(q) for q in handedness_quads([P])[0].tolist()}
+    for side in "LR":
+        assert tuple(sorted(names.index(side + m) for m in ("ANK", "HEE", "TOE", "MT5"))) in learnt
+    assert not any(set(q) & toes["L"] and set(q) & toes["R"] for q in learnt)
