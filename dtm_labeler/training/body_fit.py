@@ -143,7 +143,12 @@ def handedness_quads(clips: Sequence[np.ndarray], share: float = HANDEDNESS_SHAR
     41-marker generalisation cells, ``dtm-label``'s default self-calibration
     (``benchmarks/bench_auto_calibration.py``), nearest by median -> by sd: HDM05 -> CMU 85
     jump + twist 97.16 -> 97.96 %, floor moves 89.13 -> 93.64 %, CMU 85 breakdance -> jump +
-    twist 99.95 -> 100 %, the other two as they were (99.12, 100 %)."""
+    twist 99.95 -> 100 %, the other two as they were (99.12, 100 %). Tried and not kept: the
+    four least varying among the eight nearest (floor moves 83.62 %, HDM05 -> CMU 85 97.98 %),
+    mutual partners only (77.06 %, 97.72 %), and a spread limit of 0.07 instead of 0.3 in
+    :func:`rigid_quads` (94.76 %, 98.28 %, but CMU 85 breakdance -> jump + twist 99.48 % and
+    jump + twist -> breakdance 98.97 %). A training part that hardly moves (HDM05's first 30 %:
+    most distances vary by 1-3 mm) still pairs some markers across joints."""
     P = np.concatenate([c[np.linspace(0, c.shape[0] - 1, min(c.shape[0], max_frames)).astype(np.int64)]
                         for c in clips])
     M = P.shape[1]
