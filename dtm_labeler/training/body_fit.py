@@ -225,14 +225,16 @@ def rigid_quads(positions: np.ndarray, quads: np.ndarray, seen: np.ndarray | Non
     (:class:`~dtm_labeler.model.body.Handedness`): four points spread over two limbs (a foot's
     markers and the other heel, both shins) show one sign only while the pose keeps them so.
     Training frames of a motion that hardly moves its legs can show such a quadruple with one
-    sign in 99 % of them; the next motion shows both. Measured, HDM05 -> CMU 85 jump + twist,
-    self-calibrated on the take's first 600 frames: the quadruples across the two feet spread
-    0.64-0.78 there (0.08-0.29 in the HDM05 training frames) and the person's true labels show
-    their learnt sign in 32-62 % of frames 300-600, which made the labeler exchange LTOE/LMT5 and
-    RTOE/RMT5 to suit them; the clusters on one segment spread under 0.25 (head, trunk, one
-    foot, a wrist bar). With this check, ``dtm-label``'s self-calibrated floor-moves cell
-    (``benchmarks/bench_auto_calibration.py``) went 69.97 -> 89.13 %, the other 41-marker
-    cells as before."""
+    sign in 99 % of them; the next motion shows both. Measured, HDM05 -> CMU 85 jump + twist:
+    with the true labels of the take's first 600 frames the quadruples across the two feet
+    spread 0.64-0.78 (0.08-0.29 in the HDM05 training frames), and those labels show the learnt
+    sign in 32-62 % of frames 300-600, which made the labeler exchange LTOE/LMT5 and RTOE/RMT5
+    to suit them; the clusters on one segment spread under 0.25 (head, trunk, one foot, a wrist
+    bar). The frames the self-calibration confirmed there stand still (spread 0.05-0.08), so in
+    that cell the partner rule of :func:`handedness_quads` is what removes those quadruples;
+    this check removes them where the calibration window moves: ``dtm-label``'s self-calibrated
+    floor-moves cell (``benchmarks/bench_auto_calibration.py``) went 69.97 -> 89.13 %, the
+    other 41-marker cells as before."""
     quads = np.asarray(quads, dtype=np.int64).reshape(-1, 4)
     if quads.shape[0] == 0:
         return np.zeros(0, dtype=bool)
