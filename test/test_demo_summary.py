@@ -1,7 +1,10 @@
 """dtm-demo's per-frame summary (pure Python, no node): frames with errors, the start-up
-before the first fully right frame, and the accuracy from that frame on; and its model cache."""
-from dtm_labeler.cli.demo import _frames_with_errors, cached_model_path
+before the first fully right frame, and the accuracy from that frame on; and its model cache,
+calibrated to the recording's person unless asked not to."""
+from dtm_labeler.cli.demo import _train_cached, build_parser, cached_model_path, _frames_with_errors
 from dtm_labeler.model import io as model_io
+from dtm_labeler.model.body import SEGMENT
+from dtm_labeler.motion import synthesize
 
 
 def test_start_up_and_steady_accuracy():
@@ -29,3 +32,20 @@ def test_cached_model_is_named_by_key_and_model_format(monkeypatch, tmp_path):
     assert cached_model_path({"seed": 1, "frames": 600}) != path
     monkeypatch.setattr(model_io, "FORMAT_VERSION", model_io.FORMAT_VERSION + 1)
     assert cached_model_path(key) != path
+
+
+def test_recording_model_is_calibrated_to_its_person(monkeypatch, tmp_path):
+    """``--data``: the model trained on the recording's first part is calibrated to its one
+    person (``dtm-train --calibrate``: segment lengths applied) and cached apart from the
+    generic model ``--no-calibrate`` keeps."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    clips = lambda: [synthesize(duration=2.0, rate=120.0, seed=3)]    # noqa: E731
+    cal = model_io.load_model(_train_cached({"t": 1, "calibrated": True}, clips, True, lambda *_: None,
+                                            calibrate=True))
+    gen = model_io.load_model(_train_cached({"t": 1}, clips, True, lambda *_: None))
+    assert cal.provenance["calibration"]["source"] == "training takes" and cal.body.calibration
+    assert not gen.body.calibration and "calibration" not in gen.provenance
+    assert SEGMENT in cal.body.applied_kinds and SEGMENT not in gen.body.applied_kinds
+    assert len(list((tmp_path / "dtm_labeler").glob("demo_model_*.npz"))) == 2
+    assert not build_parser().parse_args([]).no_calibrate
+    assert build_parser().parse_args(["--no-calibrate"]).no_calibrate

@@ -19,7 +19,10 @@ labeling and publishing.
 
 ``--data PATH`` replays a real recording instead: the model is trained on its first 70 %
 (``--train-frames``; cached too) and the rest (``--test-frames``) is replayed, so the labelled
-frames were never seen in training. ``--model`` skips training.
+frames were never seen in training. The recording is one person, so the model is calibrated to
+them as ``dtm-train --calibrate`` does (the training frames' own labels set the body terms: what a
+lab does with a subject's range-of-motion take before capturing them); ``--no-calibrate`` keeps
+the generic model. ``--model`` skips training.
 """
 from __future__ import annotations
 
@@ -163,9 +166,11 @@ def cached_model_path(key: dict) -> Path:
     return cache_dir() / f"demo_model_{h}.npz"
 
 
-def _train_cached(key: dict, make_clips, quiet: bool, log) -> Path:
-    """Train (or reuse) a model for ``key``; returns the model path."""
+def _train_cached(key: dict, make_clips, quiet: bool, log, calibrate: bool = False) -> Path:
+    """Train (or reuse) a model for ``key``, calibrated to the clips' one person when asked
+    (:func:`~dtm_labeler.training.calibrate.calibrate_on_takes`); returns the model path."""
     from ..model.io import save_model
+    from ..training.calibrate import calibrate_on_takes
     from ..training.train import TrainConfig, train_model
 
     path = cached_model_path(key)
@@ -175,11 +180,13 @@ def _train_cached(key: dict, make_clips, quiet: bool, log) -> Path:
     t = time.perf_counter()
     clips = make_clips()
     model, summary = train_model(clips, TrainConfig(seed=0))
+    if calibrate:
+        model = calibrate_on_takes(model, clips)
     tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
     save_model(model, tmp)
     os.replace(tmp, path)
-    log(f"model     {path} (trained in {time.perf_counter() - t:.1f} s on "
-        f"{sum(c.n_frames for c in clips)} frames)")
+    log(f"model     {path} (trained{' and calibrated to the person' if calibrate else ''} in "
+        f"{time.perf_counter() - t:.1f} s on {sum(c.n_frames for c in clips)} frames)")
     return path
 
 
@@ -212,9 +219,11 @@ def prepare(args, work: Path, log) -> tuple[Path, Path, dict]:
         if args.model:
             model_path = Path(args.model)
         else:
+            calibrate = not args.no_calibrate
             model_path = _train_cached({"data": str(data.resolve()), "mtime": data.stat().st_mtime,
-                                        "points": args.points, "frames": [a, b], "v": 1},
-                                       lambda: [full.slice(a, b)], args.quiet, log)
+                                        "points": args.points, "frames": [a, b], "v": 1,
+                                        **({"calibrated": True} if calibrate else {})},
+                                       lambda: [full.slice(a, b)], args.quiet, log, calibrate=calibrate)
         model = load_model(model_path)
         test_spec = args.test_frames or (f"{b}:" if b < full.n_frames else None)
         if test_spec is None:
@@ -256,6 +265,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--train-frames", default="0:70%", metavar="A:B", help="with --data: frames to train on")
     p.add_argument("--test-frames", default=None, metavar="A:B",
                    help="with --data: frames to replay (default: the rest after --train-frames)")
+    p.add_argument("--no-calibrate", action="store_true",
+                   help="with --data: keep the trained model generic (default: calibrated to the recording's "
+                        "person on the training frames' labels, as dtm-train --calibrate)")
     p.add_argument("--model", default=None, help="use this model file instead of training one")
     p.add_argument("--duration", type=float, default=10.0, metavar="S", help="seconds of stream to replay (at most)")
     p.add_argument("--rate-hz", type=float, default=None, metavar="HZ",
