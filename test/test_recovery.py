@@ -262,7 +262,8 @@ def test_observed_frames_keep_the_tracks(model, walker):
 def test_tracker_gate_grows_with_skipped_time_only():
     """A late update (frames skipped) widens every gate by the acceleration and new-track
     speed bounds; an occluded marker's coasting track keeps its ordinary gate."""
-    tr = Tracker(TrackerSettings(gate_m=0.05, gate_speed_factor=0.0, accel_mps2=50.0, new_track_speed_mps=2.0))
+    tr = Tracker(TrackerSettings(gate_m=0.05, known_gate_m=0.05, gate_speed_factor=0.0, accel_mps2=50.0,
+                                 new_track_speed_mps=2.0))
     p = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0]])
     for k in range(5):
         tr.update(p + [0.01 * k, 0, 0], k / 100)

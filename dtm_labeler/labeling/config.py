@@ -217,8 +217,12 @@ PARAMS: Tuple[Param, ...] = (
           range=(0.01, 1000.0)),
     Param("seed", 0, "Random seed of the searches (reproducible runs).", range=(0, INT_MAX), flag="--seed"),
     # -- tracker -------------------------------------------------------------------------------
-    Param("gate_m", TrackerSettings.gate_m, "Tracker association radius in metres (grows with the "
-          "track's speed).", range=(0.0001, 100.0)),
+    Param("gate_m", TrackerSettings.gate_m, "Tracker association radius in metres of a track seen "
+          "once (no velocity yet); grows with the time it has not been seen.", range=(0.0001, 100.0)),
+    Param("known_gate_m", TrackerSettings.known_gate_m, "Tracker association radius in metres of a "
+          "track whose velocity is known (grows with the track's speed); smaller, so a neighbour in a "
+          "dense marker cluster does not take over a track while its marker is hidden.",
+          range=(0.0001, 100.0)),
     Param("gate_speed_factor", TrackerSettings.gate_speed_factor, "Gate growth per metre of "
           "predicted travel between frames.", range=(0.0, 100.0)),
     Param("max_misses", TrackerSettings.max_misses, "Frames a lost track coasts (and is predicted) "
@@ -410,7 +414,8 @@ def settings_from_params(values: Mapping[str, Any]) -> LabelerSettings:
         full=full, warm=warm,
         background=Background(volume_m3=v["clutter_volume_m3"], max_speed_mps=v["clutter_max_speed_mps"],
                               detection_probability=v["detection_probability"]),
-        tracker=TrackerSettings(gate_m=v["gate_m"], gate_speed_factor=v["gate_speed_factor"],
+        tracker=TrackerSettings(gate_m=v["gate_m"], known_gate_m=v["known_gate_m"],
+                                gate_speed_factor=v["gate_speed_factor"],
                                 max_misses=v["max_misses"], accel_mps2=v["accel_mps2"],
                                 new_track_speed_mps=v["new_track_speed_mps"]), **direct)
 
@@ -423,7 +428,8 @@ def params_from_settings(settings: LabelerSettings) -> Dict[str, Any]:
                time_budget_ms=(s.full.time_budget_s or 0.0) * 1e3, warm_population=s.warm.population,
                warm_generations=s.warm.max_generations, warm_stagnation=s.warm.stagnation,
                fresh_fraction=s.full.fresh_fraction, region_sweeps=s.full.region_sweeps,
-               gate_m=s.tracker.gate_m, gate_speed_factor=s.tracker.gate_speed_factor,
+               gate_m=s.tracker.gate_m, known_gate_m=s.tracker.known_gate_m,
+               gate_speed_factor=s.tracker.gate_speed_factor,
                max_misses=s.tracker.max_misses, accel_mps2=s.tracker.accel_mps2,
                new_track_speed_mps=s.tracker.new_track_speed_mps, clutter_volume_m3=s.background.volume_m3,
                clutter_max_speed_mps=s.background.max_speed_mps,

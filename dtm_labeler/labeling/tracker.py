@@ -8,8 +8,15 @@ track of its id; a point with an id never seen before may still continue a track
 its point (the systems start a new id when a marker comes back from an occlusion -- with
 flickering markers, every few frames): it is associated with the tracks left over by the same
 gated assignment, and its id becomes an alias of that track.
-The gate of a track seen ``dt`` ago is ``gate_m + gate_speed_factor |v| dt`` at the stream's
-own frame interval. When the update comes ``x`` later than that interval after the previous
+The gate of a track seen ``dt`` ago is ``known_gate_m + gate_speed_factor |v| dt`` at the
+stream's own frame interval when its velocity is known (seen twice or more), ``gate_m`` for a
+track seen once: a known velocity predicts the point to a few millimetres, while a point seen
+once may have moved several centimetres. The smaller radius keeps a neighbour of a dense cluster
+(a hand, a foot, a wand) from taking over a coasting track. Second halves of the shared takes
+with half of their samples in gaps (``benchmarks/bench_captures.py``, gap seed 1), samples on a
+track that held another marker before, one radius of 6 cm -> 3 cm for known velocities: Qualisys
+55-marker walk 183 -> 13 of 4679, HDM05 70 -> 44 of 11800 (gap seed 3: 46 -> 12), CMU 85_02
+298 -> 115 of 7772; 4 cm for known velocities: 35, 67, 231. When the update comes ``x`` later than that interval after the previous
 one (frames were skipped by a slow consumer, or lost) every gate grows by ``accel_mps2 x^2 / 2`` -- how far an acceleration can
 take a marker off its constant-velocity prediction -- and, for a track whose velocity is not
 known yet (seen once), by ``new_track_speed_mps x``: the tracks survive the skip instead of all
@@ -69,17 +76,18 @@ def warm_up() -> None:
 
 @dataclass
 class TrackerSettings:
-    gate_m: float = 0.06               # base association radius (metres)
+    gate_m: float = 0.06               # base association radius (metres) of a track seen once
+    known_gate_m: float = 0.03         # ... of a track whose velocity is known
     gate_speed_factor: float = 0.5     # + this x predicted travel in the frame
     max_misses: int = 12               # frames a lost track coasts before deletion
     accel_mps2: float = 50.0           # + accel dt^2 / 2: what acceleration adds to the prediction error
     new_track_speed_mps: float = 2.0   # a track seen once may have moved this fast
 
     def __post_init__(self) -> None:
-        if not self.gate_m > 0 or min(self.gate_speed_factor, self.max_misses, self.accel_mps2,
-                                      self.new_track_speed_mps) < 0:
-            raise ValueError("gate_m must be > 0; gate_speed_factor, max_misses, accel_mps2, "
-                             "new_track_speed_mps >= 0")
+        if not (self.gate_m > 0 and self.known_gate_m > 0) or min(
+                self.gate_speed_factor, self.max_misses, self.accel_mps2, self.new_track_speed_mps) < 0:
+            raise ValueError("gate_m and known_gate_m must be > 0; gate_speed_factor, max_misses, "
+                             "accel_mps2, new_track_speed_mps >= 0")
 
 
 @dataclass
@@ -120,7 +128,7 @@ class Tracker:
         # track was last seen: an occluded marker's coasting track keeps its ordinary gate)
         extra = min(max(t - self.t - self.frame_dt, 0.0), MAX_SKIP_S) if self.frame_dt and self.t is not None else 0.0
         speed = s.gate_speed_factor * np.linalg.norm(self.vel, axis=1)
-        return (s.gate_m + speed * dt + 0.5 * s.accel_mps2 * extra * extra
+        return (np.where(self.known, s.known_gate_m, s.gate_m) + speed * dt + 0.5 * s.accel_mps2 * extra * extra
                 + np.where(self.known, 0.0, s.new_track_speed_mps * extra))
 
     def update(self, xyz: np.ndarray, t: float, ids: np.ndarray | None = None) -> TrackUpdate:
