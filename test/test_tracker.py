@@ -219,3 +219,21 @@ def test_tracks_of_a_gappy_dense_marker_set_stay_pure(data_dir):
 
     assert impure_share(TrackerSettings()) < 0.01
     assert impure_share(TrackerSettings(known_gate_m=0.06)) > 0.02       # one wide radius for all
+
+
+def test_an_id_seen_before_never_continues_another_track():
+    """With input ids, a new id may continue a track that lost its point (a system that gives a
+    marker back from occlusion a new id); an id seen before whose track ended is the same marker
+    back (a C3D channel after a long gap) and starts a track of its own, even beside another
+    marker's coasting track."""
+    tr = Tracker(TrackerSettings(gate_speed_factor=0.0, max_misses=2))
+    tr.update(np.array([[0, 0, 1.0], [0.5, 0, 1.0]]), 0.0, ids=np.array([3, 4]))
+    tr.update(np.array([[0, 0, 1.0], [0.5, 0, 1.0]]), DT, ids=np.array([3, 4]))
+    for k in range(2, 6):                                    # id 3 hidden: its track ends
+        tr.update(np.array([[0.5, 0, 1.0]]), k * DT, ids=np.array([4]))
+    tr.update(np.array([[0.2, 0, 1.0]]), 6 * DT, ids=np.array([8]))        # another marker ...
+    tr.update(np.array([[0.2, 0, 1.0]]), 7 * DT, ids=np.array([8]))        # ... then hidden: coasts
+    u = tr.update(np.array([[0.21, 0, 1.0]]), 8 * DT, ids=np.array([3]))   # id 3 back beside it
+    assert u.new.all() and u.track_ids.tolist() == [3]
+    u = tr.update(np.array([[0.21, 0, 1.0]]), 9 * DT, ids=np.array([9]))   # a new id: continues
+    assert not u.new.any() and u.track_ids.tolist() == [3]

@@ -7,7 +7,13 @@ When the input carries ids (a mocap system's unlabelled trajectories), a point k
 track of its id; a point with an id never seen before may still continue a track that lost
 its point (the systems start a new id when a marker comes back from an occlusion -- with
 flickering markers, every few frames): it is associated with the tracks left over by the same
-gated assignment, and its id becomes an alias of that track.
+gated assignment, and its id becomes an alias of that track. An id that was seen before and
+whose track ended (a C3D channel, a trajectory that keeps its id through a long gap) is the same
+marker coming back: it starts a track of its own again, never another marker's (the last
+``RETIRED_IDS`` such ids are remembered). On HDM05's gapped second half with the channels as ids
+(``benchmarks/bench_captures.py``), re-used ids had continued other markers' tracks: 131 of 11800
+samples on a track that held another marker, 0 with this rule (the gapped Qualisys walk 137 -> 121:
+the rest are ids first seen beside a coasting track); the benchmark's labels did not change.
 The gate of a track seen ``dt`` ago is ``known_gate_m + gate_speed_factor |v| dt`` at the
 stream's own frame interval when its velocity is known (seen twice or more), ``gate_m`` for a
 track seen once: a known velocity predicts the point to a few millimetres, while a point seen
@@ -38,6 +44,8 @@ MAX_SKIP_S = 0.25
 
 
 _OUTSIDE = 1e6               # cost of a pair outside the gate (never chosen unless forced)
+#: how many ids of ended tracks are remembered (module doc)
+RETIRED_IDS = 4096
 
 
 @njit(cache=True, nogil=True)
@@ -106,6 +114,7 @@ class Tracker:
     def reset(self) -> None:
         self.alias_in = np.zeros(0, dtype=np.int64)     # input ids (sorted) that continue a track ...
         self.alias_to = np.zeros(0, dtype=np.int64)     # ... and the track ids they continue
+        self.retired = np.zeros(0, dtype=np.int64)      # input ids of ended tracks, oldest first
         self.ids = np.zeros(0, dtype=np.int64)
         self.pos = np.zeros((0, 3))
         self.vel = np.zeros((0, 3))
@@ -147,6 +156,8 @@ class Tracker:
                 match[hit] = order[pos[hit]]
         if self.ids.size and n and (ids is None or (match < 0).any()):
             cost = gated_cost(self.pos, self.vel, self.last_t, self.gate(t), t, xyz, match)
+            if ids is not None and self.retired.size:       # a known marker back: never an alias
+                cost[:, np.isin(ids, self.retired) & (match < 0)] = _OUTSIDE
             r, c = linear_sum_assignment(cost)
             ok = cost[r, c] < _OUTSIDE
             if ids is not None and ok.any():           # new ids that continue a track
@@ -181,9 +192,13 @@ class Tracker:
         keep = self.misses <= self.settings.max_misses
         lost = self.ids[~keep]
         if lost.size:
+            ended = lost
             if self.alias_in.size:
                 live = ~np.isin(self.alias_to, lost)
+                ended = np.concatenate([lost, self.alias_in[~live]])
                 self.alias_in, self.alias_to = self.alias_in[live], self.alias_to[live]
+            if ids is not None:
+                self.retired = np.concatenate([self.retired, ended])[-RETIRED_IDS:]
             self.ids, self.pos, self.vel, self.known = self.ids[keep], self.pos[keep], self.vel[keep], self.known[keep]
             self.last_t, self.misses = self.last_t[keep], self.misses[keep]
         if n_new:
