@@ -218,7 +218,8 @@ PARAMS: Tuple[Param, ...] = (
     Param("seed", 0, "Random seed of the searches (reproducible runs).", range=(0, INT_MAX), flag="--seed"),
     # -- tracker -------------------------------------------------------------------------------
     Param("gate_m", TrackerSettings.gate_m, "Tracker association radius in metres of a track seen "
-          "once (no velocity yet); grows with the time it has not been seen.", range=(0.0001, 100.0)),
+          "only once (no velocity yet: the point may have moved several centimetres).",
+          range=(0.0001, 100.0)),
     Param("known_gate_m", TrackerSettings.known_gate_m, "Tracker association radius in metres of a "
           "track whose velocity is known (grows with the track's speed); smaller, so a neighbour in a "
           "dense marker cluster does not take over a track while its marker is hidden.",

@@ -22,8 +22,8 @@ once may have moved several centimetres. The smaller radius keeps a neighbour of
 with half of their samples in gaps (``benchmarks/bench_captures.py``, gap seed 1), samples on a
 track that held another marker before, one radius of 6 cm -> 3 cm for known velocities: Qualisys
 55-marker walk 183 -> 13 of 4679, HDM05 70 -> 44 of 11800 (gap seed 3: 46 -> 12), CMU 85_02
-298 -> 115 of 7772; 4 cm for known velocities: 35, 67, 231. When the update comes ``x`` later than that interval after the previous
-one (frames were skipped by a slow consumer, or lost) every gate grows by ``accel_mps2 x^2 / 2`` -- how far an acceleration can
+298 -> 115 of 7772; 4 cm for known velocities: 35, 67, 231.
+When the update comes ``x`` later than that interval after the previous one (frames were skipped by a slow consumer, or lost) every gate grows by ``accel_mps2 x^2 / 2`` -- how far an acceleration can
 take a marker off its constant-velocity prediction -- and, for a track whose velocity is not
 known yet (seen once), by ``new_track_speed_mps x``: the tracks survive the skip instead of all
 breaking (which would force a fresh search, and a slower frame, and more skips). When the input carries track ids
