@@ -110,6 +110,40 @@ def test_misplaced_tracks_get_their_labels_back(take):
     assert (now[truth < 0] == -1).all()                                   # the unknown marker: left out
 
 
+def test_a_label_far_from_all_its_partners_is_refuted(take):
+    """A head marker's trajectory piece given a foot label that is free in its frames (the
+    live pass's error on a gapped HDM05 take: the foot's only triangle hidden, the head's
+    velocity alone fit it): every rigid partner of the foot is a metre away, beyond the reach
+    of any rigid pair, and those broken distances refute the label, so the piece gets its own
+    label back."""
+    names = take["names"]
+    labels = [np.where(t >= 0, t, -1) for t in take["truth"]]
+    P = label_positions(take["xyz"], take["truth"], take["n_labels"])
+    free = ~np.isfinite(P[..., 0])                                        # (F, M)
+    heads = [names.index(n) for n in ("LFHD", "RFHD", "LBHD", "RBHD")]
+    feet = [names.index(n) for n in ("LMT5", "RMT5", "LTOE", "RTOE", "LHEE", "RHEE")]
+    piece, head, foot = max(((fr, int(take["truth"][fr[0][0]][fr[0][1]]), a) for fr in _pieces(take).values()
+                             for a in feet if take["truth"][fr[0][0]][fr[0][1]] in heads
+                             and all(free[f, a] for f, _ in fr)), key=lambda c: len(c[0]))
+    assert len(piece) >= 10
+    # as in that take, one rigid partner of the head in view (another head marker): one
+    # partner's worth of support for the piece's own label, which alone would not move it back
+    frames = [f for f, _ in piece]
+    partners = np.flatnonzero(rigid_pairs(P).rigid[head])
+    keep = max(set(heads) & set(partners.tolist()), key=lambda h: (~free[frames, h]).sum())
+    xyz, tracks = list(take["xyz"]), list(take["tracks"])
+    for k, (f, i) in enumerate(piece):
+        t = take["truth"][f]
+        stay = ~np.isin(t, partners[partners != keep])
+        xyz[f], tracks[f], labels[f] = xyz[f][stay], tracks[f][stay], labels[f][stay]
+        i = int(np.flatnonzero(t[stay] == head)[0])
+        labels[f][i] = foot
+        piece[k] = (f, i)
+    new, moves = relabel_tracks(xyz, tracks, labels, take["n_labels"])
+    back = np.mean([new[f][i] == head for f, i in piece])
+    assert back == 1.0 and moves >= 1
+
+
 def test_right_labels_stay_and_untracked_points_are_kept(take):
     labels = [np.where(t >= 0, t, -1) for t in take["truth"]]
     new, moves = relabel_tracks(take["xyz"], take["tracks"], labels, take["n_labels"])

@@ -40,6 +40,11 @@ spread evenly over a metre,
     e_ab(d) = log N(d; D_ab, S_ab) - log(1 / 1 m),   z = |d - D_ab| / S_ab capped at 4,
 
 so a matching distance gains about 5 nats (spread 3 mm) and a broken one costs at most about 3.
+Every pair seen together counts, however far apart: a piece given a label whose partners are
+all a metre away is refuted by them. (HDM05, gapped: a forehead marker published as the fifth
+metatarsal of a hidden foot -- the metatarsal's one DTM triangle had both other vertices
+hidden, so the frames' search judged it by its velocity alone. Reading only the pairs within
+the longest rigid length, that label scored 0 and the forehead kept it for 54 frames.)
 The frames of a piece are not independent evidence: a head held at one distance from the
 upper back for 17 frames matches the length of a pelvis-to-back pair in every one of them
 (CMU 85 jump + twist: from the true labels, a forehead marker moved to the right hip that
@@ -101,7 +106,9 @@ Tried and not kept (the same two runs; from the truth: the worst take):
   (dropping pose-held pairs such as a hand resting on the hip): 96.67 / 97.95 %, own tracker
   97.64 / 96.54 % -- fewer pairs, less evidence everywhere.
 
-Bounded: takes are relabelled in blocks of ``block`` frames (pieces cut at block edges), the
+Bounded: beyond the longest rigid length (+ 4 spreads) every rigid pair is broken at the cap,
+so a (piece, partner piece) pair's frames there are one evidence entry weighted by their
+count. Takes are relabelled in blocks of ``block`` frames (pieces cut at block edges), the
 pairs measured on at most ``table_frames`` frames of each block, and a block of very many
 short pieces (flicker) halved until its evidence cells fit in ``MAX_CELLS``. 600 frames of 41
 markers take under a second.
@@ -293,7 +300,11 @@ def _relabel_block(xyz, pieces, labels, M, support, partner_cap, table_frames, m
     reach = float(np.max(np.where(pairs.rigid, pairs.length + Z_CAP * pairs.spread, 0.0)))
     lab = np.full(n_pieces, -1, dtype=np.int64)
     members: list[list[int]] = [[] for _ in range(n_pieces)]
-    P, Q, D = [], [], []                   # co-visible piece pairs within reach: piece, partner, distance
+    # evidence entries: piece, partner piece, distance, weight. Within reach one entry per frame;
+    # beyond it every rigid pair's distance is broken at the cap whatever it is, so the frames of
+    # one (piece, partner) are a single entry at distance inf weighted by their count
+    P, Q, D = [], [], []
+    far = []                               # n_pieces * piece + partner, per frame seen beyond reach
     for f in range(F):
         p = pid[f]
         tracked = p >= 0
@@ -303,11 +314,18 @@ def _relabel_block(xyz, pieces, labels, M, support, partner_cap, table_frames, m
         x = np.asarray(xyz[f], dtype=np.float64)[tracked]
         pp = p[tracked]
         d = np.linalg.norm(x[:, None] - x[None], axis=-1)
-        i, j = np.nonzero((d <= reach) & ~np.eye(len(pp), dtype=bool))
+        near = d <= reach
+        i, j = np.nonzero(near & ~np.eye(len(pp), dtype=bool))
         P.append(pp[i])
         Q.append(pp[j])
         D.append(d[i, j])
-    P, Q, D = np.concatenate(P), np.concatenate(Q), np.concatenate(D)
+        i, j = np.nonzero(~near)
+        far.append(pp[i] * n_pieces + pp[j])
+    key, count = np.unique(np.concatenate(far), return_counts=True)
+    W = np.concatenate([np.ones(sum(len(x) for x in P)), count.astype(np.float64)])
+    P = np.concatenate(P + [key // n_pieces])
+    Q = np.concatenate(Q + [key % n_pieces])
+    D = np.concatenate(D + [np.full(key.size, np.inf)])
     frames = [np.asarray(m, dtype=np.int64) for m in members]
     by_partner = np.split(np.argsort(Q, kind="stable"), np.cumsum(np.bincount(Q, minlength=n_pieces))[:-1])
 
@@ -324,7 +342,7 @@ def _relabel_block(xyz, pieces, labels, M, support, partner_cap, table_frames, m
         ok = b >= 0
         if ok.any():
             e = entries[ok]
-            np.add.at(per_partner, (P[e][:, None], cols, b[ok][:, None]), sign * evidence(e, b[ok]))
+            np.add.at(per_partner, (P[e][:, None], cols, b[ok][:, None]), sign * W[e][:, None] * evidence(e, b[ok]))
 
     score = np.zeros((n_pieces, M))
 
