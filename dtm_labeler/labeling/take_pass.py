@@ -40,10 +40,19 @@ regions' DP gives to two labels (as the full search's sweep does,
 94.56 % (the gap-free model's: 88.93 -> 89.66 %), 12 upper-body markers 70.8 -> 65.4 %, twice
 the time.
 
-Last, whole track pieces are relabelled by the take's own rigid marker pairs
+Whole track pieces are relabelled by the take's own rigid marker pairs
 (:mod:`.rigid_tracks`: distances that do not change over the take, summed over each piece's
 frames, what one partner says clipped): HDM05 41 markers, 50 % hidden, 95.05 -> 98.33 %, the Qualisys
-walk 94.81 -> 99.25 %; from the true labels it moves under 0.1 %.
+walk 94.81 -> 99.25 %; from the true labels it moves under 0.1 %. It runs twice: last, and
+first, on the voted labels the searches start from (and the take's facing is read from): a
+search started nearer the truth ends nearer it. Replayed on ``bench_captures.py``'s gapped runs
+(13 runs: HDM05 gap seeds 1-4 and the Qualisys walk under search seeds 0, 2, 3, capture ids /
+own tracker), last only -> first and last: mean 97.70 -> 98.23 %, lowest 93.33 -> 94.17 %;
+9 higher (the walk with capture ids, seeds 2 and 3: 96.22 -> 98.63, 96.94 -> 98.40 %; HDM05
+seed 4, own tracker: 96.53 -> 98.03 %), 1 the same, 3 lower (HDM05 seeds 1 and 2 with capture
+ids: 99.20 -> 98.70, 99.47 -> 98.68 %, seed 1 own tracker 99.61 -> 99.54 %, where the searches again took some of the exchanges the
+model prefers and the last pass did not undo them all). Tried with the start's labels as a
+third vote beside the two searches: the walk, capture ids, seed 2, 93.10 %.
 
 States: positions and backward-difference velocities along the labeler's tracks (a point
 without a previous frame on its track has no velocity, as live). Single-model labelers only
@@ -124,10 +133,13 @@ def take_pass(model: TriangulatedModel, background: Background, xyz: Sequence[np
     """Per frame, the labels and confidences of its points after the second pass (module doc).
     ``labels``: the take-voted labels the pass starts from (-1 none); ``track_ids``: the
     labeler's track per point (-1 untracked: left unlabelled by the votes); ``progress(done,
-    total)`` after every frame of each of the two searches. ``rigid_tracks``: then whole track
-    pieces relabelled by the take's rigid pairs (:mod:`.rigid_tracks`; a moved point keeps the
-    confidence its votes gave)."""
+    total)`` after every frame of each of the two searches. ``rigid_tracks``: whole track pieces
+    relabelled by the take's rigid pairs (:mod:`.rigid_tracks`) before the searches start from
+    the labels and again after the votes (a moved point keeps the confidence its votes gave)."""
     F = len(xyz)
+    prior = body_pairs(model.body)
+    if rigid_tracks:
+        labels, _ = relabel_tracks(xyz, track_ids, labels, model.n_labels, prior=prior)
     states = track_states(xyz, track_ids, rate)
     yaw = take_heading(model, xyz, labels)
     total = 2 * F
@@ -146,7 +158,7 @@ def take_pass(model: TriangulatedModel, background: Background, xyz: Sequence[np
     lab2, conf2 = take_votes(tracks2, both, model.n_labels, 2 * half_window + 1)
     lab, conf = lab2[0::2], conf2[0::2]
     if rigid_tracks:
-        lab, _ = relabel_tracks(xyz, track_ids, lab, model.n_labels, prior=body_pairs(model.body))
+        lab, _ = relabel_tracks(xyz, track_ids, lab, model.n_labels, prior=prior)
     return lab, conf
 
 
