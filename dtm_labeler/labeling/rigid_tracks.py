@@ -72,6 +72,16 @@ and the other back marker were hidden: as the mirror, the forehead and the upper
 broke it, -26 nats; as itself, the forehead confirmed it over 35 frames, clipped to +10, and
 the upper back broke it, +7 in all.)
 
+A piece never takes a label from a piece that scores it at least as high: a right label whose
+pose-held pairs break (a shoulder marker of a raised arm, measured at 0.2-0.4 m from the head
+and the back) is refuted at once, and one coincidental partner of its mirror label then took
+the mirror from the marker that holds it rightly (HDM05, gapped second half, from the true
+labels: 0.77 % moved, the right shoulder unlabelled or taken as the left). With the rule, from
+the true labels of 50 %-gapped copies of the shared takes: HDM05 0.42 -> 0.23 % and 0.25 ->
+0.18 % moved (two gap draws), CMU 85 breakdance 0.17 -> 0.12 %, the others none as before; the
+13 replayed gapped runs of :mod:`.take_pass` mean 98.23 -> 98.29 % (HDM05 gap seed 2, capture
+ids, 98.68 -> 99.41 %; seed 4 97.96 -> 97.84 % / 98.03 -> 98.24 %; the rest within 0.02).
+
 Measured. The take pass's labels of ``benchmarks/bench_captures.py``'s gaps runs (trained on
 the gapped first half, 50 % hidden, the gapped second half labelled with the capture's track
 ids; own tracker) -> after this pass: HDM05 41 markers 95.05 -> 99.03 % (95.92 -> 99.45 %),
@@ -390,11 +400,15 @@ def _relabel_block(xyz, pieces, labels, M, support, partner_cap, table_frames, m
 
     def attempt(p: int, a: int) -> float:
         """Piece p takes label a; the pieces holding a in p's frames take p's old label where
-        that leaves no frame with it twice and their scores for it are above 0, else none.
+        that leaves no frame with it twice and their scores for it are above 0, else none; not
+        at all (-inf) when one of them scores a at least as high as p does.
         Returns what the moved pieces' scores gained, each read at its step; the caller undoes
         a move not worth it."""
         old = int(lab[p])
         others = sorted(set(holder[frames[p], a].tolist()) - {-1})
+        if any(score[q, a] >= score[p, a] for q in others):     # a holder as well supported keeps it
+            done.clear()
+            return -np.inf
         steps = [(p, -1)] + [(q, -1) for q in others]
         for q in others:
             if old >= 0 and not (set(holder[frames[q], old].tolist()) - {-1, p} - set(others)):
