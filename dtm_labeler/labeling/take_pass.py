@@ -46,12 +46,13 @@ frames, what one partner says clipped): HDM05 41 markers, 50 % hidden, 95.05 -> 
 walk 94.81 -> 99.25 %; from the true labels it moves under 0.1 %. It runs twice: last, and
 first, on the voted labels the searches start from (and the take's facing is read from): a
 search started nearer the truth ends nearer it. Replayed on ``bench_captures.py``'s gapped runs
-(13 runs: HDM05 gap seeds 1-4 and the Qualisys walk under search seeds 0, 2, 3, capture ids /
-own tracker), last only -> first and last: mean 97.70 -> 98.23 %, lowest 93.33 -> 94.17 %;
-9 higher (the walk with capture ids, seeds 2 and 3: 96.22 -> 98.63, 96.94 -> 98.40 %; HDM05
-seed 4, own tracker: 96.53 -> 98.03 %), 1 the same, 3 lower (HDM05 seeds 1 and 2 with capture
-ids: 99.20 -> 98.70, 99.47 -> 98.68 %, seed 1 own tracker 99.61 -> 99.54 %, where the searches again took some of the exchanges the
-model prefers and the last pass did not undo them all). Tried with the start's labels as a
+(13 runs: HDM05 gap seeds 1-4, seed 2 with capture ids only, and the Qualisys walk under search
+seeds 0, 2, 3; capture ids / own tracker), last only -> first and last: mean 97.70 -> 98.23 %,
+lowest 93.33 -> 94.17 %; 9 higher (the walk with capture ids, seeds 2 and 3: 96.22 -> 98.63,
+96.94 -> 98.40 %; HDM05 seed 4, own tracker: 96.53 -> 98.03 %), 1 the same, 3 lower (HDM05
+seeds 1 and 2 with capture ids: 99.20 -> 98.70, 99.47 -> 98.68 %; seed 1, own tracker: 99.61
+-> 99.54 %; there the searches took again some of the exchanges the model prefers, and the
+last pass did not undo them all). Tried with the start's labels as a
 third vote beside the two searches: the walk, capture ids, seed 2, 93.10 %.
 
 States: positions and backward-difference velocities along the labeler's tracks (a point
