@@ -404,10 +404,10 @@ def _relabel_block(xyz, pieces, labels, M, support, partner_cap, table_frames, m
         at all (-inf) when one of them scores a at least as high as p does.
         Returns what the moved pieces' scores gained, each read at its step; the caller undoes
         a move not worth it."""
+        done.clear()
         old = int(lab[p])
         others = sorted(set(holder[frames[p], a].tolist()) - {-1})
         if any(score[q, a] >= score[p, a] for q in others):     # a holder as well supported keeps it
-            done.clear()
             return -np.inf
         steps = [(p, -1)] + [(q, -1) for q in others]
         for q in others:
@@ -415,7 +415,6 @@ def _relabel_block(xyz, pieces, labels, M, support, partner_cap, table_frames, m
                 steps.append((q, old))
         steps.append((p, a))
         gained = 0.0
-        done.clear()
         for q, new in steps:
             prev = int(lab[q])
             if prev == new or (q != p and new >= 0 and score[q, new] <= 0.0):   # displaced: only where it fits
