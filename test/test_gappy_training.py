@@ -97,3 +97,16 @@ def test_marker_almost_never_seen_is_named(hdm):
     P[10:, UPPER.index("RELB")] = np.nan                              # RELB seen in 10 of 600 frames
     with pytest.raises(ValueError, match=r"almost never seen: RELB \(\d+ of 600 frames"):
         train_model([clip._replace(positions=P)], TrainConfig(seed=0, k_max=1, structure="greedy"))
+
+
+def test_body_structure_holds_on_gappy_takes(hdm):
+    """``--structure body`` on a gappy take keeps its tree (every point's rigid-tree link an edge):
+    the gappy path's greedy fallback replaces it only where it needs triples the take hardly shows."""
+    from dtm_labeler.training.train import rigid_tree
+    train = _gapped(hdm, 0.5).slice(1200, 2400)
+    _, s = train_model([train], TrainConfig(seed=0, k_max=1, structure="body", augment_copies=0))
+    assert s.structure_scored_on == "pairs of points" and s.structure_method == "body"
+    edges = {frozenset(e) for t in s.structure for e in ((t[0], t[1]), (t[0], t[2]), (t[1], t[2]))}
+    parents = rigid_tree([train])
+    links = {frozenset((UPPER[i], UPPER[p])) for i, p in enumerate(parents) if p >= 0}
+    assert links <= edges

@@ -143,18 +143,23 @@ def unattachable(scores: TripleScores, labels: Sequence[str]) -> list[str]:
     return [labels[i] for i in np.flatnonzero(~scores.usable.any(axis=(1, 2)))]
 
 
-def usable_structure(scores: TripleScores, structure: Structure, n: int, root_pairs, labels: Sequence[str]
-                     ) -> Structure:
+def usable_structure(scores: TripleScores, structure: Structure, n: int, root_pairs, labels: Sequence[str],
+                     keep: bool = False) -> Structure:
     """On gappy scores: the better of ``structure`` (the GA's) and the greedy one, which is
     built from usable triples only; ValueError naming the triangles when neither avoids
-    triples the frames hardly show. Complete-frame scores: ``structure`` unchanged."""
+    triples the frames hardly show. Complete-frame scores: ``structure`` unchanged.
+    ``keep``: ``structure`` is chosen for what it holds rather than for its score (the one
+    grown along the rigid tree, ``--structure body``): the greedy one only replaces it when
+    it needs triples the frames hardly show."""
     if scores.usable is None:
         return structure
     best = structure
     try:
-        greedy = ss.greedy(scores, n, root_pairs).structure
-        if float(scores.score(greedy.array[None])[0]) > float(scores.score(structure.array[None])[0]):
-            best = greedy
+        if not keep or scores.unusable_in(structure):
+            greedy = ss.greedy(scores, n, root_pairs).structure
+            if not scores.unusable_in(greedy) and (
+                    keep or float(scores.score(greedy.array[None])[0]) > float(scores.score(structure.array[None])[0])):
+                best = greedy
     except ValueError:
         pass
     bad = scores.unusable_in(best)

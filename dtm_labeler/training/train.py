@@ -417,7 +417,8 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
             structure = ss.refine(prior, res, n, np.random.default_rng(config.seed), kw["root_pairs"]).structure
         else:
             structure = ss.simple_ga(prior, n, **kw).structure
-        structure = usable_structure(scores, structure, n, kw["root_pairs"], labels)
+        structure = usable_structure(scores, structure, n, kw["root_pairs"], labels,
+                                     keep=config.structure == "body")
     struct_ll = scores.per_frame(structure) if scores is not None else float("nan")
     step("structure", 1, 1)
 
