@@ -248,6 +248,16 @@ def test_unset_jitter_resolves_by_point_set():
     assert TrainConfig(scale_jitter=0.0).resolved(BODY14).scale_jitter == 0.0
 
 
+def test_auto_structure_resolves_by_point_set():
+    """structure 'auto': the paper's CBGA for the 14 body points, the tree grown along the body for
+    marker sets; an explicit method always wins."""
+    assert TrainConfig().structure == "auto"
+    assert TrainConfig().resolved(BODY14).structure == "cbga"
+    assert TrainConfig().resolved(["LFHD", "RFHD", "C7", "LSHO", "RSHO"]).structure == "body"
+    assert TrainConfig(structure="cbga").resolved(["LFHD", "RFHD", "C7"]).structure == "cbga"
+    assert TrainConfig(structure="greedy").resolved(BODY14).structure == "greedy"
+
+
 def test_marker_models_train_without_body_augmentation_by_default(walker):
     renamed = walker._replace(names=tuple(f"M{i}" for i in range(len(BODY14))))
     model, _ = train_model([renamed], TrainConfig(structure="greedy", mixture="single", seed=0))

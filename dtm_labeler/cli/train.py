@@ -32,7 +32,8 @@ EPILOG = """examples:
   dtm-train walk.bvh --frames 0:90% --structure greedy --mixture fixed --k-fixed 3 --out m.npz
   dtm-train capture.c3d --points all --out markers41.npz
   dtm-train walk.bvh --scale-jitter 0 --proportion-jitter 0 --tempo-jitter 0 --out m.npz   # no body augmentation
-  dtm-train ../shared/data/markers_c3d/cmu_85_0*.c3d --points all --structure body --out generic41.npz
+  dtm-train ../shared/data/markers_c3d/cmu_85_0*.c3d --points all --out generic41.npz   # grown along the body
+  dtm-train capture.c3d --points all --frames 0:70% --structure cbga --out take41.npz   # only for this take's motion
 model bank (one model per action, Ukita L1-L3; the other actions' files are not touched):
   dtm-train walk.bvh --action walk --bank bank/
   dtm-train run.bvh --action run --bank bank/            # + synthesized walk<->run paths
@@ -56,10 +57,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--k-min", type=int, default=1)
     p.add_argument("--k-max", type=int, default=8)
     p.add_argument("--k-fixed", type=int, default=3)
-    p.add_argument("--structure", choices=STRUCTURE_METHODS, default="cbga",
-                   help="cbga (constraint-based GA), greedy (Song et al.), sga (simple GA), given (hand-made, body14), "
-                        "body (greedy along the most rigid tree: every point joins the segment it hangs from, so "
-                        "every bone carries its body term; at 41 markers a hidden hub marker costs more than with cbga)")
+    p.add_argument("--structure", choices=STRUCTURE_METHODS, default="auto",
+                   help="auto (cbga for the 14 body points, body for marker sets), cbga (constraint-based GA), "
+                        "greedy (Song et al.), sga (simple GA), given (hand-made, body14), body (greedy along the "
+                        "most rigid tree: every point joins the segment it hangs from, so every bone carries its "
+                        "body term and the model holds for motions the takes never showed)")
     p.add_argument("--position-floor", type=float, default=0.02, metavar="M",
                    help="covariance floor for relative positions (std, metres)")
     p.add_argument("--velocity-floor", type=float, default=0.2, metavar="MPS",
