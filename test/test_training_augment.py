@@ -258,6 +258,16 @@ def test_auto_structure_resolves_by_point_set():
     assert TrainConfig(structure="greedy").resolved(BODY14).structure == "greedy"
 
 
+def test_dtm_train_grows_a_marker_sets_structure_along_the_body(data_dir, tmp_path, capsys):
+    """dtm-train's default on a marker take: the structure grown along the rigid tree, said so, and
+    stored as such in the model."""
+    out = tmp_path / "m.npz"
+    assert train_main([str(data_dir / "markers_csv/mct_walk1_28markers_60hz.csv"), "--points", "all", "--out",
+                       str(out), "--mixture", "single", "--quiet"]) == 0
+    assert "structure body (auto: a marker set):" in capsys.readouterr().out
+    assert load_model(out).provenance["config"]["structure"] == "body"
+
+
 def test_marker_models_train_without_body_augmentation_by_default(walker):
     renamed = walker._replace(names=tuple(f"M{i}" for i in range(len(BODY14))))
     model, _ = train_model([renamed], TrainConfig(structure="greedy", mixture="single", seed=0))
