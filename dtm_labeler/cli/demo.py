@@ -155,6 +155,14 @@ def resample(clip, rate: float):
     return out
 
 
+#: the demo's structure search: it trains on the first part of the take it then plays, and within
+#: one take the CBGA's triangles, free to relate any points the take moves together, label best
+#: (HDM05, 41 markers, 3 flickering + 2 ghosts, 12 s live, two runs each: 97.1-97.5 % right,
+#: 95.6-96.8 % of ghosts rejected; grown along the rigid tree, dtm-train's default for marker
+#: sets because it holds for other motions: 95.4 %, 91.2-91.6 %)
+DEMO_STRUCTURE = "cbga"
+
+
 def cached_model_path(key: dict) -> Path:
     """Where the demo keeps the model trained for ``key``: named by a hash of the key and the
     model file format, so a newer format (new model terms) trains again instead of reusing a
@@ -164,14 +172,6 @@ def cached_model_path(key: dict) -> Path:
     key = dict(key, format_version=model_io.FORMAT_VERSION, structure=DEMO_STRUCTURE)
     h = hashlib.sha1(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()[:12]
     return cache_dir() / f"demo_model_{h}.npz"
-
-
-#: the demo's structure search: it trains on the first part of the take it then plays, and within
-#: one take the CBGA's triangles, free to relate any points the take moves together, label best
-#: (HDM05, 41 markers, 3 flickering + 2 ghosts, 12 s live, two runs each: 97.1-97.5 % right,
-#: 95.6-96.8 % of ghosts rejected; grown along the rigid tree, dtm-train's default for marker
-#: sets because it holds for other motions: 95.4 %, 91.2-91.6 %)
-DEMO_STRUCTURE = "cbga"
 
 
 def _train_cached(key: dict, make_clips, quiet: bool, log, calibrate: bool = False) -> Path:

@@ -174,9 +174,8 @@ def _main(argv=None) -> int:
         print(f"coverage  seen in {100 * float(np.median([v for _, v in cov])):.0f} % of frames (median); least: "
               + ", ".join(f"{k} {100 * v:.0f} %" for k, v in cov[:5])
               + f"; structure scored on {s['structure_scored_on']}")
-    why = ""
-    if args.structure == "auto":
-        why = " (auto: " + ("the 14 body points" if s["structure_method"] == "cbga" else "a marker set") + ")"
+    why = (f" (auto: {'the 14 body points' if s['structure_method'] == 'cbga' else 'a marker set'})"
+           if args.structure == "auto" else "")
     print(f"structure {s['structure_method']}{why}: " + "  ".join("(" + ",".join(t) + ")" for t in s["structure"]))
     print(f"K         {s['components']}  (mixture: {args.mixture})")
     print(f"loglik    {s['loglik_per_frame']:.2f} per frame (model); structure score "

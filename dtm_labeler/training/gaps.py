@@ -154,14 +154,14 @@ def usable_structure(scores: TripleScores, structure: Structure, n: int, root_pa
     if scores.usable is None:
         return structure
     best = structure
-    try:
-        if not keep or scores.unusable_in(structure):
+    if not keep or scores.unusable_in(structure):
+        try:
             greedy = ss.greedy(scores, n, root_pairs).structure
-            if not scores.unusable_in(greedy) and (
-                    keep or float(scores.score(greedy.array[None])[0]) > float(scores.score(structure.array[None])[0])):
-                best = greedy
-    except ValueError:
-        pass
+        except ValueError:
+            greedy = None
+        score = lambda st: float(scores.score(st.array[None])[0])      # noqa: E731
+        if greedy is not None and not scores.unusable_in(greedy) and (keep or score(greedy) > score(structure)):
+            best = greedy
     bad = scores.unusable_in(best)
     if bad:
         raise ValueError("the structure needs triangles whose points are seen together in fewer than "

@@ -55,8 +55,7 @@ from .body_fit import (BodySettings, broad_components, edge_prior, fit_body, han
 
 STRUCTURE_METHODS = ("auto", "cbga", "greedy", "given", "sga", "body")
 MIXTURE_KINDS = ("mdl", "fixed", "single")
-# body augmentation of models over the 14 body points (relative sds), chosen by cross-subject
-# measurement (README "Other subjects"); other point sets get 0 unless asked for
+
 #: ``structure="auto"`` by point set (True: the 14 body points). The paper's CBGA for the 14 joint
 #: centres (Table 3). For marker sets the structure grown along the rigid tree: the CBGA's triangles
 #: relate markers the training motion happened to move together, which another motion breaks
@@ -65,6 +64,8 @@ MIXTURE_KINDS = ("mdl", "fixed", "single")
 #: with capture ids either way, lowest 94.2 % CBGA / 96.3 % along the tree).
 AUTO_STRUCTURE = {True: "cbga", False: "body"}
 
+# body augmentation of models over the 14 body points (relative sds), chosen by cross-subject
+# measurement (README "Other subjects"); other point sets get 0 unless asked for
 BODY_AUGMENTATION = {"scale_jitter": 0.05, "proportion_jitter": 0.10, "tempo_jitter": 0.20}
 
 
