@@ -76,7 +76,8 @@ def test_lifecycle_transitions(managed):
     cl.probe()
     assert cl.run_frames(feed, 10) > 0.95
     d = cl.wait_diag(lambda d: d["active"] == "True")
-    assert d["labeling.level"] == "0" and int(d["reloads_ok"]) == 2       # one load per configure
+    assert d["labeling.level"] == "0", d["labeling.message"]
+    assert int(d["reloads_ok"]) == 2                                       # one load per configure
 
 
 def test_configure_fails_without_a_model(managed):

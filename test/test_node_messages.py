@@ -108,6 +108,8 @@ def stats(received, published, **kw):
 
 @pytest.mark.parametrize("cur, st, level, words", [
     (stats(120, 119), state(), D.OK, ["labelling at"]),
+    (stats(6, 5), state(), D.OK, ["labelling at"]),           # one frame in flight at the period's edge
+    (stats(6, 4, skipped={"stale": 1}), state(), D.WARN, ["labelling 4.0 Hz of 6.0 Hz", "1 frames dropped"]),
     (stats(120, 60, skipped={"stale": 60}), state(), D.WARN, ["labelling 60.0 Hz of 120.0 Hz"]),
     (stats(120, 119, stamp_faults={"zero": 30}), state(time_base="receive"), D.WARN, ["zero 30", "receive time"]),
     (stats(120, 60, skipped={"other_source": 60}), state(), D.WARN, ["another publisher"]),

@@ -8,8 +8,9 @@ state into the two ``diagnostic_msgs/DiagnosticStatus`` entries ``<node>: labeli
 
 * ERROR -- no model loaded; no input subscription (the input type's message package is missing);
   or labeling has failed (labeler errors, nothing published) for > 1 s.
-* WARN -- labelled rate < 90 % of the input rate; resets or full searches running high (more
-  than 2 resets, or full searches on more than 20 % of the labelled frames, in the period);
+* WARN -- more than 10 % of the received frames dropped (labelled rate < 90 % of the input
+  rate); resets or full searches running high (more than 2 resets, or full searches on more
+  than 20 % of the labelled frames, in the period);
   stamp faults (zero, repeated, backwards, jumping) or interleaved sources in the period; no
   input for > 1 s while a publisher is matched; bad input or labeler errors in the period;
   coordinates that look like millimetres; a failed model reload.
@@ -132,8 +133,11 @@ def assess(cur: NodeStats, prev: NodeStats, dt: float, st: NodeState) -> Tuple[i
     rx, pub = _delta(cur, prev, "received"), _delta(cur, prev, "published")
     in_rate, out_rate = rx / dt, pub / dt
     warn: List[str] = []
-    if rx >= 5 and pub < _RATE_FLOOR * rx:
-        warn.append(f"labelling {out_rate:.1f} Hz of {in_rate:.1f} Hz input")
+    # received = published + skipped + in flight: counting the skipped, not received - published,
+    # keeps a frame in flight across the period's edge from reading as a rate shortfall
+    dropped = sum(cur.skipped[k] - prev.skipped[k] for k in DROP_REASONS)
+    if rx >= 5 and dropped > (1.0 - _RATE_FLOOR) * rx:
+        warn.append(f"labelling {out_rate:.1f} Hz of {in_rate:.1f} Hz input ({dropped} frames dropped)")
     if _cdelta(cur, prev, "stamp_faults"):
         faults = {k: cur.stamp_faults[k] - prev.stamp_faults[k] for k in STAMP_FAULTS}
         warn.append("stamp faults " + ", ".join(f"{k} {v}" for k, v in faults.items() if v)
