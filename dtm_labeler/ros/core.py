@@ -396,6 +396,7 @@ class LabelerCore:
                                                  callback_group=NotExecuted())
         with self._input_lock:
             self.sources.reset()
+        self._t_input = time.monotonic()     # silence counts from listening, not from before it
         self.active = True
         self.inbox.attach(self.sub, depth)
         if recreated:
