@@ -278,7 +278,7 @@ def test_runtime_changes_take_effect(running):
     r = cl.set(window=3, method="tracker")
     assert all(x.successful for x in r), r
     d = cl.wait_diag(lambda d: d["method"] == "tracker" and d["window"] == "3")
-    assert d["labeling.level"] == "0"
+    assert d["labeling.level"] == "0", d["labeling.message"]
     assert cl.run_frames(feed, 10) > 0.9      # still labelling with the new method
     # mode single: no votes, every frame searched from scratch (confidence = 1 for labelled points)
     assert cl.set(mode="single", method="cbga")[0].successful
