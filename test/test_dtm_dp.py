@@ -14,7 +14,8 @@ from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search import label_ops as ops
 
 from dtm_labeler.search.dtm_dp import (body_at_heading, max_product, mean_shape, model_regions, region_candidates,
-                                       regions_of, relabel_regions, resolve_duplicates, turned_round)
+                                       regions_of, relabel_regions, resolve_duplicates, turn_permutation,
+                                       turned_labels, turned_round)
 
 NAMES = ("neck", "lshoulder", "rshoulder", "lhip", "rhip", "lknee", "rknee", "lankle", "rankle")
 
@@ -112,6 +113,26 @@ def test_the_body_turned_round_is_turned_back(model, frame):
     assert evals > 0 and f >= f_true - 1e-6
     assert (got == truth).mean() >= 8 / 9
     assert ops.is_valid(got[None], p.n).all()
+
+
+def test_turned_labels_turn_the_body_back_without_a_dp(model, frame):
+    """The turned-round body's permutation exchanges the sides (the neck stays), and reading
+    the labeling seen from behind through it gives the truth back in one evaluation -- what the
+    whole-body DP at the opposite facing finds in many."""
+    states, truth = frame
+    p = FrameProblem(model, states, Background())
+    perm = turn_permutation(model)
+    assert sorted(perm) == list(range(p.M))
+    side = {n: n[0] for n in NAMES if n[0] in "lr"}
+    for i, j in enumerate(perm):
+        a, b = NAMES[i], NAMES[j]
+        assert (a not in side and b == a) or (a in side and side[b] != side[a] and b[1:] == a[1:])
+    behind = ops.mirror(truth[None], p.mirror_pairs)[0]
+    f_true, f_behind = (float(x) for x in p.fitness(np.stack([truth, behind])))
+    got, f, evals = turned_labels(p, behind, f_behind)
+    assert np.array_equal(got, truth) and f == pytest.approx(f_true) and evals == 1
+    again, f_again, _ = turned_labels(p, truth, f_true)             # never worse: the truth stays
+    assert np.array_equal(again, truth) and f_again == f_true
 
 
 def test_turned_round_never_worsens_and_the_whole_body_dp_is_valid(model, frame):

@@ -14,6 +14,7 @@ from dtm_labeler.labeling.recovery import (DeferredRecovery, InterimReporter, Pr
 from dtm_labeler.labeling.stream import StreamLabeler
 from dtm_labeler.labeling.tracker import Tracker, TrackerSettings
 from dtm_labeler.motion.synthetic import synthesize
+from dtm_labeler.search.dtm_dp import turned_round
 from dtm_labeler.training.train import TrainConfig, train_model
 
 CFG = TrainConfig(mixture="fixed", k_fixed=2, structure="given")
@@ -159,22 +160,26 @@ def test_interim_results_report_the_best_so_far(model, walker):
 
 
 def test_the_finished_search_is_sent_before_the_turned_round_check(model, walker):
-    """A cold full search sends its finished result (GA, restarts, region sweeps) as an interim
-    one before it checks the body turned round -- that check is a whole-body DP, ~1 s at 41
-    markers, and the stream should not wait for it -- and the final result is never worse."""
+    """A cold full search sends its finished result (GA, restarts, region sweeps, the labels read
+    through the turned-round body) as an interim one before it checks the body turned round by
+    a whole-body DP -- ~1 s at 41 markers, and the stream should not wait for it -- and the
+    final result is never worse."""
     req = _first_request(model, walker)
     worker = StreamLabeler(model, LabelerSettings(recovery="inline"))
-    sent, at_check = [], []
+    sent, at_check, quick = [], [], []
     turn = worker._turn_round
-    def spy(problems, found):
-        at_check.append((len(sent), {m: c.fitness for m, c in found.candidates.items()}))
-        turn(problems, found)
+    def spy(problems, found, ga, check):
+        if check is turned_round:
+            at_check.append((len(sent), {m: c.fitness for m, c in found.candidates.items()}))
+        else:
+            quick.append(len(sent))
+        turn(problems, found, ga, check)
     worker._turn_round = spy
     class FinishedOnly(InterimReporter):       # no per-generation reports: only what is sent for itself
         def hook(self, searched, inner=None):
             return inner
     res = worker.recover(req, rng=np.random.default_rng(0), interim=FinishedOnly(req, sent.append))
-    assert len(at_check) == 1
+    assert len(at_check) == 1 and quick == [0]                 # the quick half before anything is sent
     n_sent, fits = at_check[0]
     assert n_sent == 1 and sent[0].interim
     last = sent[n_sent - 1].candidates
