@@ -1,5 +1,7 @@
 """Training on gappy captures (issue 14, part b): EM with missing data, structure scores from
 pairs of points, coverage checks."""
+import re
+
 import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
@@ -92,11 +94,19 @@ def test_train_on_half_gaps_and_label(hdm):
 
 
 def test_marker_almost_never_seen_is_named(hdm):
+    """The refusal names the marker and the --points that leaves it out; that spec trains."""
+    from dtm_labeler.cli.common import point_spec
+    from dtm_labeler.motion.pointsets import to_point_set
     clip = hdm.slice(1200, 1800)
     P = clip.positions.copy()
     P[10:, UPPER.index("RELB")] = np.nan                              # RELB seen in 10 of 600 frames
-    with pytest.raises(ValueError, match=r"almost never seen: RELB \(\d+ of 600 frames"):
-        train_model([clip._replace(positions=P)], TrainConfig(seed=0, k_max=1, structure="greedy"))
+    gappy = clip._replace(positions=P)
+    with pytest.raises(ValueError, match=r"almost never seen: RELB \(\d+ of 600 frames") as err:
+        train_model([gappy], TrainConfig(seed=0, k_max=1, structure="greedy"))
+    spec = re.search(r"--points (\S+)\)", str(err.value)).group(1)
+    assert spec == "all,-RELB"
+    model, _ = train_model([to_point_set(gappy, point_spec(spec))], TrainConfig(seed=0, k_max=1, structure="greedy"))
+    assert list(model.labels) == [n for n in UPPER if n != "RELB"]
 
 
 def test_body_structure_holds_on_gappy_takes(hdm):

@@ -143,3 +143,22 @@ def test_left_right_pairs_on_real_sets(raw):
     bvh = left_right_pairs(raw["cmu_skeletal/bvh_from_fbx/cmu_07_01_walk_s07.bvh"].names)
     assert ("LeftHand_end", "RightHand_end") not in bvh and ("LThumb", "RThumb") in bvh
     assert len(bvh) == 15  # 12 joint pairs + 3 end-site pairs
+
+
+def test_all_but_some_points(raw):
+    """``--points all,-NAME,...``: every point of the take but those; an unknown name or a
+    malformed spec is refused with what to write."""
+    from dtm_labeler.cli.common import CliError, point_spec
+    from dtm_labeler.motion.pointsets import AllBut
+    clip = raw["markers_c3d/qualisys_walk_55markers.c3d"]
+    drop = list(clip.names[:2])
+    spec = point_spec("all," + ",".join("-" + n for n in drop))
+    assert spec == AllBut(tuple(drop))
+    out = to_point_set(clip, spec)
+    assert list(out.names) == [n for n in clip.names if n not in drop]
+    np.testing.assert_array_equal(out.positions, clip.select(list(out.names)).positions)
+    with pytest.raises(ValueError, match="no point named NOPE to leave out"):
+        to_point_set(clip, AllBut(("NOPE",)))
+    for bad in ("all,-", "all,LFHD", "all,-A,B"):
+        with pytest.raises(CliError, match="starts with '-'"):
+            point_spec(bad)

@@ -57,7 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("input", metavar="INPUT", help="a recording (.bvh .amc .c3d .csv)")
     m.add_argument("--out", required=True, metavar="BAG", help="bag directory to write")
     m.add_argument("--storage", choices=STORAGES, default="mcap")
-    m.add_argument("--points", default="body14", help="body14, all, or NAME,NAME,... (the labels in the bag)")
+    m.add_argument("--points", default="body14", help="body14, all, all,-NAME,... (all but these), or NAME,NAME,... (the labels in the bag)")
     m.add_argument("--frames", default=None, help="frame range A:B, integers or percentages (90%%:)")
     add_corruption_arguments(m)
     m.add_argument("--ids", action=argparse.BooleanOptionalAction, default=True,

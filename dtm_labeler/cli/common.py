@@ -8,7 +8,7 @@ from typing import Sequence
 
 from ..motion.clip import MotionClip, frame_range
 from ..motion.load import load_clip
-from ..motion.pointsets import to_point_set
+from ..motion.pointsets import AllBut, to_point_set
 
 RECORDING_SUFFIXES = (".bvh", ".amc", ".c3d", ".csv")
 
@@ -81,10 +81,16 @@ def capture_kwargs(args) -> dict:
     return kw
 
 
-def point_spec(spec: str) -> str | list[str]:
+def point_spec(spec: str) -> str | list[str] | AllBut:
+    """``--points``: body14, all, all,-NAME,... (every point but these), or NAME,NAME,..."""
     if spec in ("body14", "all"):
         return spec
     names = [s.strip() for s in spec.split(",") if s.strip()]
+    if names and names[0] == "all":
+        out = [n[1:].strip() for n in names[1:]]
+        if not out or not all(n.startswith("-") and n[1:].strip() for n in names[1:]):
+            raise CliError("--points all,-NAME,...: every name after 'all' starts with '-' (the points left out)")
+        return AllBut(tuple(out))
     if len(names) < 3:
         raise CliError("--points needs body14, all, or at least 3 comma-separated names")
     return names

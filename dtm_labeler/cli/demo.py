@@ -270,7 +270,7 @@ def build_parser() -> argparse.ArgumentParser:
                                             "default (no files needed).")
     p.add_argument("--data", default=None, metavar="PATH",
                    help="a real labelled recording to replay instead of the synthetic walker")
-    p.add_argument("--points", default="body14", help="with --data: body14, all, or NAME,NAME,...")
+    p.add_argument("--points", default="body14", help="with --data: body14, all, all,-NAME,... (all but these), or NAME,NAME,...")
     p.add_argument("--train-frames", default="0:70%", metavar="A:B", help="with --data: frames to train on")
     p.add_argument("--test-frames", default=None, metavar="A:B",
                    help="with --data: frames to replay (default: the rest after --train-frames)")

@@ -50,7 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="recordings (.bvh .amc .c3d .csv) or folders of them")
     p.add_argument("--out", default=None, help="model file to write (.npz); required unless --bank is given")
     p.add_argument("--points", default="body14",
-                   help="body14 (the paper's 14 points), all (every labelled marker), or NAME,NAME,...")
+                   help="body14 (the paper's 14 points), all (every labelled marker), all,-NAME,... (every "
+                        "labelled marker but these), or NAME,NAME,...")
     p.add_argument("--frames", default=None, help="frame range A:B, integers or percentages (0:90%%)")
     p.add_argument("--mixture", choices=MIXTURE_KINDS, default="mdl",
                    help="mdl: EM with the MDL rule choosing K (eq. 8-11); fixed: K = --k-fixed; single: one Gaussian")

@@ -21,6 +21,7 @@ Sources (``MARKER_SETS`` keys):
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -92,10 +93,30 @@ def derive_body14(clip: MotionClip, marker_set: str | None = None) -> MotionClip
     return clip._replace(positions=out, names=BODY14, meta=meta)
 
 
-def to_point_set(clip: MotionClip, points: str | Sequence[str] = "body14",
+@dataclass(frozen=True)
+class AllBut:
+    """Every point of a clip but ``names`` (``--points all,-NAME,...``): a marker a take hardly
+    shows, left out without typing every other name."""
+
+    names: tuple[str, ...]
+
+
+def to_point_set(clip: MotionClip, points: str | Sequence[str] | AllBut = "body14",
                  marker_set: str | None = None) -> MotionClip:
-    """``points``: ``"all"`` (clip unchanged), ``"body14"`` (derived BODY14), or a list of
-    names taken from the clip's own points and, where absent, from the derived BODY14."""
+    """``points``: ``"all"`` (clip unchanged), ``"body14"`` (derived BODY14), :class:`AllBut`
+    (every point but some), or a list of names taken from the clip's own points and, where
+    absent, from the derived BODY14."""
+    if isinstance(points, AllBut):
+        unknown = [n for n in points.names if n not in clip.names]
+        if unknown:
+            raise ValueError(f"no point named {', '.join(unknown)} to leave out (its points: "
+                             f"{', '.join(clip.names[:8])}{' ...' if clip.n_points > 8 else ''})")
+        keep = [n for n in clip.names if n not in points.names]
+        if len(keep) < 3:
+            raise ValueError(f"leaving out {', '.join(points.names)} leaves {len(keep)} points; a model needs 3")
+        out = clip.select(keep)
+        out.meta.pop("parents", None)  # parent indices refer to the unselected columns
+        return out
     if isinstance(points, str):
         if points.lower() == "all":
             return clip

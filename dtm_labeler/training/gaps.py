@@ -67,10 +67,11 @@ class Coverage:
         if bad:
             what = ", ".join(f"{self.labels[i]} ({int(self.seen[i])} of {self.frames} frames, "
                              f"{100 * self.fraction[i]:.1f} %)" for i in bad[:6])
+            leave = ",".join(f"-{self.labels[i]}" for i in bad)
             raise ValueError(f"almost never seen: {what}{' ...' if len(bad) > 6 else ''}; a model cannot learn "
                              f"where a marker goes from fewer than {100 * min_fraction:g} % of the frames or "
-                             f"{min_frames} frames: leave {'it' if len(bad) == 1 else 'them'} out (--points with "
-                             "the other names) or add takes where it is seen")
+                             f"{min_frames} frames: leave {'it' if len(bad) == 1 else 'them'} out (--points "
+                             f"all,{leave}) or add takes where {'it is' if len(bad) == 1 else 'they are'} seen")
 
 
 def coverage_report(states: np.ndarray, labels: Sequence[str]) -> Coverage:
