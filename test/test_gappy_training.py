@@ -104,7 +104,7 @@ def test_marker_almost_never_seen_is_named(hdm):
     with pytest.raises(ValueError, match=r"almost never seen: RELB \(\d+ of 600 frames") as err:
         train_model([gappy], TrainConfig(seed=0, k_max=1, structure="greedy"))
     spec = re.search(r"--points (\S+)\)", str(err.value)).group(1)
-    assert spec == "all,-RELB"
+    assert spec == "all,-RELB" and err.value.names == ("RELB",)
     model, _ = train_model([to_point_set(gappy, point_spec(spec))], TrainConfig(seed=0, k_max=1, structure="greedy"))
     assert list(model.labels) == [n for n in UPPER if n != "RELB"]
 

@@ -46,6 +46,15 @@ PARTIAL_TOL = 1e-3           # EM with missing data creeps: stop at 0.1 % change
                              # within 0.1 nats, 3-7x fewer sweeps)
 
 
+class RarelySeen(ValueError):
+    """A take shows some markers too rarely to learn them (:meth:`Coverage.check`); ``names``
+    are those markers, what ``--points all,-NAME,...`` leaves out."""
+
+    def __init__(self, message: str, names: Sequence[str]):
+        super().__init__(message)
+        self.names = tuple(names)
+
+
 @dataclass
 class Coverage:
     """Per marker: frames seen (position and velocity) and the share of all frames."""
@@ -62,16 +71,17 @@ class Coverage:
         return {n: round(float(f), 4) for n, f in zip(self.labels, self.fraction)}
 
     def check(self, min_fraction: float = MIN_COVERAGE, min_frames: int = MIN_SEEN_FRAMES) -> None:
-        """ValueError naming every marker seen too rarely to learn."""
+        """:class:`RarelySeen` naming every marker seen too rarely to learn."""
         bad = [i for i in range(len(self.labels)) if self.fraction[i] < min_fraction or self.seen[i] < min_frames]
         if bad:
             what = ", ".join(f"{self.labels[i]} ({int(self.seen[i])} of {self.frames} frames, "
                              f"{100 * self.fraction[i]:.1f} %)" for i in bad[:6])
             leave = ",".join(f"-{self.labels[i]}" for i in bad)
-            raise ValueError(f"almost never seen: {what}{' ...' if len(bad) > 6 else ''}; a model cannot learn "
+            raise RarelySeen(f"almost never seen: {what}{' ...' if len(bad) > 6 else ''}; a model cannot learn "
                              f"where a marker goes from fewer than {100 * min_fraction:g} % of the frames or "
                              f"{min_frames} frames: leave {'it' if len(bad) == 1 else 'them'} out (--points "
-                             f"all,{leave}) or add takes where {'it is' if len(bad) == 1 else 'they are'} seen")
+                             f"all,{leave}) or add takes where {'it is' if len(bad) == 1 else 'they are'} seen",
+                             [self.labels[i] for i in bad])
 
 
 def coverage_report(states: np.ndarray, labels: Sequence[str]) -> Coverage:
