@@ -285,6 +285,20 @@ def body_at_heading(problem: FrameProblem, heading_bin: int) -> np.ndarray:
     return max_product(problem, [everything] * problem.M, heading_bin)
 
 
+def _refined_if_better(problem: FrameProblem, e0: int, ind: np.ndarray, fit: float, cand: np.ndarray,
+                       refine) -> tuple[np.ndarray, float, int]:
+    """``cand`` scored and ``refine``-d, taken when it fits better than ``ind``: (ind, fitness,
+    term evaluations since ``e0``)."""
+    fc = float(problem.fitness(cand[None])[0])
+    evals = problem.evaluations - e0 + 1
+    if refine is not None:
+        cand, fc, e = refine(cand, fc)
+        evals += e
+    if fc > fit + 1e-9:
+        return cand, fc, evals
+    return ind, fit, evals
+
+
 def turn_permutation(model) -> np.ndarray:
     """(M,) the label each label becomes when the body is seen from behind: the model's mean
     body (:func:`mean_shape`, heading-canonical, z up) turned 180 deg about the vertical axis
@@ -311,14 +325,7 @@ def turned_labels(problem: FrameProblem, ind: np.ndarray, fit: float, refine=Non
     e0 = problem.evaluations
     cand = np.empty_like(ind)
     cand[turn_permutation(problem.model)] = ind
-    fc = float(problem.fitness(cand[None])[0])
-    evals = problem.evaluations - e0 + 1
-    if refine is not None:
-        cand, fc, e = refine(cand, fc)
-        evals += e
-    if fc > fit + 1e-9:
-        return cand, fc, evals
-    return ind, fit, evals
+    return _refined_if_better(problem, e0, ind, fit, cand, refine)
 
 
 def turned_round(problem: FrameProblem, ind: np.ndarray, fit: float, refine=None) -> tuple[np.ndarray, float, int]:
@@ -337,14 +344,7 @@ def turned_round(problem: FrameProblem, ind: np.ndarray, fit: float, refine=None
         cand = body_at_heading(problem, (b + problem.bins // 2) % problem.bins)
     except ValueError:
         return ind, fit, problem.evaluations - e0
-    fc = float(problem.fitness(cand[None])[0])
-    evals = problem.evaluations - e0 + 1
-    if refine is not None:
-        cand, fc, e = refine(cand, fc)
-        evals += e
-    if fc > fit + 1e-9:
-        return cand, fc, evals
-    return ind, fit, evals
+    return _refined_if_better(problem, e0, ind, fit, cand, refine)
 
 
 def mean_shape(model) -> np.ndarray:
