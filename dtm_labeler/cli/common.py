@@ -87,10 +87,10 @@ def point_spec(spec: str) -> str | list[str] | AllBut:
         return spec
     names = [s.strip() for s in spec.split(",") if s.strip()]
     if names and names[0] == "all":
-        out = [n[1:].strip() for n in names[1:]]
-        if not out or not all(n.startswith("-") and n[1:].strip() for n in names[1:]):
+        left_out = [n[1:].strip() if n.startswith("-") else "" for n in names[1:]]
+        if not left_out or not all(left_out):
             raise CliError("--points all,-NAME,...: every name after 'all' starts with '-' (the points left out)")
-        return AllBut(tuple(out))
+        return AllBut(tuple(left_out))
     if len(names) < 3:
         raise CliError("--points needs body14, all, or at least 3 comma-separated names")
     return names

@@ -114,9 +114,7 @@ def to_point_set(clip: MotionClip, points: str | Sequence[str] | AllBut = "body1
         keep = [n for n in clip.names if n not in points.names]
         if len(keep) < 3:
             raise ValueError(f"leaving out {', '.join(points.names)} leaves {len(keep)} points; a model needs 3")
-        out = clip.select(keep)
-        out.meta.pop("parents", None)  # parent indices refer to the unselected columns
-        return out
+        points = keep                  # the clip's own names: selected below
     if isinstance(points, str):
         if points.lower() == "all":
             return clip
