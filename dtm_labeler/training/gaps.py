@@ -170,9 +170,10 @@ def usable_structure(scores: TripleScores, structure: Structure, n: int, root_pa
             greedy = ss.greedy(scores, n, root_pairs).structure
         except ValueError:
             greedy = None
-        score = lambda st: float(scores.score(st.array[None])[0])      # noqa: E731
-        if greedy is not None and not scores.unusable_in(greedy) and (keep or score(greedy) > score(structure)):
-            best = greedy
+        if greedy is not None and not scores.unusable_in(greedy):
+            f_greedy, f_given = scores.score(np.stack([greedy.array, structure.array]))
+            if keep or f_greedy > f_given:
+                best = greedy
     bad = scores.unusable_in(best)
     if bad:
         raise ValueError("the structure needs triangles whose points are seen together in fewer than "
