@@ -108,6 +108,10 @@ def test_process_recovery_worker_joins_and_stops(model, walker):
         rec.poll()
         time.sleep(0.05)
     assert rec.ready, rec.failed
+    # background priority, set once: RECOVERY_NICE, not the parent's setting plus the child's own
+    import os
+    from dtm_labeler.labeling.recovery import RECOVERY_NICE
+    assert os.getpriority(os.PRIO_PROCESS, rec._proc.pid) == max(RECOVERY_NICE, os.getpriority(os.PRIO_PROCESS, 0))
     rng = np.random.default_rng(1)
     got, acc = False, []
     for k in range(160):
