@@ -232,10 +232,7 @@ class WorkerProcess:
         self.proc = subprocess.Popen([sys.executable, "-m", "dtm_labeler.labeling.recovery",
                                       self._listener.address], stdin=subprocess.PIPE, env=env,
                                      start_new_session=True)
-        try:                          # background priority from its imports on (1-2 s of CPU that a
-            os.setpriority(os.PRIO_PROCESS, self.proc.pid, RECOVERY_NICE)    # stream starting now needs)
-        except OSError:               # pragma: no cover - not permitted here
-            pass
+        background_priority(self.proc.pid)      # from its imports on (1-2 s of CPU a starting stream needs)
         self.proc.stdin.write(key.hex().encode() + b"\n")
         self.proc.stdin.close()
         self.on_connect = None
@@ -578,12 +575,19 @@ def _handle(kind: str, payload, labeler, send_interim=None):
 RECOVERY_NICE = 10
 
 
-def main() -> int:
-    key = bytes.fromhex(sys.stdin.readline().strip())
-    try:                                # absolute, not os.nice's increment: the parent has set it
-        os.setpriority(os.PRIO_PROCESS, 0, RECOVERY_NICE)     # already unless this ran first
+def background_priority(pid: int) -> None:
+    """Process ``pid`` (0: this one) at niceness :data:`RECOVERY_NICE`, set absolutely (not
+    ``os.nice``'s increment): the parent sets it on the worker it starts, the worker on itself
+    in case it ran first, and the two must not add up. As it is where not permitted."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, pid, RECOVERY_NICE)
     except OSError:                     # pragma: no cover - not permitted here: run at the same priority
         pass
+
+
+def main() -> int:
+    key = bytes.fromhex(sys.stdin.readline().strip())
+    background_priority(0)
     return serve(sys.argv[1], key)
 
 
