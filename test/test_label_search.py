@@ -275,6 +275,20 @@ def test_guided_sample_is_valid_and_model_guided(model, frames):
     assert cold.max() >= p.fitness(truth)[0] - 1e-6          # and include the truth here
 
 
+def test_pair_triangles_are_the_heading_pairs_sharing_a_triangle(model):
+    """Where guided sampling anchors the facing: each heading pair with the first triangle
+    holding both, built once per model."""
+    got = model.pair_triangles
+    want = []
+    for a, b in model.heading_pairs:
+        hits = [t for t, tri in enumerate(model.triangles.tolist()) if a in tri and b in tri]
+        if hits:
+            want.append((int(a), int(b), hits[0]))
+    assert list(got) == want and len(got) >= 1
+    assert model.pair_triangles is got
+    assert model.replace(heading_pairs=np.zeros((0, 2), dtype=np.int64)).pair_triangles == ()
+
+
 def test_guided_sample_handles_tiny_frames(model):
     for n in (0, 1, 2):
         s = np.c_[np.random.default_rng(n).normal(size=(n, 3)), np.zeros((n, 3))]

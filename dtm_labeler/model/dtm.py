@@ -390,6 +390,22 @@ class TriangulatedModel:
     def heading_bins(self) -> int:
         return int(self.settings.get("heading_bins", 720))
 
+    @property
+    def pair_triangles(self) -> tuple[tuple[int, int, int], ...]:
+        """(left, right, triangle) for every heading pair that shares a triangle, the first
+        such triangle: where the GA's guided sampling anchors a candidate's facing
+        (:func:`~dtm_labeler.search.label_search.guided_sample`). Built once: a property of
+        the structure, not of a frame (rebuilt per call it was a fifth of a cold 41-marker GA)."""
+        if getattr(self, "_pair_triangles", None) is None:
+            tri = np.asarray(self.triangles, dtype=np.int64)
+            out = []
+            for a, b in np.asarray(self.heading_pairs, dtype=np.int64).reshape(-1, 2):
+                hit = np.flatnonzero((tri == a).any(1) & (tri == b).any(1))
+                if hit.size:
+                    out.append((int(a), int(b), int(hit[0])))
+            self._pair_triangles = tuple(out)
+        return self._pair_triangles
+
     def with_noise(self, position_sd_m: float, rate_hz: float | None = None) -> "TriangulatedModel":
         """The model convolved with i.i.d. measurement noise of ``position_sd_m`` per coordinate:
         relative positions gain variance 2 sd^2 and backward-difference velocities 2 sd^2 rate^2

@@ -88,17 +88,6 @@ class LabelSearch(ABC):
         """``seeds`` (S, M): assignments to start from (warm start); may be ignored."""
 
 
-def _pair_triangles(problem: FrameProblem) -> list[tuple[int, int, int]]:
-    """(left, right, triangle) for every heading pair that shares a triangle."""
-    out = []
-    for a, b in problem.pairs:
-        for t, tri in enumerate(problem.tri):
-            if a in tri and b in tri:
-                out.append((int(a), int(b), t))
-                break
-    return out
-
-
 def _root_triangles(problem: FrameProblem, lft: int, rgt: int, t: int) -> tuple[np.ndarray, np.ndarray]:
     """Every plausible assignment of the triangle ``t`` holding the left/right pair: point
     pairs within the pair's distance bound, the third vertex within the bounds of both (or
@@ -141,7 +130,7 @@ def guided_sample(problem: FrameProblem, P: int, rng: np.random.Generator,
     temp = np.broadcast_to(np.asarray(temperature, dtype=np.float64), (P,))
     tri = problem.tri
     gain = problem.label_gain
-    pairs = _pair_triangles(problem)
+    pairs = problem.model.pair_triangles
     if base is not None:
         pop = np.where(free, n, base).astype(np.int64)
         bins = problem.candidate_bins(pop)
