@@ -423,12 +423,13 @@ class TriangulatedModel:
                             broad=None if self.broad is None else self.broad.with_floor(floor))
 
     def warm_up(self) -> "TriangulatedModel":
-        """Build every observation pattern's densities, the batched terms and the distance
-        bounds now (model load / hot reload) instead of on the first frame that needs them."""
+        """Build every observation pattern's densities, the batched terms, the distance bounds
+        and the heading pairs' triangles now (model load / hot reload) instead of on the first
+        frame that needs them."""
         for term in self.terms + (self.broad_terms or []):
             for pid in range(N_PATTERNS):
                 term.pattern(pid)
-        _ = self.batched_full, self.distance_bounds, self.kernel_tables
+        _ = self.batched_full, self.distance_bounds, self.kernel_tables, self.pair_triangles
         self.batched_full(np.zeros((1, TRIPLE_DIM)), np.zeros(1, dtype=np.int64))     # compile (or load) the kernel
         if self.body_handedness is not None:                                          # and the handedness kernel
             self.body_handedness(np.zeros((1, self.n_labels), dtype=np.int64), np.zeros((1, 3)))
