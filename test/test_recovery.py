@@ -2,6 +2,7 @@
 the track ids, skipped frames observed by the tracker, and confidences that mean something."""
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -9,8 +10,8 @@ import pytest
 
 from dtm_labeler.evaluation.metrics import MetricsAccumulator
 from dtm_labeler.labeling.config import LabelerSettings
-from dtm_labeler.labeling.recovery import (DeferredRecovery, InterimReporter, ProcessRecovery, RecoveryRequest,
-                                           RecoveryResult, build_spare, keep_spare_worker)
+from dtm_labeler.labeling.recovery import (RECOVERY_NICE, DeferredRecovery, InterimReporter, ProcessRecovery,
+                                           RecoveryRequest, RecoveryResult, build_spare, keep_spare_worker)
 from dtm_labeler.labeling.stream import StreamLabeler
 from dtm_labeler.labeling.tracker import Tracker, TrackerSettings
 from dtm_labeler.motion.synthetic import synthesize
@@ -109,8 +110,6 @@ def test_process_recovery_worker_joins_and_stops(model, walker):
         time.sleep(0.05)
     assert rec.ready, rec.failed
     # background priority, set once: RECOVERY_NICE, not the parent's setting plus the child's own
-    import os
-    from dtm_labeler.labeling.recovery import RECOVERY_NICE
     assert os.getpriority(os.PRIO_PROCESS, rec._proc.pid) == max(RECOVERY_NICE, os.getpriority(os.PRIO_PROCESS, 0))
     rng = np.random.default_rng(1)
     got, acc = False, []

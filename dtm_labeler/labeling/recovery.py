@@ -578,7 +578,7 @@ RECOVERY_NICE = 10
 def background_priority(pid: int) -> None:
     """Process ``pid`` (0: this one) at niceness :data:`RECOVERY_NICE`, set absolutely (not
     ``os.nice``'s increment): the parent sets it on the worker it starts, the worker on itself
-    in case it ran first, and the two must not add up. As it is where not permitted."""
+    in case it ran first, and the two must not add up. Left unchanged where not permitted."""
     try:
         os.setpriority(os.PRIO_PROCESS, pid, RECOVERY_NICE)
     except OSError:                     # pragma: no cover - not permitted here: run at the same priority
