@@ -2,6 +2,8 @@
 diagnosis of where the truth loses, the report section and ``--merge``."""
 import json
 
+import numpy as np
+
 import pytest
 
 
@@ -68,3 +70,26 @@ def test_report_section_and_merge(cells, tmp_path):
     merged, sections = _merge_saved(tmp_path, {"generalisation": {"new": 1}}, ["generalisation"])
     assert merged["table3"] == {"kept": True} and merged["generalisation"] == {"new": 1}
     assert sections == ["table3", "generalisation"]
+
+
+def test_generic_cases_leave_the_labelled_person_out(data_dir):
+    """The generic-model group: each person of the shared data labelled by a model of every
+    other person in it -- none of the labelled person's recordings in the training, and the
+    marker takes' people give the same 14 body points as the skeletal clips."""
+    generic = [c for c in gen.CASES if c.group == gen.GROUPS[3]]
+    assert {gen.parse_source(c.test)[0] for c in generic} == {"D3", "W1", "R1", "D2", "mct_dance1", "mct_walk1"}
+    for c in generic:
+        person = gen.RECORDINGS[gen.parse_source(c.test)[0]][1]
+        people = {gen.RECORDINGS[gen.parse_source(s)[0]][1] for s in c.train}
+        assert person not in people and len(people) >= 7, c.key
+        if person.startswith("MCT"):                 # the MoCap Toolbox takes may be one person
+            assert not any(p.startswith("MCT") for p in people), c.key
+    skeletal = gen.load_source(data_dir, "W1@0:0.1", "body14")
+    for key in gen.MARKER_PEOPLE:
+        clip = gen.load_source(data_dir, f"{key}@0:0.2", "body14")
+        assert clip.names == skeletal.names, key
+        assert np.isfinite(clip.positions).all(-1).mean() > 0.95, key
+        # a body, in metres, upright: the head above the ankles by a standing person's height
+        head, ankles = clip.names.index("head"), [clip.names.index("lankle"), clip.names.index("rankle")]
+        rise = np.nanmedian(clip.positions[:, head, 2] - clip.positions[:, ankles, 2].mean(1))
+        assert 1.0 < rise < 2.0, (key, rise)

@@ -21,6 +21,11 @@ does (labels stripped, points shuffled, stream and single mode), in four variant
   whose labels lie on the wrong side of the trunk, are not taken from those labels), then the
   rest labelled.
 
+The *generic model* group labels each person of the shared data with a model of every other
+person in it: the other CMU subjects' skeletal clips and the 14 points derived from the markers of
+the marker takes' people (MoCap Toolbox, Qualisys, CMU 85, HDM05), leaving out every recording of
+the person labelled -- the issue's generic model, one person left out at a time.
+
 All variants are scored on the same frames: those after the calibration window
 (stream mode: the first ``stream_frames`` of them through one labeler; single mode:
 ``single_frames`` frames spread over them, each searched from scratch).
@@ -69,7 +74,15 @@ RECORDINGS = {
     "hdm05": ("markers_c3d/hdm05_bd_05-01_01_120.c3d", "HDM05 bd", "upper-body actions"),
 }
 SKELETAL = ("W1", "R1", "D1", "D2", "D3")
-GROUPS = ("same person, other take", "same person, other motion", "other person", "41 markers")
+GROUPS = ("same person, other take", "same person, other motion", "other person",
+          "other person, generic model of every other shared person", "41 markers")
+#: the marker takes' people (14 points derived from their markers): with the skeletal clips of
+#: the other CMU subjects, every person of the shared data but the one labelled
+MARKER_PEOPLE = ("mct_walk1", "mct_dance1", "qualisys", "85_02", "85_12", "hdm05")
+#: of them, the takes that are not the MoCap Toolbox person(s)
+MARKER_PEOPLE_NOT_MCT = ("qualisys", "85_02", "85_12", "hdm05")
+GENERIC_NOTE = "CMU skeletons of the other subjects + 14 points derived from the markers of the MoCap Toolbox, " \
+               "Qualisys, CMU 85 and HDM05 people"
 VARIANTS = ("today", "body", "body + calibration", "dtm-label default")
 TODAY = {"body_terms": False, "broad_component": False}
 MARKER_TRAINING = {"k_max": 4, "max_frames_per_triangle": 1500}
@@ -104,14 +117,26 @@ CASES = (
          note="14 points derived from 28 surface markers"),
     Case("new_mct_walk", GROUPS[2], "MoCap Toolbox walker; model: every CMU skeletal clip", SKELETAL, "mct_walk1",
          note="14 points derived from 28 surface markers"),
-    Case("m_85_02_to_85_12", GROUPS[3], "subject 85: jump + twist -> breakdance (standing part)",
+    Case("generic_5", GROUPS[3], "subject 5 pirouette", ("W1", "R1", "D1", "D2") + MARKER_PEOPLE, "D3",
+         note=GENERIC_NOTE),
+    Case("generic_7", GROUPS[3], "subject 7 walk", ("R1", "D1", "D2", "D3") + MARKER_PEOPLE, "W1", note=GENERIC_NOTE),
+    Case("generic_9", GROUPS[3], "subject 9 run", ("W1", "D1", "D2", "D3") + MARKER_PEOPLE, "R1",
+         note=GENERIC_NOTE + "; no run in the training"),
+    Case("generic_55", GROUPS[3], "subject 55 lambada", ("W1", "R1", "D3") + MARKER_PEOPLE, "D2", note=GENERIC_NOTE),
+    Case("generic_mct_dance", GROUPS[3], "MoCap Toolbox dancer (14 points derived from 28 surface markers)",
+         SKELETAL + MARKER_PEOPLE_NOT_MCT, "mct_dance1", note="every CMU skeletal clip + the Qualisys, CMU 85 and "
+         "HDM05 people's derived points; neither MoCap Toolbox take"),
+    Case("generic_mct_walk", GROUPS[3], "MoCap Toolbox walker (14 points derived from 28 surface markers)",
+         SKELETAL + MARKER_PEOPLE_NOT_MCT, "mct_walk1", note="every CMU skeletal clip + the Qualisys, CMU 85 and "
+         "HDM05 people's derived points; neither MoCap Toolbox take"),
+    Case("m_85_02_to_85_12", GROUPS[4], "subject 85: jump + twist -> breakdance (standing part)",
          ("85_02",), "85_12@0.2:0.35", "all"),
-    Case("m_85_12_to_85_02", GROUPS[3], "subject 85: breakdance -> jump + twist", ("85_12@0:0.5",), "85_02", "all"),
-    Case("m_cmu_to_hdm05", GROUPS[3], "other person: CMU 85 (both takes) -> HDM05 bd", ("85_02", "85_12@0:0.5"),
+    Case("m_85_12_to_85_02", GROUPS[4], "subject 85: breakdance -> jump + twist", ("85_12@0:0.5",), "85_02", "all"),
+    Case("m_cmu_to_hdm05", GROUPS[4], "other person: CMU 85 (both takes) -> HDM05 bd", ("85_02", "85_12@0:0.5"),
          "hdm05@0:0.2", "all", note="another lab, another marker placement"),
-    Case("m_hdm05_to_85_02", GROUPS[3], "other person: HDM05 bd -> CMU 85 jump + twist", ("hdm05@0:0.3",),
+    Case("m_hdm05_to_85_02", GROUPS[4], "other person: HDM05 bd -> CMU 85 jump + twist", ("hdm05@0:0.3",),
          "85_02", "all"),
-    Case("m_floor", GROUPS[3], "floor moves: CMU 85 jump + twist, HDM05 -> breakdance on the floor",
+    Case("m_floor", GROUPS[4], "floor moves: CMU 85 jump + twist, HDM05 -> breakdance on the floor",
          ("85_02", "hdm05@0:0.3"), "85_12@0.75:0.9", "all", note="inverted and floor poses: known to fail"),
 )
 

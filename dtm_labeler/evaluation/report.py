@@ -502,7 +502,10 @@ def _generalisation(res: dict, out: Path, figures: list) -> list[str]:
              f"{plan['stream_frames']} of them ({plan['marker_stream_frames']} at 41 markers), single mode on "
              f"{plan['single_frames']} ({plan['marker_single_frames']}) frames spread over them. Model errors = "
              "frames whose search result is wrong although the true labeling scores lower (the model prefers the "
-             "wrong one); the rest of the wrong frames are search errors.", ""]
+             "wrong one); the rest of the wrong frames are search errors. The *generic model* group labels each "
+             "person with a model of every other person in the shared data (the other CMU subjects' skeletal clips "
+             "and the 14 points derived from the marker takes' people), leaving out every recording of the person "
+             "labelled.", ""]
     if res.get("note"):
         lines += [res["note"], ""]
     header = ["case", "trained on → tested on"] + [f"{v} {m}" for v in VARIANTS for m in ("stream", "single")] + \
@@ -554,7 +557,7 @@ def _generalisation(res: dict, out: Path, figures: list) -> list[str]:
             ax.set_ylim(0, 101)
             ax.axhline(97, color="k", lw=0.6, ls=":")
             ax.grid(axis="y", alpha=0.3)
-        axes[0].legend(loc="lower left", fontsize=8)
+        axes[0].legend(loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=8)
         axes[1].set_xticks(x, keys, rotation=35, ha="right", fontsize=8)
         axes[0].set_title("Generalisation: today, body terms, + calibration, dtm-label's default")
         name = _save(fig, out / "fig_generalisation.png", figures)
