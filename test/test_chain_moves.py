@@ -49,6 +49,26 @@ def test_chain_shifts_operator():
     assert {tuple(c) for c in ops.chain_shifts(ind, n, chains, allowed, ind >= n)} == set()
 
 
+def test_chain_shifts_completed_on_free_points():
+    """A leg's labels passed one marker along (hip label missing, the hip's point labelled knee,
+    the knee's ankle, the ankle's point unlabelled): the shift back is only whole when the
+    ankle label also takes the point the carried labeling left free."""
+    n = 6                                          # points: 0 hip, 1 knee, 2 ankle, 3 head, 4 ghost, 5 toe
+    hip, knee, ankle, head, toe = range(5)
+    ind = np.array([n, 0, 1, 3, 5])                # the carried labeling: one marker along the leg
+    chains = [np.array([[hip, knee, ankle]])]
+    free = np.array([2, 4])                        # the ankle's point and a ghost
+    plain = {tuple(c) for c in ops.chain_shifts(ind, n, chains, start=ind >= n)}
+    assert plain == {(0, 1, n, 3, 5)}              # shifted back, the ankle label left missing
+    got = {tuple(c) for c in ops.chain_shifts(ind, n, chains, start=ind >= n, free=free)}
+    assert got == plain | {(0, 1, 2, 3, 5), (0, 1, 4, 3, 5)}
+    assert ops.is_valid(ops.chain_shifts(ind, n, chains, start=ind >= n, free=free), n).all()
+    allowed = np.ones((5, n + 1), dtype=bool)
+    allowed[ankle, 4] = False                      # the ghost is too far from the knee for an ankle
+    got = {tuple(c) for c in ops.chain_shifts(ind, n, chains, allowed, ind >= n, free)}
+    assert (0, 1, 2, 3, 5) in got and (0, 1, 4, 3, 5) not in got
+
+
 def test_model_chains_follow_the_body(model, hdm):
     """The mean body the chains come from matches the take's marker distances, and the arm's
     chains step between the markers along it, in both orders."""

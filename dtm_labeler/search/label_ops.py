@@ -199,7 +199,7 @@ def is_valid(pop: np.ndarray, n: int) -> np.ndarray:
 
 
 def chain_shifts(ind: np.ndarray, n: int, chains: list[np.ndarray], allowed: np.ndarray | None = None,
-                 start: np.ndarray | None = None) -> np.ndarray:
+                 start: np.ndarray | None = None, free: np.ndarray | None = None) -> np.ndarray:
     """Every labeling one *chain shift* away from ``ind`` (M,): for a chain of labels
     ``(c_0, ..., c_k)`` (``chains``: one (C, k+1) array per chain length), each label takes the
     point of the next one, ``c_i <- ind[c_{i+1}]``; ``c_0``'s point (if any) is freed and the
@@ -207,8 +207,12 @@ def chain_shifts(ind: np.ndarray, n: int, chains: list[np.ndarray], allowed: np.
     ``c_1 .. c_k`` do not all hold points is skipped (nothing to shift), and so is one whose
     ``c_0`` is not in ``start`` (M,) bool, if given, or a shift that ``allowed`` (M, n+1), if
     given, forbids for some step. Chains listed in both orders give the shift forward and
-    backward. Always valid assignments (a permutation of the chain's points, one possibly
-    dropped)."""
+    backward. With ``free`` (the points no label of ``ind`` holds), each shift is also given
+    with its last label on each of them (where ``allowed``): the shift *completed* -- a limb's
+    labels passed one marker along leave its end marker unlabelled, and the shift back is only
+    better than the carried labeling once that marker has its label again. Always valid
+    assignments (a permutation of the chain's points, one possibly dropped or replaced by a
+    free point)."""
     out = []
     for ch in chains:
         if start is not None:
@@ -235,4 +239,12 @@ def chain_shifts(ind: np.ndarray, n: int, chains: list[np.ndarray], allowed: np.
             rotated = shifted[rot]
             rotated[np.arange(len(rotated)), ch[rot, -1]] = first[rot]
             out.append(rotated)
+        if free is not None and len(free):
+            last = ch[:, -1]
+            fits = np.ones((len(ch), len(free)), dtype=bool) if allowed is None else allowed[last[:, None], free[None]]
+            rows, pts = np.nonzero(fits)
+            if rows.size:
+                completed = shifted[rows]
+                completed[np.arange(rows.size), last[rows]] = free[pts]
+                out.append(completed)
     return np.concatenate(out) if out else np.zeros((0, ind.size), dtype=np.int64)
