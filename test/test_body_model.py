@@ -19,7 +19,7 @@ from dtm_labeler.motion.pointsets import BODY14
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search import structure_search as ss
 from dtm_labeler.search.problem import Background, FrameProblem
-from dtm_labeler.training.body_fit import broad_weight, reach_limits
+from dtm_labeler.training.body_fit import broad_weight, clip_spread, fit_body, reach_limits
 from dtm_labeler.training.calibrate import (CalibrationError, calibrate, calibrated_body, fit_per_label, self_calibrate,
                                            wrong_side)
 from dtm_labeler.training.train import TrainConfig, canonical_states, train_model
@@ -185,6 +185,30 @@ def test_reach_limits_are_tree_path_lengths():
         longest[c, p] = longest[p, c] = L
     R = reach_limits(longest, parents)
     assert R[2, 3] == pytest.approx(0.95) and R[1, 3] == pytest.approx(0.7) and R[0, 2] == pytest.approx(0.55)
+
+
+def test_a_bone_noisy_in_one_clip_of_many_stays_a_segment():
+    """A bone is a segment when it holds in most clips (from three on): one take whose points
+    are derived from surface markers (a knee from marker means, 2 cm of play) does not undo it;
+    with two clips both must hold it."""
+    parents = np.array([-1, 0, 1])                     # hip - knee - ankle
+
+    def stats(sds):
+        C = len(sds)
+        sd = np.full((C, 3, 3), 0.2)                   # the non-links vary a lot
+        sd[:, 0, 1] = sd[:, 1, 0] = sds                # hip-knee per clip
+        return {"mean": np.full((C, 3, 3), 0.4), "sd": sd, "vec": np.full((C, 3, 3), 0.5),
+                "max": np.full((C, 3, 3), 0.45)}
+
+    def kind(sds):
+        b = fit_body(stats(sds), parents)
+        return int(b.kind[(b.pairs[:, 0] == 0) & (b.pairs[:, 1] == 1)][0])
+    assert kind([0.001, 0.002, 0.001, 0.02]) == SEGMENT          # one noisy take of four
+    assert kind([0.001, 0.02, 0.001, 0.02, 0.02]) == REACH        # most takes move it
+    assert kind([0.001, 0.02]) == REACH and kind([0.001, 0.002]) == SEGMENT   # two: both must hold
+    sd = stats([0.001, 0.002, np.nan, 0.02])["sd"]
+    assert clip_spread(sd)[0, 1] == pytest.approx(0.002)         # clips that never show it do not count
+    assert clip_spread(sd[[0, 3]])[0, 1] == pytest.approx(0.02)
 
 
 def test_broad_weight_em_recovers_contamination():
