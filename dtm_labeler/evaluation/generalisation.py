@@ -80,9 +80,11 @@ GROUPS = ("same person, other take", "same person, other motion", "other person"
 #: the other CMU subjects, every person of the shared data but the one labelled
 MARKER_PEOPLE = ("mct_walk1", "mct_dance1", "qualisys", "85_02", "85_12", "hdm05")
 #: of them, the takes that are not the MoCap Toolbox person(s)
-MARKER_PEOPLE_NOT_MCT = ("qualisys", "85_02", "85_12", "hdm05")
+MARKER_PEOPLE_NOT_MCT = tuple(k for k in MARKER_PEOPLE if not k.startswith("mct_"))
 GENERIC_NOTE = "CMU skeletons of the other subjects + 14 points derived from the markers of the MoCap Toolbox, " \
                "Qualisys, CMU 85 and HDM05 people"
+GENERIC_MCT_NOTE = "every CMU skeletal clip + the Qualisys, CMU 85 and HDM05 people's derived points; neither " \
+                   "MoCap Toolbox take"
 VARIANTS = ("today", "body", "body + calibration", "dtm-label default")
 TODAY = {"body_terms": False, "broad_component": False}
 MARKER_TRAINING = {"k_max": 4, "max_frames_per_triangle": 1500}
@@ -124,11 +126,9 @@ CASES = (
          note=GENERIC_NOTE + "; no run in the training"),
     Case("generic_55", GROUPS[3], "subject 55 lambada", ("W1", "R1", "D3") + MARKER_PEOPLE, "D2", note=GENERIC_NOTE),
     Case("generic_mct_dance", GROUPS[3], "MoCap Toolbox dancer (14 points derived from 28 surface markers)",
-         SKELETAL + MARKER_PEOPLE_NOT_MCT, "mct_dance1", note="every CMU skeletal clip + the Qualisys, CMU 85 and "
-         "HDM05 people's derived points; neither MoCap Toolbox take"),
+         SKELETAL + MARKER_PEOPLE_NOT_MCT, "mct_dance1", note=GENERIC_MCT_NOTE),
     Case("generic_mct_walk", GROUPS[3], "MoCap Toolbox walker (14 points derived from 28 surface markers)",
-         SKELETAL + MARKER_PEOPLE_NOT_MCT, "mct_walk1", note="every CMU skeletal clip + the Qualisys, CMU 85 and "
-         "HDM05 people's derived points; neither MoCap Toolbox take"),
+         SKELETAL + MARKER_PEOPLE_NOT_MCT, "mct_walk1", note=GENERIC_MCT_NOTE),
     Case("m_85_02_to_85_12", GROUPS[4], "subject 85: jump + twist -> breakdance (standing part)",
          ("85_02",), "85_12@0.2:0.35", "all"),
     Case("m_85_12_to_85_02", GROUPS[4], "subject 85: breakdance -> jump + twist", ("85_12@0:0.5",), "85_02", "all"),
