@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from dtm_labeler.labeling.stream import FrameResult, LabelerSettings, StreamLabeler
-from dtm_labeler.search.label_search import GASettings
+from dtm_labeler.search.label_search import GASettings, make_search
 from dtm_labeler.training.train import TrainConfig, train_model
 from dtm_labeler.motion import load_clip
 from dtm_labeler.motion.synthetic import synthesize
@@ -226,6 +226,33 @@ def test_full_search_restarts_while_short_of_the_level(model, walker):
     assert counts == {(0, 1e6): 1, (3, 1e6): 4, (3, -1e6): 1}
     with pytest.raises(ValueError, match="restarts"):
         LabelerSettings(restarts=-1)
+
+
+def test_the_second_frame_keeps_the_first_frames_labeling_when_its_search_ends_below_it(model, walker):
+    """Inline, a stream's first frame (no velocities) is searched on positions and the second
+    afresh; a second search that ends below the first frame's labeling, carried on by the
+    tracks and hill-climbed, does not replace it (``TrackedLabeler._start_labeling``). The
+    second frame's search is made useless here (the simple GA's 4 random labelings, no
+    generation, no polish)."""
+    weak = GASettings(population=4, max_generations=0, polish=False, region_sweeps=0)
+    rng = np.random.default_rng(5)
+    frames = [shuffled(walker.positions[k], rng, n_clutter=0) for k in range(3)]
+    right = {}
+    for keep_start in (True, False):
+        lab = StreamLabeler(model, LabelerSettings(recovery="inline", restarts=0, turn_check=False))
+        if not keep_start:                              # the search's result alone (as before)
+            lab._start_labeling = lambda *a: None
+        r0 = lab.process(frames[0][0], 0.0)
+        assert r0.full_search and accuracy(r0, frames[0][1])[0] == 1.0
+        lab.full_search = make_search("sga", weak)      # the second frame's search: random labelings
+        r1 = lab.process(frames[1][0], 1 / walker.rate)
+        assert r1.full_search
+        truth = frames[1][1]
+        right[keep_start] = float(np.mean(r1.search_labels[truth >= 0] == truth[truth >= 0]))
+        if keep_start:                                  # the fast path carries it on
+            r2 = lab.process(frames[2][0], 2 / walker.rate)
+            assert not r2.full_search and accuracy(r2, frames[2][1])[0] == 1.0
+    assert right[True] == 1.0 and right[False] < 0.5
 
 
 def test_settings_validation(model):
