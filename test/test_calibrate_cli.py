@@ -152,7 +152,8 @@ def test_segments_the_self_calibration_could_not_measure_stay_open(models):
 def test_auto_calibration_keeps_the_model_when_it_cannot_or_should_not_calibrate(models, data_dir):
     """A model without body terms is labelled with as it is (the reason given); a calibration
     the calibrated model does not reproduce (here: asked to keep more than all of the
-    confirmed labels) is dropped, the generic model returned unchanged."""
+    confirmed labels) is dropped after a second self-labelling with another search seed, the
+    generic model returned unchanged; one that passes the first time runs once."""
     from dtm_labeler.training.calibrate import CalibrationSettings, auto_calibrate, kept_share
     model_path, v1_path, _ = models
     clouds = load_clip(data_dir / PIROUETTE, points="body14").slice(0, 80).positions
@@ -162,8 +163,12 @@ def test_auto_calibration_keeps_the_model_when_it_cannot_or_should_not_calibrate
     generic = load_model(model_path)
     same, info = auto_calibrate(generic, clouds, 120.0, CalibrationSettings(min_kept=1.01))
     assert same is generic and not info["applied"] and "relabels" in info["reason"] and info["kept_share"] > 0.5
+    assert info["attempts"] == 2
+    same, info = auto_calibrate(generic, clouds, 120.0, CalibrationSettings(min_kept=1.01, attempts=1))
+    assert same is generic and info["attempts"] == 1
     calibrated, info = auto_calibrate(generic, clouds, 120.0)
     assert info["applied"] and calibrated.body.calibration and SEGMENT in calibrated.body.applied_kinds
+    assert info["attempts"] == 1
     again, info = auto_calibrate(calibrated, clouds, 120.0)
     assert again is calibrated and "already calibrated" in info["reason"]
     # the share kept: of the labels confirmed before, those confirmed on the same point after
