@@ -935,9 +935,9 @@ class TrackedLabeler:
         self._coasting = np.zeros(M, dtype=bool)
         if not self.track_label:
             return None
-        seed = self._carried_labels(track_ids, n)
+        tids, labs = self._track_labels()
+        seed = self._carried_labels(track_ids, n, (tids, labs))
         if self.settings.chain_moves > 1:          # labels of tracks not seen this frame (chain moves only)
-            tids, labs = self._track_labels()
             self._coasting[labs[~np.isin(tids, track_ids)]] = True
         if 2 * int((seed < n).sum()) < min(M, n):
             return None                  # most tracks are new (e.g. the input's ids restarted): search afresh
@@ -945,15 +945,16 @@ class TrackedLabeler:
             return seed[None]
         return label_ops.repair(seed[None], n, self.rng, fill=False)
 
-    def _carried_labels(self, track_ids: np.ndarray, n: int) -> np.ndarray:
+    def _carried_labels(self, track_ids: np.ndarray, n: int,
+                        tracks: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """The labels the tracks carry (:attr:`track_label`) on this frame's points (label ->
         point, ``n`` where its track is not seen). One label per track and one track per
-        point, so it is a valid assignment as it is."""
+        point, so it is a valid assignment as it is. ``tracks``: :meth:`_track_labels`, when
+        the caller already has it."""
+        tids, labs = self._track_labels() if tracks is None else tracks
         out = np.full(self.n_labels, n, dtype=np.int64)
-        if self.track_label:
-            tids, labs = self._track_labels()
-            pos, hit = _find(tids, track_ids)
-            out[labs[pos[hit]]] = np.flatnonzero(hit)
+        pos, hit = _find(tids, track_ids)
+        out[labs[pos[hit]]] = np.flatnonzero(hit)
         return out
 
     def _start_labeling(self, track_ids: np.ndarray, n: int) -> np.ndarray | None:

@@ -559,14 +559,14 @@ def auto_calibrate(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.n
     if len(clouds) < s.min_frames:
         summary["reason"] = f"{len(clouds)} frames, under the {s.min_frames} a calibration needs"
         return model, summary
+    attempts = max(1, s.attempts)
     first = None
-    for attempt in range(max(1, s.attempts)):
-        out, info = _self_calibration_checked(model, clouds, rate, s, dict(summary), attempt)
-        info["attempts"] = attempt + 1
+    for attempt in range(attempts):
+        out, info = _self_calibration_checked(model, clouds, rate, s, dict(summary, attempts=attempt + 1), attempt)
         if info["applied"]:
             return out, info
         first = first or (out, info)
-    first[1]["attempts"] = max(1, s.attempts)
+    first[1]["attempts"] = attempts
     return first
 
 
