@@ -312,6 +312,28 @@ def test_warm_start_and_polish(exhaustive):
     assert f >= p.fitness(truth)[0] - 1e-9                   # one swap away: found
 
 
+def test_polish_pays_the_cost_of_its_moves(exhaustive):
+    """With a ``cost`` the ascent is on fitness minus cost against the start: a move whose gain
+    is below its price is refused, one above it taken; the fitness returned is the labeling's own."""
+    p, truth, _ = exhaustive[4]
+    start = ops.mirror(truth[None], p.mirror_pairs)[0]       # the body read mirrored
+    f0, ft = float(p.fitness(start[None])[0]), float(p.fitness(truth[None])[0])
+    gain = ft - f0
+    assert gain > 0.5
+
+    def only_the_mirror(x):
+        return ops.mirror(x[None], p.mirror_pairs)
+
+    def price(c):
+        return lambda cand: np.full(len(cand), c)
+    ind, f, _ = polish(p, start, f0, rounds=3, neighbours=only_the_mirror, cost=price(gain + 0.1))
+    assert np.array_equal(ind, start) and f == pytest.approx(f0)
+    ind, f, _ = polish(p, start, f0, rounds=3, neighbours=only_the_mirror, cost=price(gain - 0.1))
+    assert np.array_equal(ind, truth) and f == pytest.approx(ft)
+    ind, f, _ = polish(p, start, f0, rounds=3, neighbours=only_the_mirror)      # no cost: the plain ascent
+    assert np.array_equal(ind, truth) and f == pytest.approx(ft)
+
+
 def test_region_sweep_settles_what_a_weak_ga_leaves(exhaustive):
     """The final region sweep only ever raises the GA's result (same GA run: it draws no
     random numbers): from a random labeling and no generations it raises every frame and

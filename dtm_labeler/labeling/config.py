@@ -164,6 +164,11 @@ PARAMS: Tuple[Param, ...] = (
           "took over a hidden marker's track); helps when the model fits every true marker well."),
     Param("swap_radius_m", 0.15, "The fast path also tries swapping the labels of points closer "
           "than this (m): where the tracker may have swapped two markers.", range=(0.0, 10.0)),
+    Param("mirror_switch_nats", 0.5, "Nats per label the fast path's whole mirror image of the "
+          "carried labeling must gain besides its fitness (a track keeps its side unless the frame's "
+          "evidence outweighs this prior; eq. 32 read as a hidden Markov chain). 0 = off: in a symmetric "
+          "gait the mirror fits about as well as the truth and a few nats turned whole streams round.",
+          range=(0.0, 1000.0)),
     Param("chain_moves", 0, "The fast path also tries moving a hole (a missing label whose track is "
           "not coasting) along chains of up to this many neighbouring markers (limb chains from the "
           "model's mean body): each label takes the next one's point, as when tracking carried a limb's "
@@ -369,6 +374,7 @@ class LabelerSettings:
     swap_radius_m: float = DEFAULTS["swap_radius_m"]
     release_moves: bool = DEFAULTS["release_moves"]
     chain_moves: int = DEFAULTS["chain_moves"]
+    mirror_switch_nats: float = DEFAULTS["mirror_switch_nats"]
     turn_check: bool = DEFAULTS["turn_check"]
     region_checks: int = DEFAULTS["region_checks"]
     region_size: int = DEFAULTS["region_size"]

@@ -203,9 +203,13 @@ def _pairs(pairs: np.ndarray | None) -> np.ndarray:
 
 
 def polish(problem: FrameProblem, ind: np.ndarray, fit: float | None, rounds: int,
-           deadline: float | None = None, neighbours=None, last: dict | None = None) -> tuple[np.ndarray, float, int]:
+           deadline: float | None = None, neighbours=None, last: dict | None = None,
+           cost=None) -> tuple[np.ndarray, float, int]:
     """Steepest ascent (at most ``rounds`` moves) over ``neighbours(ind)``; by default the
-    full one-move :func:`label_ops.neighbourhood` within the distance bounds. ``fit`` None:
+    full one-move :func:`label_ops.neighbourhood` within the distance bounds. ``cost``, if
+    given, maps (K, M) candidates to what each must pay (nats) against the start ``ind``: the
+    ascent is then on fitness minus cost (a prior on moves away from the start; the returned
+    fitness is the candidate's own). ``fit`` None:
     the start is scored in the same batch as its first neighbourhood (one term-cache fill
     for both: what a new frame's carried labeling needs). ``last``, if given, receives the
     final neighbourhood and its fitnesses when the ascent stopped at a local optimum
@@ -214,6 +218,7 @@ def polish(problem: FrameProblem, ind: np.ndarray, fit: float | None, rounds: in
         def neighbours(x):
             return ops.neighbourhood(x, problem.n, pairs=problem.mirror_pairs, allowed=problem.allowed(x))
     evals = 0
+    paid = 0.0                      # the cost of the current ``ind`` against the start
     for _ in range(rounds):
         if deadline is not None and time.perf_counter() > deadline:
             break
@@ -225,12 +230,13 @@ def polish(problem: FrameProblem, ind: np.ndarray, fit: float | None, rounds: in
         else:
             f = problem.fitness(cand)
         evals += len(cand)
-        i = int(np.argmax(f))
-        if f[i] <= fit + 1e-9:
+        price = np.zeros(len(cand)) if cost is None else cost(cand)
+        i = int(np.argmax(f - price))
+        if f[i] - price[i] <= fit - paid + 1e-9:
             if last is not None:
                 last.update(ind=ind, cand=cand, fitness=f)
             break
-        ind, fit = cand[i], float(f[i])
+        ind, fit, paid = cand[i], float(f[i]), float(price[i])
     if fit is None:
         fit = float(problem.fitness(ind[None])[0])
         evals += 1
