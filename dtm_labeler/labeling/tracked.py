@@ -1035,7 +1035,9 @@ class TrackedLabeler:
         a whole stream round (subject 9's run under the generic model, seed 1: frames 75-84
         mirrored, the mirror 0.2-7 nats better in six of them; 94.81 -> 98.70 % with 0.5 nats).
         A single pair swapped (legs crossing, a tracker slip) pays nothing: charging those too
-        (1 nat a pair) cost 0.5-0.8 points at 41 markers with flicker."""
+        (1 nat a pair) cost up to 0.8 points at 41 markers with flicker (seeds 1-3: 94.75 / 95.76 /
+        94.93 -> 93.99 / 95.20 / 94.90 %), and charging every changed label kept wrong starts
+        (a generic pirouette 89.85 -> 38.43 % at 1 nat)."""
         c = self.settings.mirror_switch_nats
         pairs = problem.mirror_pairs
         if c <= 0 or pairs is None or not len(pairs):
