@@ -131,6 +131,20 @@ def test_doubtful_frames_abstain_from_the_unlabelled_vote():
     assert labels.tolist() == [-1, -1]
 
 
+def test_a_vouched_frame_drops_a_window_of_doubtful_ones():
+    """Labels published while nothing is vouched for (a recovery's interim results) do not
+    outvote the first vouched labeling; a window that holds a vouched frame keeps its votes."""
+    vb = VoteBook(window=10, n_labels=3)
+    for _ in range(8):                                       # interim: tracks 1, 2 read as 0, 1
+        vb.add(np.array([1, 2]), np.array([0, 1]), abstain=True)
+    vb.add(np.array([1, 2]), np.array([1, 0]))              # the search's result: the other way round
+    labels, conf = vb.publish(np.array([1, 2]), np.array([1, 0]))
+    assert labels.tolist() == [1, 0] and conf.tolist() == [1.0, 1.0]
+    vb.add(np.array([1, 2]), np.array([0, 1]), abstain=True)
+    vb.add(np.array([1, 2]), np.array([0, 1]))              # a vouched frame is in the window: votes kept
+    assert vb.tally(np.array([1, 2])).tolist() == [[2, 1, 0], [1, 2, 0]]
+
+
 def test_sliding_window_equals_a_recount():
     """The window kept as one concatenation, slid by a frame per add, counts what a recount of
     the window's frames from scratch counts (votes, frames seen, "no label" votes)."""
@@ -142,6 +156,8 @@ def test_sliding_window_equals_a_recount():
         labs = np.where(rng.random(k) < 0.3, -1, rng.integers(0, 4, k))
         abstain = bool(rng.random() < 0.2)
         vb.add(t, labs, abstain=abstain)
+        if not abstain and not any(not a for _, _, a in frames):
+            frames = []                                       # a window of doubtful frames starts again
         frames = (frames + [(t, labs, abstain)])[-7:]
         ask = np.arange(11)
         votes, seen, none = vb._count(ask)

@@ -737,7 +737,10 @@ class TrackedLabeler:
         if isinstance(search, GASearch):
             hook = self._migration(problems, searched)
             if self._interim is not None:
-                hook = self._interim.hook(searched, hook)
+                finish = search._finish if search.finish and search.settings.polish else None
+                refine = None if finish is None else (
+                    lambda m, a, f: finish(problems[m], a, f, None))
+                hook = self._interim.hook(searched, hook, refine)
             out = search.search_models([problems[m] for m in searched],
                                        self._island_sizes(search.settings.population, searched),
                                        self.rng, seeds, hook)
