@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -207,12 +208,51 @@ def test_the_finished_search_is_sent_before_the_turned_round_check(model, walker
         def hook(self, searched, inner=None, refine=None):
             return inner
     res = worker.recover(req, rng=np.random.default_rng(0), interim=FinishedOnly(req, sent.append))
-    assert len(at_check) == 1 and quick == [0]                 # the quick half before anything is sent
+    assert len(at_check) == 1 and quick[0] == 0               # the quick half before anything is sent
     n_sent, fits = at_check[0]
-    assert n_sent == 1 and sent[0].interim
+    assert n_sent >= 1 and all(r.interim for r in sent)
     last = sent[n_sent - 1].candidates
     assert max(f for _, f in last.values()) == pytest.approx(max(fits.values()))   # what the check starts from
     assert max(f for _, f in res.candidates.values()) >= max(fits.values()) - 1e-9
+
+
+@pytest.mark.parametrize("worker", [False, True])
+@pytest.mark.parametrize("falls_short", [False, True])
+def test_cold_search_steps(model, walker, falls_short, worker):
+    """Inline, a cold search restarts only while it falls short of the level and then reads
+    its labels through the turned-round body, then the slow whole-body check from the same
+    labels. In a worker (an interim reporter) the quick half runs on the first GA's result at
+    once and is sent, every restart runs and is sent, and the quick half is read again from
+    their best; the final result is never below what was sent."""
+    req = _first_request(model, walker)
+    worker_lab = StreamLabeler(model, LabelerSettings(recovery="inline", restarts=2))
+    steps, sent = [], []
+    ga, turn = worker_lab._ga, worker_lab._turn_round
+    def ga_spy(*a, **k):
+        steps.append(("ga", None))
+        return ga(*a, **k)
+    def turn_spy(problems, found, start, check):
+        steps.append((check.__name__, {m: c.assignment.copy() for m, c in start.items()}))
+        turn(problems, found, start, check)
+    worker_lab._ga, worker_lab._turn_round = ga_spy, turn_spy
+    if falls_short:                     # a level no labeling reaches
+        level = req.state["level"].copy()
+        level[:] = 1e6
+        req = replace(req, state={**req.state, "level": level})
+    rep = InterimReporter(req, sent.append) if worker else None
+    res = worker_lab.recover(req, rng=np.random.default_rng(0), interim=rep)
+    names = [name for name, _ in steps]
+    if worker:
+        assert names == ["ga", "turned_labels", "ga", "ga", "turned_labels", "turned_round"]
+        best_sent = max(max(f for _, f in r.candidates.values()) for r in sent)
+        assert max(f for _, f in res.candidates.values()) >= best_sent - 1e-9
+    elif falls_short:
+        assert names == ["ga", "ga", "ga", "turned_labels", "turned_round"]
+    else:
+        assert names == ["ga", "turned_labels", "turned_round"]
+    quick_start, slow_start = steps[-2][1], steps[-1][1]          # both halves from the same labels
+    for m in slow_start:
+        assert np.array_equal(quick_start[m], slow_start[m])
 
 
 def test_worker_sends_interim_results_before_the_final_one(model, walker):

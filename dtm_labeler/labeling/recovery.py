@@ -97,8 +97,10 @@ class InterimReporter:
         """A per-generation hook for :func:`~..search.evolve.evolve` over the islands of
         ``searched`` (after ``inner``, e.g. the bank's migration).
 
-        ``refine(model, assignment, fitness) -> (assignment, fitness, evaluations)`` (the
-        search's finish: polish, its mirror image, region sweeps) is run once in a search from
+        ``refine(model, assignment, fitness)`` yields ``(assignment, fitness, evaluations)``
+        one refinement after another (the search's finish: polish, its mirror image, region
+        sweeps; then the labels read through the turned-round body), each reported as it
+        comes; it is run once in a search from
         scratch (:data:`REFINED_KINDS`; a warm search starts from a labeling that was right a
         frame ago), on the best island's best at the first report, and its result is reported
         as well. A cold GA at
@@ -118,10 +120,10 @@ class InterimReporter:
             if refine is not None and not self.refined and bests and self.request.kind in REFINED_KINDS:
                 m = max(bests, key=lambda q: bests[q][1])
                 ind, f = bests[m]
-                a, fa, e = refine(m, np.array(ind, copy=True), float(f))
                 self.refined += 1
-                self.report({**bests, m: (a, fa)}, gen)
-                evals += e
+                for a, fa, e in refine(m, np.array(ind, copy=True), float(f)):
+                    self.report({**bests, m: (a, fa)}, gen)
+                    evals += e
             return evals
         return report
 
