@@ -97,19 +97,18 @@ class InterimReporter:
         """A per-generation hook for :func:`~..search.evolve.evolve` over the islands of
         ``searched`` (after ``inner``, e.g. the bank's migration).
 
-        ``refine(model, assignment, fitness)`` yields ``(assignment, fitness, evaluations)``
-        one refinement after another (the search's finish: polish, its mirror image, region
-        sweeps; then the labels read through the turned-round body), each reported as it
-        comes; it is run once in a search from
+        ``refine(model, assignment, fitness)`` yields ``(assignment, fitness, evaluations)``,
+        one refinement after another (:meth:`~.tracked.TrackedLabeler._interim_refine`: the
+        search's finish -- polish, its mirror image, region sweeps -- then the labels read
+        through the turned-round body), each reported as it comes. It runs once per search from
         scratch (:data:`REFINED_KINDS`; a warm search starts from a labeling that was right a
-        frame ago), on the best island's best at the first report, and its result is reported
-        as well. A cold GA at
-        41 markers is slow to climb but its first generation is already a good start for the
-        exact region sweeps: on the 41-marker demo stream (HDM05, 3 flickering + 2 ghosts) the
-        GA's best was 29-55 % right over its first 80 generations (95-230 ms into the search),
-        and the sweeps from its first generation's best gave the right labeling in 40-60 ms,
-        where the whole search's sweeps joined at 320-360 ms. The GA itself is untouched (its
-        population and random stream), so the final result is the same, one sweep later."""
+        frame ago), on the best island's best at the first report. A cold GA at 41 markers is
+        slow to climb, but its first generation is a good start for the exact region sweeps: on
+        the 41-marker demo stream (HDM05, 3 flickering + 2 ghosts) the GA's best was 29-55 %
+        right over its first 80 generations (95-230 ms into the search), the sweeps from its
+        first generation's best gave the right labeling in 40-60 ms, and the whole search's
+        sweeps joined at 320-360 ms. The GA itself is untouched (its population and random
+        stream): the search's final result is the same, later by the refinement's time."""
         def report(islands, gen: int) -> int:
             evals = inner(islands, gen) if inner is not None else 0
             now = time.perf_counter()

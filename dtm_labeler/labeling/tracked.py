@@ -737,9 +737,8 @@ class TrackedLabeler:
         if isinstance(search, GASearch):
             hook = self._migration(problems, searched)
             if self._interim is not None:
-                finish = search._finish if search.finish and search.settings.polish else None
-                refine = None if finish is None else (
-                    lambda m, a, f: self._interim_refine(search, problems[m], a, f))
+                refine = (lambda m, a, f: self._interim_refine(search, problems[m], a, f)) \
+                    if search.finish and search.settings.polish else None
                 hook = self._interim.hook(searched, hook, refine)
             out = search.search_models([problems[m] for m in searched],
                                        self._island_sizes(search.settings.population, searched),
