@@ -805,23 +805,18 @@ class TrackedLabeler:
             self._turn_round(problems, quick, dict(found.candidates), turned_labels)
             self._interim.report(quick.bests(), found.generations)
         restarts = self.settings.restarts if self.settings.method in ("cbga", "sga") else 0   # others: deterministic
-        restarted = False
         for _ in range(restarts):
             m = found.best_model
             if quick is None and found.best.fitness >= self.level[m] * frame_weight(problems[m]) - self._refit_margin(m):
                 break
             found.merge(self._ga(self.full_search, problems, searched, None))
-            restarted = True
             if quick is not None:
                 self._interim.report(found.bests(), found.generations)
         if check:
             ga = dict(found.candidates)
-            if quick is not None and not restarted:     # the same check from the same labels
-                found.candidates, found.evaluations = quick.candidates, found.evaluations + quick.evaluations
-            else:
-                self._turn_round(problems, found, ga, turned_labels)
-                if quick is not None:
-                    found.merge(quick)
+            self._turn_round(problems, found, ga, turned_labels)
+            if quick is not None:
+                found.merge(quick)
             if self._interim is not None:       # joins before the check's second, slow half
                 self._interim.report(found.bests(), found.generations)
             self._turn_round(problems, found, ga, turned_round)
