@@ -40,13 +40,12 @@ class LabelTenure:
         if lost.size and keys.size:
             keep = ~np.isin(keys // self.n_labels, lost)
             keys, first = keys[keep], first[keep]
-        new = np.unique(self._key(track_ids[has], labels[has]))
-        new = new[~np.isin(new, keys)]
+        new = np.sort(self._key(track_ids[has], labels[has]))     # unique: one label per track
+        if keys.size and new.size:
+            new = new[keys[np.minimum(np.searchsorted(keys, new), keys.size - 1)] != new]
         if new.size:
-            keys = np.concatenate([keys, new])
-            first = np.concatenate([first, np.full(new.size, float(stamp))])
-            order = np.argsort(keys, kind="stable")
-            keys, first = keys[order], first[order]
+            at = np.searchsorted(keys, new)
+            keys, first = np.insert(keys, at, new), np.insert(first, at, float(stamp))
         self._keys, self._first = keys, first
 
     def held_for(self, track_ids, labels, stamp: float) -> np.ndarray:
