@@ -1069,9 +1069,7 @@ class TrackedLabeler:
         mirror switch (:meth:`_mirror_cost`) plus the hold (:meth:`_hold_cost`); None when
         neither applies."""
         costs = [c for c in (self._mirror_cost(problem, seed), self._hold_cost(problem, seed)) if c is not None]
-        if len(costs) < 2:
-            return costs[0] if costs else None
-        return lambda cand: costs[0](cand) + costs[1](cand)
+        return (lambda cand: sum(c(cand) for c in costs)) if costs else None
 
     def _hold_cost(self, problem: FrameProblem, seed: np.ndarray):
         """What the fast path's moves pay for taking a label off the track that has carried it
@@ -1164,13 +1162,13 @@ class TrackedLabeler:
                 self._region_cursor = (self._region_cursor + 1) % problem.M
                 centres = [self._region_cursor] + [c for c in centres if c != self._region_cursor]
             if centres:
-                before = ind, f
+                ind0, f0 = ind, f
                 ind, f, e = self._region_checks(problem, ind, f, moves, centres[:self.settings.region_checks])
                 evals += e
-                if cost is not None and not np.array_equal(ind, before[0]):    # the same prior as the moves'
-                    price = cost(np.stack([before[0], ind]))
-                    if f - price[1] <= before[1] - price[0]:
-                        ind, f = before
+                if cost is not None and not np.array_equal(ind, ind0):    # the same prior as the moves'
+                    price = cost(np.stack([ind0, ind]))
+                    if f - price[1] <= f0 - price[0]:
+                        ind, f = ind0, f0
         return ind, f, evals
 
     def _chain_shifts(self, problem: FrameProblem, ind: np.ndarray, f: float, moves,
