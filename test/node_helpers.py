@@ -40,6 +40,8 @@ FASTDDS_PROFILE = HERE / "fastdds_fast_announce.xml"
 DATA_DIR = Path(os.environ.get("DTM_DATA_DIR", REPO.parent / "shared" / "data"))
 WALK_BVH = DATA_DIR / "cmu_skeletal" / "bvh_from_fbx" / "cmu_07_01_walk_s07.bvh"
 PARAMS_FILE = REPO / "params" / "labeler.yaml"
+#: a query to a node (get_state, parameters) unanswered this long is sent again (NodeClient.call)
+RESEND_S = 2.0
 
 
 # ----------------------------------------------------------------------------- model + data
@@ -304,6 +306,7 @@ class NodeClient:
         self.mocap4r2: List[Any] = []
         self._input_pubs: Dict[str, Any] = {"pointcloud2": self.pub}
         self._input_nodes: List[Any] = []
+        self._clients: Dict[Any, Any] = {}          # (service type, name) -> client
         self._input_qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE if input_reliable
                                      else ReliabilityPolicy.BEST_EFFORT)
         try:
@@ -489,15 +492,23 @@ class NodeClient:
         self.input_pub(kind).publish(msg)
         return header
 
-    def call(self, srv_type, name: str, request=None, timeout: float = 10.0):
-        """Call a service of the node (``name`` relative to its full name, e.g. 'reset')."""
-        cli = self.node.create_client(srv_type, f"{self.target.fqn}/{name}")
-        try:
-            if not cli.wait_for_service(timeout_sec=timeout):
-                raise AssertionError(f"service {name} not available")
-            return self._wait_future(cli.call_async(request or srv_type.Request()), timeout)
-        finally:
-            self.node.destroy_client(cli)
+    def call(self, srv_type, name: str, request=None, timeout: float = 10.0,
+             resend_after: Optional[float] = None):
+        """Call a service of the node (``name`` relative to its full name, e.g. 'reset').
+
+        A node that answers before DDS has matched this client's response reader loses the
+        answer: rmw_fastrtps waits 100 ms for the match, then logs "failed to send response
+        (timeout)". On a loaded machine that happens at the first call to a node just started.
+        A request that may be repeated (a query) is sent again every ``resend_after`` s until
+        one is answered; None sends it once (a reload, a reset, a transition)."""
+        key = (srv_type, name)
+        cli = self._clients.get(key)
+        if cli is None:
+            cli = self._clients[key] = self.node.create_client(srv_type, f"{self.target.fqn}/{name}")
+        if not cli.wait_for_service(timeout_sec=timeout):
+            raise AssertionError(f"service {name} not available")
+        req = request or srv_type.Request()
+        return self._wait_future(lambda: cli.call_async(req), timeout, resend_after)
 
     @staticmethod
     def stamp_of(msg) -> float:
@@ -526,35 +537,46 @@ class NodeClient:
         return hits / max(total, 1)
 
     # -- parameters --------------------------------------------------------------------------
-    def _wait_future(self, fut, timeout: float = 10.0):
+    def _wait_future(self, send: Callable[[], Any], timeout: float = 10.0,
+                     resend_after: Optional[float] = None):
+        """The first answer to ``send()`` (a call returning a future), sent again every
+        ``resend_after`` s while none has come (see :meth:`call`)."""
         end = time.monotonic() + timeout
-        while not fut.done():
+        futures = [send()]
+        sent = time.monotonic()
+        while not any(f.done() for f in futures):
             if not self.target.alive():
                 raise AssertionError(f"{self.target.fqn} exited (status {self.target.proc.returncode}) "
                                      "while a service call to it was waiting")
-            if time.monotonic() > end:
+            now = time.monotonic()
+            if now > end:
                 raise AssertionError(f"service call to {self.target.fqn} timed out after {timeout:g} s "
-                                     f"(node {'running' if self.target.alive() else 'gone'})")
+                                     f"(node {'running' if self.target.alive() else 'gone'}, "
+                                     f"sent {len(futures)} time(s))")
+            if resend_after is not None and now - sent > resend_after:
+                futures.append(send())
+                sent = now
             time.sleep(0.002)
-        return fut.result()
+        return next(f for f in futures if f.done()).result()
 
     def set(self, **values) -> List[Any]:
         """Set parameters one by one (SetParameters); returns the SetParametersResult list."""
-        return list(self._wait_future(self.params.set_parameters(_to_params(values))).results)
+        return list(self._wait_future(lambda: self.params.set_parameters(_to_params(values))).results)
 
     def set_atomically(self, **values) -> Any:
-        return self._wait_future(self.params.set_parameters_atomically(_to_params(values))).result
+        return self._wait_future(lambda: self.params.set_parameters_atomically(_to_params(values))).result
 
     def get(self, *names: str) -> Dict[str, Any]:
         from rclpy.parameter import parameter_value_to_python
-        res = self._wait_future(self.params.get_parameters(list(names)))
+        res = self._wait_future(lambda: self.params.get_parameters(list(names)), resend_after=RESEND_S)
         return {n: parameter_value_to_python(v) for n, v in zip(names, res.values)}
 
     def describe(self, *names: str) -> List[Any]:
-        return list(self._wait_future(self.params.describe_parameters(list(names))).descriptors)
+        return list(self._wait_future(lambda: self.params.describe_parameters(list(names)),
+                                      resend_after=RESEND_S).descriptors)
 
     def list_names(self) -> List[str]:
-        return list(self._wait_future(self.params.list_parameters()).result.names)
+        return list(self._wait_future(self.params.list_parameters, resend_after=RESEND_S).result.names)
 
     def close(self) -> None:
         for node, ctx in self._input_nodes:

@@ -20,13 +20,17 @@ deactivate         input subscription destroyed (a frame still waiting is droppe
                    ``inactive``), publishers disabled
 cleanup            publishers, services and timer destroyed, the model freed
 =================  ===========================================================================
+
+A transition the current state does not have (deactivate while unconfigured) is refused with a
+warning naming the ones it has; the node stays up.
 """
 from __future__ import annotations
 
 import sys
 import time
-from typing import List, Optional
+from typing import Callable, List, Optional
 
+from lifecycle_msgs.msg import Transition
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
 from . import params as P
@@ -34,6 +38,10 @@ from .core import CoreOwner, LabelerCore
 from .node import run
 
 __all__ = ["LabelerLifecycleNode", "main"]
+
+#: a transition's name by id, for the message refusing one (``lifecycle_msgs/Transition``)
+_TRANSITION_NAMES = {getattr(Transition, n): n[len("TRANSITION_"):].lower()
+                     for n in dir(Transition) if n.startswith("TRANSITION_")}
 
 #: the longest configure waits for the model (a 41-marker bank loads in about a second)
 CONFIGURE_TIMEOUT_S = 30.0
@@ -45,6 +53,27 @@ class LabelerLifecycleNode(CoreOwner, LifecycleNode):
     def __init__(self, node_name: str = P.NODE_NAME, **kwargs):
         super().__init__(node_name, **kwargs)
         self.core = LabelerCore(self, lifecycle=True)
+        srv = self._service_change_state
+        srv.callback = self._refusing_unavailable(srv.callback)
+
+    def _refusing_unavailable(self, change_state: Callable) -> Callable:
+        """``~/change_state`` that refuses, with a message, a transition the current state does
+        not have (``ros2 lifecycle set`` of deactivate while unconfigured): rclpy's own service
+        raises there, and the exception would end the node's spin."""
+        def checked(req, resp):
+            sm = self._state_machine
+            available = {label: tid for tid, label, *_ in sm.available_transitions}
+            wanted = req.transition.label or next(
+                (label for label, tid in available.items() if tid == req.transition.id),
+                _TRANSITION_NAMES.get(req.transition.id, str(req.transition.id)))
+            if wanted not in available:
+                self.get_logger().warning(
+                    f"transition '{wanted}' refused: the state '{sm.current_state[1]}' has "
+                    f"{', '.join(sorted(available)) or 'none'}")
+                resp.success = False
+                return resp
+            return change_state(req, resp)
+        return checked
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         core = self.core
