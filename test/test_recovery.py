@@ -5,14 +5,16 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from dtm_labeler.evaluation.metrics import MetricsAccumulator
 from dtm_labeler.labeling.config import LabelerSettings
-from dtm_labeler.labeling.recovery import (RECOVERY_NICE, DeferredRecovery, InterimReporter, ProcessRecovery,
-                                           RecoveryRequest, RecoveryResult, build_spare, keep_spare_worker)
+from dtm_labeler.labeling.recovery import (RECOVERY_NICE, RECOVERY_POLICY, DeferredRecovery, InterimReporter,
+                                           ProcessRecovery, RecoveryRequest, RecoveryResult, build_spare,
+                                           keep_spare_worker)
 from dtm_labeler.labeling.stream import StreamLabeler
 from dtm_labeler.labeling.tracker import Tracker, TrackerSettings
 from dtm_labeler.motion.synthetic import synthesize
@@ -112,6 +114,9 @@ def test_process_recovery_worker_joins_and_stops(model, walker):
     assert rec.ready, rec.failed
     # background priority, set once: RECOVERY_NICE, not the parent's setting plus the child's own
     assert os.getpriority(os.PRIO_PROCESS, rec._proc.pid) == max(RECOVERY_NICE, os.getpriority(os.PRIO_PROCESS, 0))
+    # ... under SCHED_BATCH (no wake-up preemption of the labeling thread), all of its threads
+    tasks = list(Path(f"/proc/{rec._proc.pid}/task").iterdir())
+    assert tasks and all(os.sched_getscheduler(int(t.name)) == RECOVERY_POLICY for t in tasks)
     rng = np.random.default_rng(1)
     got, acc = False, []
     for k in range(160):
