@@ -53,8 +53,9 @@ class LabelerLifecycleNode(CoreOwner, LifecycleNode):
     def __init__(self, node_name: str = P.NODE_NAME, **kwargs):
         super().__init__(node_name, **kwargs)
         self.core = LabelerCore(self, lifecycle=True)
-        srv = self._service_change_state
-        srv.callback = self._refusing_unavailable(srv.callback)
+        srv = getattr(self, "_service_change_state", None)      # rclpy's own service (7.1)
+        if srv is not None:
+            srv.callback = self._refusing_unavailable(srv.callback)
 
     def _refusing_unavailable(self, change_state: Callable) -> Callable:
         """``~/change_state`` that refuses, with a message, a transition the current state does
