@@ -19,7 +19,7 @@ from dtm_labeler.motion.pointsets import BODY14
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search import structure_search as ss
 from dtm_labeler.search.problem import Background, FrameProblem
-from dtm_labeler.training.body_fit import broad_weight, clip_spread, fit_body, reach_limits
+from dtm_labeler.training.body_fit import broad_weight, clip_spread, fit_body, reach_limits, spans_a_point
 from dtm_labeler.training.calibrate import (CalibrationError, calibrate, calibrated_body, fit_per_label, self_calibrate,
                                            wrong_side)
 from dtm_labeler.training.train import TrainConfig, canonical_states, train_model
@@ -209,6 +209,23 @@ def test_a_bone_noisy_in_one_clip_of_many_stays_a_segment():
     sd = stats([0.001, 0.002, np.nan, 0.02])["sd"]
     assert clip_spread(sd)[0, 1] == pytest.approx(0.002)         # clips that never show it do not count
     assert clip_spread(sd[[0, 3]])[0, 1] == pytest.approx(0.02)
+
+
+def test_a_rigid_pair_across_a_joint_marker_is_no_segment():
+    """Upper arm to wrist held at one elbow angle is as steady as a bone, but the elbow marker
+    lies on the line between them: a limb across its joint, never one segment (a reach limit).
+    The forearm's pair beside it, which spans nothing, stays a segment."""
+    pos = np.array([[0.0, 0, 0], [0.3, 0.01, 0], [0.55, 0.0, 0], [0.55, 0.06, 0]])    # upa, elb, wra, wrb
+    length = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
+    spans = spans_a_point(length)
+    assert spans[0, 2] and spans[2, 0] and not spans[1, 2] and not spans[2, 3] and not spans[0, 1]
+    parents = np.array([-1, 2, 0, 2])                  # the tree links upa - wra (the steadiest)
+    sd = np.full((1, 4, 4), 0.05)
+    sd[0, 0, 2] = sd[0, 2, 0] = sd[0, 1, 2] = sd[0, 2, 1] = sd[0, 2, 3] = sd[0, 3, 2] = 0.002
+    stats = {"mean": length[None], "sd": sd, "vec": np.full((1, 4, 4), 0.5), "max": length[None] + 0.01}
+    b = fit_body(stats, parents)
+    kind = {(int(i), int(j)): int(k) for (i, j), k in zip(b.pairs, b.kind)}
+    assert kind[(0, 2)] == REACH and kind[(1, 2)] == SEGMENT and kind[(2, 3)] == SEGMENT
 
 
 def test_broad_weight_em_recovers_contamination():
