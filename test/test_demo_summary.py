@@ -1,7 +1,9 @@
 """dtm-demo's per-frame summary (pure Python, no node): frames with errors, the start-up
 before the first fully right frame, and the accuracy from that frame on; and its model cache,
 calibrated to the recording's person unless asked not to."""
-from dtm_labeler.cli.demo import _train_cached, build_parser, cached_model_path, _frames_with_errors
+from dtm_labeler.cli import demo
+from dtm_labeler.cli.demo import (_train_cached, build_parser, cached_model_path, _frames_with_errors,
+                                  training_revision)
 from dtm_labeler.model import io as model_io
 from dtm_labeler.model.body import SEGMENT
 from dtm_labeler.motion import synthesize
@@ -23,15 +25,23 @@ def test_no_right_frame_and_no_frames():
 
 
 def test_cached_model_is_named_by_key_and_model_format(monkeypatch, tmp_path):
-    """A model cached by an older version (another file format: fewer model terms) is not
-    reused: the cache name changes with the format."""
+    """A model cached by an older version (another file format: fewer model terms, or training
+    code that has changed) is not reused: the cache name changes with the format and with the
+    training code's revision."""
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     key = {"seed": 0, "frames": 600}
     path = cached_model_path(key)
     assert path.parent == tmp_path / "dtm_labeler" and path == cached_model_path(dict(key))
     assert cached_model_path({"seed": 1, "frames": 600}) != path
-    monkeypatch.setattr(model_io, "FORMAT_VERSION", model_io.FORMAT_VERSION + 1)
-    assert cached_model_path(key) != path
+    with monkeypatch.context() as m:
+        m.setattr(model_io, "FORMAT_VERSION", model_io.FORMAT_VERSION + 1)
+        assert cached_model_path(key) != path
+    rev = training_revision()
+    assert len(rev) == 12 and rev == training_revision()
+    with monkeypatch.context() as m:
+        m.setattr(demo, "training_revision", lambda: "0" * 12)          # the training code changed
+        assert cached_model_path(key) != path
+    assert cached_model_path(key) == path
 
 
 def test_recording_model_is_calibrated_to_its_person(monkeypatch, tmp_path):

@@ -163,13 +163,30 @@ def resample(clip, rate: float):
 DEMO_STRUCTURE = "cbga"
 
 
+#: the packages whose code decides what a trained model holds (:func:`training_revision`)
+TRAINING_PACKAGES = ("motion", "model", "search", "training")
+
+
+def training_revision() -> str:
+    """A hash of the source of :data:`TRAINING_PACKAGES`: code that trains differently (a body
+    term's rule, a structure's growth) gives another revision, with the file format unchanged."""
+    root = Path(__file__).resolve().parent.parent
+    h = hashlib.sha1()
+    for pkg in TRAINING_PACKAGES:
+        for f in sorted((root / pkg).glob("*.py")):
+            h.update(f"{pkg}/{f.name}".encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()[:12]
+
+
 def cached_model_path(key: dict) -> Path:
-    """Where the demo keeps the model trained for ``key``: named by a hash of the key and the
-    model file format, so a newer format (new model terms) trains again instead of reusing a
-    model without them."""
+    """Where the demo keeps the model trained for ``key``: named by a hash of the key, the
+    model file format and the training code's revision, so a newer format (new model terms) or
+    training that has changed trains again instead of reusing the older model."""
     from ..model import io as model_io
 
-    key = dict(key, format_version=model_io.FORMAT_VERSION, structure=DEMO_STRUCTURE)
+    key = dict(key, format_version=model_io.FORMAT_VERSION, structure=DEMO_STRUCTURE,
+               training=training_revision())
     h = hashlib.sha1(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()[:12]
     return cache_dir() / f"demo_model_{h}.npz"
 
