@@ -1,6 +1,7 @@
 """The managed node (``python -m dtm_labeler.ros.lifecycle``, real process, real DDS):
-unconfigured (a transition it does not have is refused) -> configure (model loaded) -> activate (labelling) -> deactivate (not labelling)
--> cleanup (publishers gone, model freed) -> configure + activate again; SIGTERM -> exit 0."""
+unconfigured (a transition it does not have is refused) -> configure (model loaded) -> activate
+(labelling) -> deactivate (not labelling) -> cleanup (publishers gone, model freed) -> configure +
+activate again; SIGTERM -> exit 0."""
 from __future__ import annotations
 
 import signal
