@@ -19,7 +19,8 @@ from dtm_labeler.motion.pointsets import BODY14
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search import structure_search as ss
 from dtm_labeler.search.problem import Background, FrameProblem
-from dtm_labeler.training.body_fit import broad_weight, clip_spread, fit_body, reach_limits, spans_a_point
+from dtm_labeler.training.body_fit import (broad_weight, clip_spread, fit_body, reach_limits, spans_a_point,
+                                          unmirrored_crossing)
 from dtm_labeler.training.calibrate import (CalibrationError, calibrate, calibrated_body, fit_per_label, self_calibrate,
                                            wrong_side)
 from dtm_labeler.training.train import TrainConfig, canonical_states, train_model
@@ -226,6 +227,24 @@ def test_a_rigid_pair_across_a_joint_marker_is_no_segment():
     b = fit_body(stats, parents)
     kind = {(int(i), int(j)): int(k) for (i, j), k in zip(b.pairs, b.kind)}
     assert kind[(0, 2)] == REACH and kind[(1, 2)] == SEGMENT and kind[(2, 3)] == SEGMENT
+
+
+def test_a_bone_across_the_sides_needs_its_mirror_image():
+    """A segment joining a left and a right point (not each other's mirror) stays one only when
+    its mirror image is one too (the head's diagonals); two feet that held still are not."""
+    # labels: 0 LFHD, 1 RFHD, 2 LBHD, 3 RBHD, 4 LANK, 5 RANK, 6 LMT5, 7 RMT5
+    mirror = np.array([[0, 1], [2, 3], [4, 5], [6, 7]])
+    M = 8
+    iu, ju = np.triu_indices(M, 1)
+    cand = np.zeros((M, M), dtype=bool)
+    for a, b in ((0, 3), (1, 2), (4, 7), (0, 1), (4, 6)):        # head diagonals, a foot pair, mirror, one side
+        cand[a, b] = cand[b, a] = True
+    keep = unmirrored_crossing(cand[iu, ju], iu, ju, M, mirror)
+    kept = {(int(i), int(j)) for i, j, k, c in zip(iu, ju, keep, cand[iu, ju]) if c and k}
+    assert kept == {(0, 3), (1, 2), (0, 1), (4, 6)}               # LANK-RMT5 lost: RANK-LMT5 is none
+    cand[5, 6] = cand[6, 5] = True                               # the feet's mirror image held too
+    keep = unmirrored_crossing(cand[iu, ju], iu, ju, M, mirror)
+    assert keep[(iu == 4) & (ju == 7)].all()
 
 
 def test_broad_weight_em_recovers_contamination():

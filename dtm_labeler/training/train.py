@@ -399,7 +399,8 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
     if config.body_terms:
         positions = [canonical_states(c, pairs)[..., :3] for c in clips]
         stats = pair_statistics(positions, config.body.max_frames)
-        body = fit_body(stats, parents if parents is not None else rigid_tree(clips), config.body, joint_centres=joint_centres)
+        body = fit_body(stats, parents if parents is not None else rigid_tree(clips), config.body,
+                        joint_centres=joint_centres, mirror_pairs=all_pairs)
         if not joint_centres:        # marker clusters: their handedness (model/body.py Handedness)
             quads, signs = handedness_quads(positions, max_frames=config.body.max_frames)
             body = replace(body, quads=quads, quad_sign=signs)
