@@ -231,7 +231,7 @@ def test_a_rigid_pair_across_a_joint_marker_is_no_segment():
 
 def test_a_bone_across_the_sides_needs_its_mirror_image():
     """A segment joining a left and a right point (not each other's mirror) stays one only when
-    its mirror image is one too (the head's diagonals); two feet that held still are not."""
+    its mirror image held as steady (the head's diagonals); two feet that held still are not."""
     # labels: 0 LFHD, 1 RFHD, 2 LBHD, 3 RBHD, 4 LANK, 5 RANK, 6 LMT5, 7 RMT5
     mirror = np.array([[0, 1], [2, 3], [4, 5], [6, 7]])
     M = 8

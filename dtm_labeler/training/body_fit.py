@@ -308,10 +308,10 @@ def fit_body(stats: dict[str, np.ndarray], parents: np.ndarray, settings: BodySe
     link = np.zeros((M, M), dtype=bool)
     child = np.flatnonzero(parents >= 0)
     link[child, parents[child]] = link[parents[child], child] = True
-    seg = seen & link[iu, ju] & (sd_p <= s.segment_abs_m) & (sd_p <= s.segment_ratio * np.nan_to_num(vec_max[iu, ju]))
-    seg &= ~spans_a_point(length)[iu, ju]
+    steady = seen & (sd_p <= s.segment_abs_m) & (sd_p <= s.segment_ratio * np.nan_to_num(vec_max[iu, ju]))
+    seg = steady & link[iu, ju] & ~spans_a_point(length)[iu, ju]
     if mirror_pairs is not None and len(mirror_pairs):
-        seg &= unmirrored_crossing(seg, iu, ju, M, mirror_pairs)
+        seg &= unmirrored_crossing(steady, iu, ju, M, mirror_pairs)
     longest = np.where(np.isfinite(longest), longest, 0.0)
     reach = reach_limits(longest, parents)
     kind = np.where(seg, SEGMENT, REACH)
@@ -352,25 +352,25 @@ def spans_a_point(length: np.ndarray) -> np.ndarray:
     return out
 
 
-def unmirrored_crossing(seg: np.ndarray, iu: np.ndarray, ju: np.ndarray, M: int,
+def unmirrored_crossing(steady: np.ndarray, iu: np.ndarray, ju: np.ndarray, M: int,
                         mirror_pairs: np.ndarray) -> np.ndarray:
-    """Of the candidate segments ``seg`` (pairs ``iu``, ``ju``), False for those that join a
-    left and a right point (``mirror_pairs``: (left, right) label indices) whose mirror image --
-    the pair of the two points' mirror partners -- is not a candidate too. A bone joining the
-    body's two sides belongs to the head or the trunk, which are symmetric: its mirror image is
-    as rigid (the head's two diagonals, the back of the pelvis). Two limbs that merely held still
-    are not: HDM05's standing take kept the left ankle 0.36 m from the right fifth metatarsal
-    within 1.3 mm (the left foot pivoting about the right forefoot) while the right ankle to the
-    left metatarsal varied 16 mm."""
+    """For the pairs ``iu``, ``ju``: False where a pair joins a left and a right point
+    (``mirror_pairs``: (left, right) label indices) whose mirror image -- the pair of the two
+    points' mirror partners -- did not hold ``steady`` (the segment tests' distance spread) in
+    the training. A bone joining the body's two sides belongs to the head or the trunk, which are
+    symmetric: its mirror image is as rigid (the head's two diagonals, a shoulder and the other
+    side's hip of a skeleton). Two limbs that merely held still are not: HDM05's standing take
+    kept the left ankle 0.36 m from the right fifth metatarsal within 1.3 mm (the left foot
+    pivoting about the right forefoot) while the right ankle to the left metatarsal varied 16 mm."""
     pairs = np.asarray(mirror_pairs, dtype=np.int64).reshape(-1, 2)
     side = np.zeros(M)
     side[pairs[:, 0]], side[pairs[:, 1]] = -1.0, 1.0
     mate = np.arange(M)
     mate[pairs[:, 0]], mate[pairs[:, 1]] = pairs[:, 1], pairs[:, 0]
-    cand = np.zeros((M, M), dtype=bool)
-    cand[iu, ju] = cand[ju, iu] = seg
+    held = np.zeros((M, M), dtype=bool)
+    held[iu, ju] = held[ju, iu] = steady
     crossing = (side[iu] * side[ju] < 0) & (mate[iu] != ju)
-    return ~crossing | cand[mate[iu], mate[ju]]
+    return ~crossing | held[mate[iu], mate[ju]]
 
 
 def edge_prior(stats: dict[str, np.ndarray], settings: BodySettings | None = None) -> np.ndarray:
