@@ -354,6 +354,18 @@ def spans_a_point(length: np.ndarray) -> np.ndarray:
     return out
 
 
+def sides(M: int, mirror_pairs: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(side, mate)`` of ``M`` labels from ``mirror_pairs`` (left, right label indices, or
+    None): side -1 left, +1 right, 0 midline; mate the mirror partner's index (itself when it
+    has none)."""
+    pairs = np.asarray(mirror_pairs if mirror_pairs is not None else np.zeros((0, 2)), dtype=np.int64).reshape(-1, 2)
+    side = np.zeros(M)
+    side[pairs[:, 0]], side[pairs[:, 1]] = -1.0, 1.0
+    mate = np.arange(M)
+    mate[pairs[:, 0]], mate[pairs[:, 1]] = pairs[:, 1], pairs[:, 0]
+    return side, mate
+
+
 def unmirrored_crossing(steady: np.ndarray, iu: np.ndarray, ju: np.ndarray, M: int,
                         mirror_pairs: np.ndarray) -> np.ndarray:
     """For the pairs ``iu``, ``ju``: False where a pair joins a left and a right point
@@ -367,11 +379,7 @@ def unmirrored_crossing(steady: np.ndarray, iu: np.ndarray, ju: np.ndarray, M: i
     a CMU 85 person calibrated on it then paid for every wider stance, and the stream rotated
     the right foot's labels one along (``dtm-eval``, HDM05 -> CMU 85 jump + twist, calibrated
     stream 96.05 -> 97.74 %, ``dtm-label``'s default 95.86 -> 97.62 %; no other cell moved)."""
-    pairs = np.asarray(mirror_pairs, dtype=np.int64).reshape(-1, 2)
-    side = np.zeros(M)
-    side[pairs[:, 0]], side[pairs[:, 1]] = -1.0, 1.0
-    mate = np.arange(M)
-    mate[pairs[:, 0]], mate[pairs[:, 1]] = pairs[:, 1], pairs[:, 0]
+    side, mate = sides(M, mirror_pairs)
     held = np.zeros((M, M), dtype=bool)
     held[iu, ju] = held[ju, iu] = steady
     crossing = (side[iu] * side[ju] < 0) & (mate[iu] != ju)

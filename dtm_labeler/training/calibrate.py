@@ -97,7 +97,7 @@ from ..model.dtm import TriangulatedModel
 from ..motion.clip import MotionClip
 from ..motion.pointsets import model_points
 from ..search.problem import Background
-from .body_fit import quad_signs
+from .body_fit import quad_signs, sides
 from .placement import adapted_mixtures
 from .gaps import facing_states, loglik_per_label
 
@@ -153,9 +153,7 @@ def labelled_positions(model: TriangulatedModel, source: MotionClip | np.ndarray
 def mirror_rows(body: BodyModel, mirror_pairs: np.ndarray | None) -> np.ndarray:
     """(P,) the row of each pair's mirror pair (left and right labels exchanged) in ``body``,
     -1 where it has none or is its own mirror (neck-head, the hips' pair)."""
-    m = np.arange(body.n_labels)
-    mp = np.asarray(mirror_pairs if mirror_pairs is not None else np.zeros((0, 2)), dtype=np.int64).reshape(-1, 2)
-    m[mp[:, 0]], m[mp[:, 1]] = mp[:, 1], mp[:, 0]
+    _, m = sides(body.n_labels, mirror_pairs)
     rows = body.pair_index()[m[body.pairs[:, 0]], m[body.pairs[:, 1]]]
     rows[rows == np.arange(rows.size)] = -1
     return rows
@@ -178,8 +176,7 @@ def wrong_side(positions: np.ndarray, mirror_pairs: np.ndarray | None, heading_p
         warnings.simplefilter("ignore", RuntimeWarning)
         axis = np.nanmean(right / np.linalg.norm(right, axis=-1, keepdims=True), axis=1)   # (F, 2)
         centre = np.nanmean(0.5 * (xy[:, hp[:, 0]] + xy[:, hp[:, 1]]), axis=1)           # (F, 2)
-    side = np.zeros(M)
-    side[mp[:, 0]], side[mp[:, 1]] = -1.0, 1.0
+    side, _ = sides(M, mp)
     offset = np.einsum("fmk,fk->fm", xy - centre[:, None], axis) * side                # > 0: own side
     seen = np.isfinite(offset) & (side != 0)
     wrong = (np.where(seen, offset, 0.0) < 0).sum(0)
