@@ -322,3 +322,65 @@ def test_inline_audit_when_frames_fit_far_below_the_models_reference(model):
     assert audits[0] <= (MISFIT_FRAMES + 3) / clip.rate + 1e-9       # the first comes at once
     assert (gaps >= period * np.minimum(2.0 ** np.arange(len(gaps)), AUDIT_BACKOFF_MAX) - 1e-9).all()
     assert wait == pytest.approx(AUDIT_BACKOFF_MAX * period)
+
+
+def test_a_ghost_beside_a_hidden_marker_does_not_take_its_label(model):
+    """labeling/tracked.py _hold_cost: a hidden marker's track holds its label while it coasts,
+    so a point the tracker did not put on that track's path (a ghost riding 8 cm beside the
+    marker) pays hold_nats to take it. For each of three markers hidden for 10 frames: without
+    the prior the ghost takes the label (the model fits it better than a missing marker) and
+    keeps it after the marker is back; with it the ghost never has it and the label is back on
+    the marker in the frame it reappears."""
+    clip = synthesize(duration=1.6, seed=7, heading=-2.0, noise_mm=2, start_xy=(1.0, 2.0))
+    hide = range(150, 160)
+    default = LabelerSettings().hold_nats
+    for name in ("head", "lelbow", "rknee"):
+        target = model.labels.index(name)
+        took, back = {}, {}
+        for hold in (0.0, default):
+            lab = StreamLabeler(model, LabelerSettings(hold_nats=hold))
+            took[hold], back[hold] = 0, None
+            for f in range(hide.stop + 6):
+                pts = clip.positions[f]
+                if f >= hide.start - 10:                      # the ghost rides beside the marker, ...
+                    pts = np.vstack([pts, pts[target] + np.array([0.08, 0.0, 0.0])])
+                if f in hide:                                 # ... which then hides for 10 frames
+                    pts = np.delete(pts, target, 0)
+                r = lab.process(pts, f / clip.rate)
+                took[hold] += int(r.labels[-1] == target)
+                if f >= hide.stop and back[hold] is None and r.labels[target] == target:
+                    back[hold] = f
+        assert took[0.0] >= 5 and back[0.0] > hide.stop, name
+        assert took[default] == 0 and back[default] == hide.stop, name
+
+
+def test_a_marker_whose_track_broke_keeps_its_label(model, monkeypatch):
+    """labeling/tracked.py _hold_cost: the coasting track's prior spares the same marker on a new
+    track -- one that began in the frames right after the coasting track was last seen, near
+    where it is predicted (TRACK_BREAK_FRAMES, TRACK_BREAK_M). A marker that slips 5.5 cm in one
+    frame (beyond the tracker's gate for a track with a known velocity) gets a new track, and
+    its label follows in that frame; without the exemption the new track is a newcomer and the
+    label waits for its velocity (a frame or more: subject 7's walk lost a knee for 8 frames)."""
+    import dtm_labeler.labeling.tracked as tracked
+    clip = synthesize(duration=1.6, seed=7, heading=-2.0, noise_mm=2, start_xy=(1.0, 2.0))
+    slip, exempt = 150, tracked.TRACK_BREAK_M
+    back = {}
+    for radius in (exempt, 0.0):
+        monkeypatch.setattr(tracked, "TRACK_BREAK_M", radius)
+        for name in ("head", "neck"):
+            target = model.labels.index(name)
+            lab = StreamLabeler(model, LabelerSettings())
+            back[radius, name] = None
+            for f in range(slip + 10):
+                pts = clip.positions[f].copy()
+                if f >= slip:
+                    pts[target] += [0.0, 0.0, 0.055]
+                r = lab.process(pts, f / clip.rate)
+                if f == slip - 1:
+                    before = r.track_ids[target]
+                if f >= slip and back[radius, name] is None and r.labels[target] == target:
+                    back[radius, name] = f
+            assert r.track_ids[target] != before, name                 # the track broke
+    for name in ("head", "neck"):
+        assert back[exempt, name] == slip, name
+        assert back[0.0, name] > slip, name

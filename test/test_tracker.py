@@ -237,3 +237,21 @@ def test_an_id_seen_before_never_continues_another_track():
     assert u.new.all() and u.track_ids.tolist() == [3]
     u = tr.update(np.array([[0.21, 0, 1.0]]), 9 * DT, ids=np.array([9]))   # a new id: continues
     assert not u.new.any() and u.track_ids.tolist() == [3]
+
+
+def test_when_tracks_began_were_last_seen_and_where_coasting_ones_are_predicted():
+    tr = Tracker()
+    v = np.array([1.0, 0.0, 0.0])
+    a = np.array([0.0, 0.0, 1.0])
+    for k in range(3):                                            # track 0 from t = 0
+        pts = [a + v * k * DT] + ([[2.0, 0.0, 1.0]] if k >= 1 else [])   # track 1 from t = DT
+        tr.update(np.array(pts), k * DT)
+    tr.update(np.array([[2.0, 0.0, 1.0]]), 3 * DT)                # track 0 hidden: it coasts
+    np.testing.assert_allclose(tr.began([1, 0, 99]), [DT, 0.0, np.nan])
+    last, pred, known = tr.coasting(np.array([0, 1, 99]), 5 * DT)
+    np.testing.assert_allclose(last, [2 * DT, 3 * DT, np.nan])
+    assert known.tolist() == [True, True, False]
+    np.testing.assert_allclose(pred[0], a + v * 5 * DT, atol=1e-9)           # constant velocity
+    np.testing.assert_allclose(pred[1], [2.0, 0.0, 1.0], atol=1e-9)
+    assert np.isnan(pred[2]).all()
+    assert np.isnan(Tracker().began([0])).all()

@@ -119,6 +119,7 @@ class Tracker:
         self.pos = np.zeros((0, 3))
         self.vel = np.zeros((0, 3))
         self.last_t = np.zeros(0)
+        self.born = np.zeros(0)                        # stream time each track began
         self.misses = np.zeros(0, dtype=np.int64)
         self.known = np.zeros(0, dtype=bool)           # velocity estimated (seen twice or more)
         self._next_id = 0
@@ -200,13 +201,14 @@ class Tracker:
             if ids is not None:
                 self.retired = np.concatenate([self.retired, ended])[-RETIRED_IDS:]
             self.ids, self.pos, self.vel, self.known = self.ids[keep], self.pos[keep], self.vel[keep], self.known[keep]
-            self.last_t, self.misses = self.last_t[keep], self.misses[keep]
+            self.last_t, self.born, self.misses = self.last_t[keep], self.born[keep], self.misses[keep]
         if n_new:
             self.ids = np.concatenate([self.ids, track_ids[new]])
             self.pos = np.concatenate([self.pos, xyz[new]])
             self.vel = np.concatenate([self.vel, np.zeros((n_new, 3))])
             self.known = np.concatenate([self.known, np.zeros(n_new, dtype=bool)])
             self.last_t = np.concatenate([self.last_t, np.full(n_new, t)])
+            self.born = np.concatenate([self.born, np.full(n_new, t)])
             self.misses = np.concatenate([self.misses, np.zeros(n_new, dtype=np.int64)])
         if self.t is not None and t > self.t:                 # the typical interval: a slow running median
             step = t - self.t
@@ -214,6 +216,35 @@ class Tracker:
             self.frame_dt = step if fdt is None else fdt + 0.05 * min(max(step - fdt, -fdt), fdt)
         self.t = t
         return TrackUpdate(track_ids, states, new, lost)
+
+    def _rows(self, track_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of the track table holding ``track_ids`` (1-d) and which ids it holds."""
+        track_ids = np.asarray(track_ids, dtype=np.int64).reshape(-1)
+        if not self.ids.size:
+            return np.zeros(track_ids.size, dtype=np.int64), np.zeros(track_ids.size, dtype=bool)
+        order = np.argsort(self.ids)
+        pos = np.minimum(np.searchsorted(self.ids[order], track_ids), self.ids.size - 1)
+        return order[pos], self.ids[order[pos]] == track_ids
+
+    def began(self, track_ids: np.ndarray) -> np.ndarray:
+        """Stream time each of ``track_ids`` began; NaN for ids the tracker does not hold (ended
+        tracks, input ids that continue one)."""
+        rows, hit = self._rows(track_ids)
+        return np.where(hit, self.born[rows] if self.born.size else np.nan, np.nan)
+
+    def coasting(self, track_ids: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Of ``track_ids``: the stream time each was last seen, where it is predicted at ``t``
+        (constant velocity) and whether its velocity is known (seen twice or more), (K,),
+        (K, 3) and (K,); NaN (and False) for ids the tracker does not hold."""
+        rows, hit = self._rows(track_ids)
+        last = np.full(hit.size, np.nan)
+        pred = np.full((hit.size, 3), np.nan)
+        known = np.zeros(hit.size, dtype=bool)
+        r = rows[hit]
+        last[hit] = self.last_t[r]
+        pred[hit] = self.pos[r] + np.nan_to_num(self.vel[r]) * (t - self.last_t[r])[:, None]
+        known[hit] = self.known[r]
+        return last, pred, known
 
     def _add_alias(self, new_ids: np.ndarray, track_ids: np.ndarray) -> None:
         keys = np.concatenate([self.alias_in, new_ids])
