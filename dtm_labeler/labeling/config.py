@@ -180,9 +180,9 @@ PARAMS: Tuple[Param, ...] = (
           "95.8 -> 96.7 %).", range=(0, 6)),
     Param("hold_nats", 15.0, "Nats the fast path's move must gain besides its fitness to take a label "
           "off the track that has carried it for hold_s (seen this frame) and give it to a point no label "
-          "holds, whose track has carried that label for hold_s less; or to take the label a coasting track "
-          "(its marker hidden) has carried for hold_s and give it to a point whose track never carried it (a trajectory "
-          "keeps its label; eq. 32 read as a hidden Markov chain). Stops a ghost riding beside a marker from "
+          "holds, whose track has carried that label for hold_s less; or to take the label a coasting "
+          "track (its marker hidden) has carried for hold_s and give it to a point whose track never "
+          "carried it (a trajectory keeps its label; eq. 32 read as a hidden Markov chain). Stops a ghost riding beside a marker from "
           "taking its label (41 HDM05 markers, 3 flickering + 2 ghosts, four seeds: wrong labels after the "
           "first right frame 0.47-0.98 -> 0.36-0.58 %), and a ghost beside a hidden marker (14 points with "
           "gaps + ghosts, three seeds: search errors 242 -> 208). 0 = off.", range=(0.0, 1000.0)),

@@ -1125,7 +1125,7 @@ class TrackedLabeler:
 
         Swaps and shifts between labelled tracks, the labels of lost tracks and labels a track
         has carried about as long as the one holding them move freely; so does everything in a
-        stream's first frames."""
+        stream's first ``hold_s``."""
         c, hold_s = self.settings.hold_nats, self.settings.hold_s
         n = problem.n
         if c <= 0 or not len(self.tenure) or self._frame_tracks.size != n:
