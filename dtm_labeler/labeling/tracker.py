@@ -242,7 +242,7 @@ class Tracker:
         known = np.zeros(hit.size, dtype=bool)
         r = rows[hit]
         last[hit] = self.last_t[r]
-        pred[hit] = self.pos[r] + np.nan_to_num(self.vel[r]) * (t - self.last_t[r])[:, None]
+        pred[hit] = self.predicted(t)[r]
         known[hit] = self.known[r]
         return last, pred, known
 
