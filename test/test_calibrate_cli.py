@@ -153,7 +153,8 @@ def test_auto_calibration_keeps_the_model_when_it_cannot_or_should_not_calibrate
     """A model without body terms is labelled with as it is (the reason given); a calibration
     the calibrated model does not reproduce (here: asked to keep more than all of the
     confirmed labels) is dropped after a second self-labelling with another search seed, the
-    generic model returned unchanged; one that passes the first time runs once."""
+    generic model returned unchanged; one that passes the first time runs once, its progress
+    reported frame by frame."""
     from dtm_labeler.training.calibrate import CalibrationSettings, auto_calibrate, kept_share
     model_path, v1_path, _ = models
     clouds = load_clip(data_dir / PIROUETTE, points="body14").slice(0, 80).positions
@@ -166,9 +167,12 @@ def test_auto_calibration_keeps_the_model_when_it_cannot_or_should_not_calibrate
     assert info["attempts"] == 2
     same, info = auto_calibrate(generic, clouds, 120.0, CalibrationSettings(min_kept=1.01, attempts=1))
     assert same is generic and info["attempts"] == 1
-    calibrated, info = auto_calibrate(generic, clouds, 120.0)
+    seen = []
+    calibrated, info = auto_calibrate(generic, clouds, 120.0, progress=lambda done, total: seen.append((done, total)))
     assert info["applied"] and calibrated.body.calibration and SEGMENT in calibrated.body.applied_kinds
     assert info["attempts"] == 1
+    # every frame of each self-labelling (two rounds and the check) shows in the progress
+    assert seen == [(f, 80) for f in range(1, 81)] * 3
     again, info = auto_calibrate(calibrated, clouds, 120.0)
     assert again is calibrated and "already calibrated" in info["reason"]
     # the share kept: of the labels confirmed before, those confirmed on the same point after

@@ -297,11 +297,20 @@ def _run_takes(args, jobs: list[LabelJob], model_bytes: bytes) -> list[TakeResul
     if len(jobs) == 1 and workers <= 1 and not args.dask:
         bar = tqdm(desc="labeling", unit="frame", file=sys.stderr, disable=quiet, leave=False)
 
-        def frames(done: int, total: int) -> None:
-            bar.total = total
-            bar.update(done - bar.n)
+        shown = ["labeling", 0]                           # the bar's stage and frames done
+
+        def stage(name: str):
+            def frames(done: int, total: int) -> None:
+                if shown[0] != name or done < shown[1]:   # a new stage, or a new self-labelling round
+                    bar.set_description(name, refresh=False)
+                    bar.reset(total=total)
+                    shown[:] = [name, 0]
+                bar.total = total
+                bar.update(done - shown[1])
+                shown[1] = done
+            return frames
         try:
-            return [label_take(jobs[0], model_bytes, frames)]
+            return [label_take(jobs[0], model_bytes, stage("labeling"), stage("self-calibrating"))]
         finally:
             bar.close()
     bar = tqdm(total=len(jobs), desc="labeling", unit="take", file=sys.stderr, disable=quiet, leave=False)

@@ -140,9 +140,11 @@ def model_from_bytes(data: bytes):
     return _MODELS[key]
 
 
-def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int], None] | None = None
-               ) -> TakeResult:
-    """Load, split, label (and write) one take; errors in the take are returned, not raised."""
+def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int], None] | None = None,
+               calibration_progress: Callable[[int, int], None] | None = None) -> TakeResult:
+    """Load, split, label (and write) one take; errors in the take are returned, not raised.
+    ``progress``: frames labelled; ``calibration_progress``: the frames of each self-labelling
+    of ``--calibrate auto``."""
     t0 = time.perf_counter()
     res = TakeResult(job.index, job.source, worker=f"{socket.gethostname()}:{os.getpid()}")
     try:
@@ -159,7 +161,8 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
                              noise_mm=job.noise_mm, seed=job.seed, progress=progress, use_ids=job.use_ids,
                              gap_frames=job.gap_frames, keep_records=job.keep_records or job.out is not None,
                              extra=mi.extra, named=mi.named, take_votes_s=job.take_votes_s,
-                             take_pass=job.take_pass, calibrate_s=AUTO_CALIBRATION_S if auto else 0.0)
+                             take_pass=job.take_pass, calibrate_s=AUTO_CALIBRATION_S if auto else 0.0,
+                             calibration_progress=calibration_progress)
         if auto:
             res.calibration = run.settings["calibration"]
         if job.out:

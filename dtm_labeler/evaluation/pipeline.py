@@ -195,19 +195,21 @@ def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: Labeler
                    progress: Progress | None = None, use_ids: bool = False, gap_frames: float = 1.0,
                    keep_records: bool = True, done: int = 0, total: int | None = None,
                    extra: np.ndarray | None = None, named: bool = True, take_votes_s: float = 0.0,
-                   take_pass: bool = False, calibrate_s: float = 0.0) -> ClipRun:
+                   take_pass: bool = False, calibrate_s: float = 0.0,
+                   calibration_progress: Progress | None = None) -> ClipRun:
     """:func:`label_clip` returning the full :class:`ClipRun`; ``extra`` (F, K, 3): the take's
     unlabelled points; ``named=False``: ``clip`` holds no truth (labelled, not scored).
     ``calibrate_s`` > 0: a generic body is first self-calibrated on the stream's first
     ``calibrate_s`` seconds (:func:`_auto_calibrated`; the points as the labeler gets them, no
     label used) and kept when it holds up (:func:`~dtm_labeler.training.calibrate.auto_calibrate`);
-    every frame is then labelled; ``settings["calibration"]`` says what was done."""
+    every frame is then labelled; ``settings["calibration"]`` says what was done;
+    ``calibration_progress``: the frames of each of its self-labellings."""
     mc = clip if not named else model_clip(model, clip)
     stream = corrupt_clip(mc, occlude=occlude, clutter=clutter, noise_mm=noise_mm, seed=seed,
                           gap_frames=gap_frames, extra=extra)
     calibration = None
     if calibrate_s > 0:
-        model, calibration = _auto_calibrated(model, stream, calibrate_s)
+        model, calibration = _auto_calibrated(model, stream, calibrate_s, calibration_progress)
     run = run_stream(model, stream, settings, use_ids=use_ids, keep_records=keep_records, progress=progress,
                      done=done, total=total, scored=named, take_votes_s=take_votes_s, take_pass=take_pass)
     if calibration is not None:
@@ -215,7 +217,8 @@ def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: Labeler
     return run
 
 
-def _auto_calibrated(model: TriangulatedModel, stream: CorruptedStream, seconds: float):
+def _auto_calibrated(model: TriangulatedModel, stream: CorruptedStream, seconds: float,
+                     progress: Progress | None = None):
     """:func:`~dtm_labeler.training.calibrate.auto_calibrate` on the stream's first ``seconds``;
     on a take shorter than three times that, on its first third and on all of its first
     ``seconds`` both, keeping the calibration the model reproduces best (the larger share of its
@@ -226,7 +229,7 @@ def _auto_calibrated(model: TriangulatedModel, stream: CorruptedStream, seconds:
     full = int(min(round(seconds * stream.rate), len(stream)))
     best = None
     for window in sorted({min(full, len(stream) // 3), full}):
-        out = auto_calibrate(model, [stream[i].xyz for i in range(window)], stream.rate)
+        out = auto_calibrate(model, [stream[i].xyz for i in range(window)], stream.rate, progress=progress)
         if best is None or (out[1]["applied"], out[1].get("kept_share", 0.0)) > \
                 (best[1]["applied"], best[1].get("kept_share", 0.0)):
             best = out

@@ -86,7 +86,7 @@ from __future__ import annotations
 import datetime as _dt
 import warnings
 from dataclasses import dataclass, replace
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -421,10 +421,12 @@ def completed_labels(model: TriangulatedModel, confirmed: np.ndarray, clouds: Se
 
 
 def self_label(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.ndarray, rate: float,
-               settings: LabelerSettings | None = None, min_confidence: float = CONFIRMED) -> np.ndarray:
+               settings: LabelerSettings | None = None, min_confidence: float = CONFIRMED,
+               progress: Callable[[int, int], None] | None = None) -> np.ndarray:
     """Label unlabelled clouds (one (n, 3) array per frame, or (F, N, 3)) with ``model`` in
     stream mode and return the confirmed labels as (F, M, 3) positions (NaN where a label
-    was not given with at least ``min_confidence``)."""
+    was not given with at least ``min_confidence``); ``progress(frames done, frames)`` after
+    each frame."""
     lab = StreamLabeler(model, settings or LabelerSettings())
     out = np.full((len(clouds), model.n_labels, 3), np.nan)
     for f, xyz in enumerate(clouds):
@@ -432,6 +434,8 @@ def self_label(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.ndarr
         xyz = xyz[np.isfinite(xyz).all(1)]
         res = lab.process(xyz, f / rate)
         out[f] = confirmed_positions(res.labels, confirmation_of(res), xyz, model.n_labels, min_confidence)
+        if progress is not None:
+            progress(f + 1, len(clouds))
     return out
 
 
@@ -446,10 +450,12 @@ def self_calibrate(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.n
 
 
 def _self_calibration(model: TriangulatedModel, clouds, rate: float, settings: CalibrationSettings | None,
-                      labeler: LabelerSettings | None, first: np.ndarray | None = None
+                      labeler: LabelerSettings | None, first: np.ndarray | None = None,
+                      progress: Callable[[int, int], None] | None = None
                       ) -> tuple[TriangulatedModel, list[np.ndarray]]:
     """:func:`self_calibrate`, returning every round's confirmed labels (F, M, 3); ``first``:
-    the first round's, when an earlier self-calibration of the same frames has them."""
+    the first round's, when an earlier self-calibration of the same frames has them;
+    ``progress``: each self-labelling's frames (:func:`self_label`)."""
     s = settings or CalibrationSettings()
     current = model
     rounds = []
@@ -461,7 +467,7 @@ def _self_calibration(model: TriangulatedModel, clouds, rate: float, settings: C
     completed: list[str] = []
     for k in range(max(1, s.rounds)):
         rounds.append(first if k == 0 and first is not None
-                      else self_label(current, clouds, rate, labeler, s.min_confidence))
+                      else self_label(current, clouds, rate, labeler, s.min_confidence, progress))
         positions = rounds[-1]
         if k > 0:       # after a first calibration: the first round's generic model reads wrong distances
             positions, completed = completed_labels(model, positions, clouds, s)
@@ -510,7 +516,8 @@ def kept_share(before: np.ndarray, after: np.ndarray) -> float:
 
 
 def auto_calibrate(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.ndarray, rate: float,
-                   settings: CalibrationSettings | None = None) -> tuple[TriangulatedModel, dict]:
+                   settings: CalibrationSettings | None = None,
+                   progress: Callable[[int, int], None] | None = None) -> tuple[TriangulatedModel, dict]:
     """``model`` self-calibrated on the unlabelled ``clouds`` of a take's start when the
     calibration holds up, else ``model`` itself; and a JSON-ready summary (``applied`` says
     which, ``reason`` why not).
@@ -559,7 +566,8 @@ def auto_calibrate(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.n
     attempts = max(1, s.attempts)
     first = None
     for attempt in range(attempts):
-        out, info = _self_calibration_checked(model, clouds, rate, s, dict(summary, attempts=attempt + 1), attempt)
+        out, info = _self_calibration_checked(model, clouds, rate, s, dict(summary, attempts=attempt + 1), attempt,
+                                              progress)
         if info["applied"]:
             return out, info
         first = first or (out, info)
@@ -568,23 +576,25 @@ def auto_calibrate(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.n
 
 
 def _self_calibration_checked(model: TriangulatedModel, clouds: list[np.ndarray], rate: float,
-                              s: CalibrationSettings, summary: dict, seed: int) -> tuple[TriangulatedModel, dict]:
+                              s: CalibrationSettings, summary: dict, seed: int,
+                              progress: Callable[[int, int], None] | None = None) -> tuple[TriangulatedModel, dict]:
     """One attempt of :func:`auto_calibrate`: the self-calibration with the labeler's search
-    seed ``seed`` and its check; ``model`` itself when the check fails."""
+    seed ``seed`` and its check; ``model`` itself when the check fails. ``progress``: each
+    self-labelling's frames."""
     labeler = LabelerSettings(background=Background(volume_m3=s.volume_m3), seed=seed)
     try:
-        calibrated, rounds = _self_calibration(model, clouds, rate, s, labeler)
+        calibrated, rounds = _self_calibration(model, clouds, rate, s, labeler, progress=progress)
     except CalibrationError as e:
         summary["reason"] = str(e)
         return model, summary
-    kept = kept_share(rounds[0], self_label(calibrated, clouds, rate, labeler, s.min_confidence))
+    kept = kept_share(rounds[0], self_label(calibrated, clouds, rate, labeler, s.min_confidence, progress))
     if kept < s.min_kept and s.placement_relevance > 0:
         # the placement read from a window the model labels poorly (floor poses) can carry its
         # poses rather than the markers' places: the body alone, measured on the same labels
         summary["placement_dropped"] = f"kept {100 * kept:.0f} % with the placement adapted"
         s = replace(s, placement_relevance=0.0)
-        calibrated, rounds = _self_calibration(model, clouds, rate, s, labeler, first=rounds[0])
-        kept = kept_share(rounds[0], self_label(calibrated, clouds, rate, labeler, s.min_confidence))
+        calibrated, rounds = _self_calibration(model, clouds, rate, s, labeler, first=rounds[0], progress=progress)
+        kept = kept_share(rounds[0], self_label(calibrated, clouds, rate, labeler, s.min_confidence, progress))
     info = calibrated.provenance["calibration"]
     summary.update({k: info[k] for k in ("segments", "segments_total", "scale", "completed") if k in info},
                    kept_share=kept)
