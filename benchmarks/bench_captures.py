@@ -111,7 +111,10 @@ def train(clip, **over):
 
 def label(model, path: Path, **kw):
     """One take through dtm-label's path (``take_votes_s`` as its ``--take-votes``, default 0 here:
-    the labels as published live); ``live_accuracy`` = before the take votes."""
+    the labels as published live); ``live_accuracy`` = before the take votes. With
+    ``--calibrate off``: the models here are of the take's own person (trained on its first
+    half); dtm-label's default self-calibration is for a model of other people
+    (``results/captures.md``, "dtm-label's own default on the gapped halves")."""
     kw.setdefault("settings", LabelerSettings())
     job = LabelJob(index=0, source=str(path), **kw)
     r = label_take(job, model_to_bytes(model))
@@ -189,7 +192,8 @@ def run_gaps(tmp: Path, keys, quick: bool) -> dict:
 
 def run_gap_seeds(tmp: Path, keys, seeds, quick: bool) -> dict:
     """The gapped-half row under other draws of the gaps: the gapped first half trains, the gapped
-    second half is labelled by `dtm-label`'s default with capture ids and with its own tracker.
+    second half is labelled by `dtm-label`'s default (``--calibrate off``) with capture ids and with
+    its own tracker.
     How much one draw moves the figure (a 170-frame take: one trajectory piece is 1 %)."""
     out = {}
     for key in keys:
@@ -365,7 +369,7 @@ def write_md(res: dict, meta: dict) -> str:
               "default settings. *capture ids*: the trajectories' continuity as track ids (what a C3D's "
               "trajectories carry; `--track-ids`); *own tracker*: no ids. Each cell: the labels as published "
               f"live (votes over past frames) → votes over ±{TAKE_VOTES_S:g} s around each frame (`--take-votes`) "
-              "→ `dtm-label`'s default, the second pass over the take (every frame searched again at the take's "
+              "→ `dtm-label`'s default with `--calibrate off`, the second pass over the take (every frame searched again at the take's "
               "facing, voted again; then whole trajectory pieces relabelled by the take's rigid marker pairs).", "",
               "| take | hidden (train / test) | complete train frames | model | train s | structure on | "
               "coverage min / median | gappy, capture ids % | gappy, own tracker % | gap-free % |",
@@ -395,7 +399,7 @@ def write_md(res: dict, meta: dict) -> str:
             L.append("")
     if "gapseeds" in res:
         L += ["Other draws of the gaps (same settings, `--gap-seeds`; seed 1 is the table above), the "
-              "gapped first half's model, `dtm-label`'s default:", "",
+              "gapped first half's model, `dtm-label`'s default with `--calibrate off`:", "",
               "| take | gap seed | hidden (test) | capture ids % | own tracker % |", "|---|---:|---:|---:|---:|"]
         for key, rows in res["gapseeds"].items():
             cells = {t: [] for t in ("capture ids", "own tracker")}
