@@ -132,6 +132,21 @@ def test_dtm_label_self_calibrates_a_generic_body_by_default(models, data_dir, r
     assert float(re.search(r"accuracy +([\d.]+) %", text)[1]) >= 95.0, text
 
 
+def test_dtm_label_leaves_a_model_of_the_takes_own_capture_uncalibrated(models, data_dir, run):
+    """The rest of the capture the model was trained on (subject 55's lambada after its first 360
+    frames): the model's provenance lists the capture, so --calibrate auto leaves the model as it
+    is, says why, and labels as --calibrate off does. A take of another capture is calibrated
+    (the test above)."""
+    model_path, _, _ = models
+    assert load_model(model_path).provenance["sources"]                 # what the rule reads
+    args = [model_path, data_dir / LAMBADA, "--frames", "360:480", "--no-take-pass", "--json", "--quiet"]
+    auto = json.loads(run("dtm-label", *args).stdout)
+    off = json.loads(run("dtm-label", *args, "--calibrate", "off").stdout)
+    cal = auto["inputs"][0]["calibration"]
+    assert cal["applied"] is False and "training captures" in cal["reason"]
+    assert auto["accuracy"] == off["accuracy"] and auto["frames"] == off["frames"] == 120
+
+
 def test_segments_the_self_calibration_could_not_measure_stay_open(models):
     """A segment left at its generic range (between-person spread > 0) after a calibration
     gets the self-labelling's open spread; measured ones (spread 0) stay as they are."""

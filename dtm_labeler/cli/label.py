@@ -89,7 +89,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "'local' (a LocalCluster of --jobs workers started for this run)")
     p.add_argument("--calibrate", default="auto", metavar="auto|off|A:B",
                    help="subject calibration of a model whose body is generic (not yet calibrated to a person): "
-                        "'auto' (default) self-calibrates it on each take's first 5 s (a shorter take: its first "
+                        "'auto' (default) self-calibrates it (not on the one capture a model was trained on: "
+                        "that is its person) on each take's first 5 s (a shorter take: its first "
                         "third or all of it, whichever the calibrated model reproduces better; the model's own "
                         "confirmed labels, the take's names unused) and keeps the calibration when the "
                         "calibrated model keeps the labels it was measured on, then labels "
