@@ -306,7 +306,6 @@ def _run_takes(args, jobs: list[LabelJob], model_bytes: bytes) -> list[TakeResul
                     bar.set_description(name, refresh=False)
                     bar.reset(total=total)
                     shown[:] = [name, 0]
-                bar.total = total
                 bar.update(done - shown[1])
                 shown[1] = done
             return frames

@@ -159,7 +159,7 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
         if auto and trained_on(model, job.source):
             auto, res.calibration = False, {
                 "applied": False, "source": "auto (the take's first frames, self-labelled)",
-                "reason": "the take is one of the model's training captures: the model is of its person"}
+                "reason": "the take is the capture the model was trained on: the model is of its person"}
         mi = model_input(clip, model.labels, job.keep_unlabelled, job.ignore_names)
         run = label_clip_run(model, mi.clip, job.settings, occlude=job.occlude, clutter=job.clutter,
                              noise_mm=job.noise_mm, seed=job.seed, progress=progress, use_ids=job.use_ids,
