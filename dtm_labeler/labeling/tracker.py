@@ -151,10 +151,8 @@ class Tracker:
                 pos = np.minimum(np.searchsorted(self.alias_in, ids), self.alias_in.size - 1)
                 ids = np.where(self.alias_in[pos] == ids, self.alias_to[pos], ids)
             if self.ids.size and n:
-                order = np.argsort(self.ids)
-                pos = np.minimum(np.searchsorted(self.ids[order], ids), self.ids.size - 1)
-                hit = self.ids[order][pos] == ids
-                match[hit] = order[pos[hit]]
+                rows, hit = self._rows(ids)
+                match[hit] = rows[hit]
         if self.ids.size and n and (ids is None or (match < 0).any()):
             cost = gated_cost(self.pos, self.vel, self.last_t, self.gate(t), t, xyz, match)
             if ids is not None and self.retired.size:       # a known marker back: never an alias
