@@ -196,3 +196,36 @@ def test_auto_calibration_keeps_the_model_when_it_cannot_or_should_not_calibrate
     after = before.copy()
     after[0, 1] = [2, 2, 2]
     assert kept_share(before, after) == 0.5 and kept_share(before, before) == 1.0
+
+
+def test_auto_calibration_stops_on_a_window_the_model_does_not_follow(models, data_dir):
+    """Frames of the pirouette in a random order: no track holds from one frame to the next,
+    every frame needs a full search, and the self-labelling stops once more than half of the
+    window's frames have (not every attempt and round of it): the generic model is kept and
+    the summary says why."""
+    from dtm_labeler.training.calibrate import CalibrationSettings, auto_calibrate
+    model_path, _, _ = models
+    generic = load_model(model_path)
+    clip = load_clip(data_dir / PIROUETTE, points="body14")
+    rng = np.random.default_rng(0)
+    frames = rng.choice(clip.n_frames, 80, replace=False)
+    clouds = [clip.positions[f][rng.permutation(clip.positions.shape[1])] for f in frames]
+    seen = []
+    same, info = auto_calibrate(generic, clouds, 120.0, progress=lambda done, total: seen.append(done))
+    assert same is generic and not info["applied"] and info["not_followed"] and info["attempts"] == 1
+    assert "full search in 41 of the first 41 of 80 frames" in info["reason"]
+    assert "generic model is kept" in info["reason"]
+    assert seen == list(range(1, 41))                 # one self-labelling, stopped at its 41st full search
+    # each self-labelling allowed a full search in every frame: the self-labellings together
+    # stop once they have spent one per frame of the window
+    seen.clear()
+    _, info = auto_calibrate(generic, clouds, 120.0, CalibrationSettings(max_search_share=1.0),
+                             progress=lambda done, total: seen.append(done))
+    assert info["not_followed"] and info["attempts"] == 1 and "spent the full searches" in info["reason"]
+    assert 80 <= len(seen) < 160
+    # bounds above all of that let every self-labelling run to its end
+    seen.clear()
+    _, info = auto_calibrate(generic, clouds, 120.0, CalibrationSettings(max_search_share=1.0, search_budget=10.0,
+                                                                          attempts=1),
+                             progress=lambda done, total: seen.append(done))
+    assert not info.get("not_followed") and len(seen) >= 160 and len(seen) % 80 == 0

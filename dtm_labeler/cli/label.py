@@ -93,7 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "that is its person) on each take's first 5 s (a shorter take: its first "
                         "third or all of it, whichever the calibrated model reproduces better; the model's own "
                         "confirmed labels, the take's names unused) and keeps the calibration when the "
-                        "calibrated model keeps the labels it was measured on, then labels "
+                        "calibrated model keeps the labels it was measured on (and stops, keeping the model as "
+                        "it is, when the model needs a full search in over half of those frames), then labels "
                         "every frame (the JSON's 'calibration' says what was done); 'off': the model as it is; "
                         "A:B: calibrate on frames A:B (as dtm-calibrate) and label and score only the frames "
                         "after B")
