@@ -221,7 +221,7 @@ def test_auto_calibration_stops_on_a_window_the_model_does_not_follow(models, da
     seen.clear()
     _, info = auto_calibrate(generic, clouds, 120.0, CalibrationSettings(max_search_share=1.0),
                              progress=lambda done, total: seen.append(done))
-    assert info["not_followed"] and info["attempts"] == 1 and "spent the full searches" in info["reason"]
+    assert info["not_followed"] and info["attempts"] == 1 and "spent the 80 full searches" in info["reason"]
     assert 80 <= len(seen) < 160
     # bounds above all of that let every self-labelling run to its end
     seen.clear()
