@@ -90,11 +90,13 @@ def _dp_assignment(problem: FrameProblem, cand: list[np.ndarray], heading_bin: i
     """The DP's optimum over ``cand`` (duplicates across triangles possible); None when no
     candidate labeling satisfies the distance bounds."""
     n, M, tri = problem.n, problem.M, problem.tri
-    if any(c.size == 0 for c in cand):
+    sizes = np.fromiter((c.size for c in cand), dtype=np.int64, count=len(cand))
+    if not sizes.all():
         return None
     # a triangle whose three labels have one candidate each only adds a constant: skipped
-    sizes = np.array([c.size for c in cand])
-    active = np.array([t for t in range(problem.T) if t == 0 or (sizes[tri[t]] > 1).any()], dtype=np.int64)
+    multi = (sizes[tri] > 1).any(1)
+    multi[0] = True
+    active = np.flatnonzero(multi)
     flat = np.concatenate(cand)
     off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     goff, keys = grid_keys(flat, off, active, tri, problem.dist, problem.bounds, n, problem.T, n + 1,
@@ -186,7 +188,7 @@ def region_candidates(problem: FrameProblem, ind: np.ndarray, free: np.ndarray,
     n, M = problem.n, problem.M
     kept = np.where(free, n, ind)
     pool = np.flatnonzero(~ops.used_mask(kept[None], n)[0])
-    out = [np.array([ind[lab]]) for lab in range(M)]
+    out = list(np.asarray(ind, dtype=np.int64)[:, None].copy())           # each kept label: its own point
     have = free & (ind < n)
     for lab in np.flatnonzero(have):
         d = problem.dist[ind[lab], pool]

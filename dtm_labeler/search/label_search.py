@@ -161,8 +161,10 @@ def guided_sample(problem: FrameProblem, P: int, rng: np.random.Generator,
         # candidates: unused points within the distance bounds of the labels already placed
         ok = np.ones((todo.size, n + 1), dtype=bool)
         ok[:, :n] = ~ops.used_mask(sub, n)
-        near = problem.dist[:, sub].transpose(1, 0, 2) > problem.bounds[v][None, None, :]   # (k, n+1, M)
-        ok &= ~near.any(axis=2)
+        nb = np.flatnonzero(np.isfinite(problem.bounds[v]))        # the labels v has a distance bound to
+        if nb.size:
+            near = problem.dist[:, sub[:, nb]].transpose(1, 0, 2) > problem.bounds[v, nb][None, None, :]
+            ok &= ~near.any(axis=2)                                # (k, n+1)
         ok[:, n] = True
         r, c = np.nonzero(ok)
         cand = sub[r].copy()
