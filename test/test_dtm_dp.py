@@ -13,7 +13,7 @@ from dtm_labeler.training.train import TrainConfig, train_model
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search import label_ops as ops
 
-from dtm_labeler.search.dtm_dp import (body_at_heading, max_product, mean_shape, model_regions, region_candidates,
+from dtm_labeler.search.dtm_dp import (Candidates, body_at_heading, max_product, mean_shape, model_regions, region_candidates,
                                        regions_of, relabel_regions, resolve_duplicates, turn_permutation,
                                        turned_labels, turned_round)
 
@@ -160,6 +160,34 @@ def test_region_relabelling_repairs_a_shifted_chain(model, frame):
     assert np.array_equal(fixed[~free], wrong[~free])        # the rest of the body untouched
     assert _objective(p, fixed[None], b)[0] >= _objective(p, truth[None], b)[0] - 1e-6
     assert np.array_equal(fixed, truth)
+
+
+def test_region_candidates_are_each_labels_sorted_distinct_points(model, frame):
+    """The flat candidate table is what one sorted, repeat-free array per label would be: a
+    kept label its own point, a free label with a point its nearest pool points and missing, a
+    free missing label the pool points its distance bounds allow and missing; a list of arrays
+    with repeats gives the same table, and ``max_product`` the same labeling from either."""
+    states, truth = frame
+    p = FrameProblem(model, states, Background())
+    b = int(p.heading_bin(p.yaw(truth[None]))[0])
+    ind = truth.copy()
+    ind[3] = p.n                                             # one free label missing
+    free = np.zeros(p.M, dtype=bool)
+    free[[1, 3, 5]] = True
+    c = region_candidates(p, ind, free, max_candidates=3)
+    assert len(c) == p.M and c.off[0] == 0 and c.off[-1] == c.flat.size
+    for lab in range(p.M):
+        got = c[lab]
+        assert np.array_equal(got, np.unique(got))           # sorted, no repeats
+        if not free[lab]:
+            assert got.tolist() == [ind[lab]]
+        else:
+            assert got[-1] == p.n and (got[:-1] < p.n).all()
+    assert c[1].size == 4 and ind[1] in c[1]                 # 3 nearest (its own point first of them) + missing
+    lists = [np.r_[c[lab], c[lab][::-1]] for lab in range(p.M)]    # the same, repeated and reversed
+    again = Candidates.from_lists(lists)
+    assert np.array_equal(again.flat, c.flat) and np.array_equal(again.off, c.off)
+    assert np.array_equal(max_product(p, lists, b), max_product(p, c, b))
 
 
 def test_model_regions_hold_the_nearest_labels_on_the_mean_body(model):

@@ -21,6 +21,7 @@ elimination are compiled (:mod:`.dp_kernels`).
 from __future__ import annotations
 
 from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -29,11 +30,44 @@ from .problem import FrameProblem
 from . import label_ops as ops
 
 
-def max_product(problem: FrameProblem, candidates: list[np.ndarray], heading_bin: int,
-                branches: int = 0) -> np.ndarray:
+@dataclass(frozen=True)
+class Candidates:
+    """Each label's candidate points (``n`` = missing), sorted and without repeats, in one
+    flat array: label ``l``'s are ``flat[off[l]:off[l + 1]]``."""
+    flat: np.ndarray
+    off: np.ndarray
+
+    @classmethod
+    def of(cls, points: np.ndarray, labels: np.ndarray, M: int) -> "Candidates":
+        """From (point, label) pairs in any order, repeats allowed."""
+        flat, lab = np.asarray(points, dtype=np.int64), np.asarray(labels, dtype=np.int64)
+        order = np.lexsort((flat, lab))
+        flat, lab = flat[order], lab[order]
+        keep = np.ones(flat.size, dtype=bool)
+        keep[1:] = (flat[1:] != flat[:-1]) | (lab[1:] != lab[:-1])
+        return cls(flat[keep], np.r_[0, np.cumsum(np.bincount(lab[keep], minlength=M))].astype(np.int64))
+
+    @classmethod
+    def from_lists(cls, candidates) -> "Candidates":
+        """From one array (or list) of points per label."""
+        if isinstance(candidates, Candidates):
+            return candidates
+        arrays = [np.asarray(c, dtype=np.int64).ravel() for c in candidates]
+        sizes = np.fromiter((a.size for a in arrays), dtype=np.int64, count=len(arrays))
+        flat = np.concatenate(arrays) if arrays else np.zeros(0, dtype=np.int64)
+        return cls.of(flat, np.repeat(np.arange(len(arrays)), sizes), len(arrays))
+
+    def __len__(self) -> int:
+        return self.off.size - 1
+
+    def __getitem__(self, label: int) -> np.ndarray:
+        return self.flat[self.off[label]:self.off[label + 1]]
+
+
+def max_product(problem: FrameProblem, candidates, heading_bin: int, branches: int = 0) -> np.ndarray:
     """The assignment maximising the sum of triangle terms and label gains over
-    ``candidates[l]`` (point indices, ``problem.n`` = missing) at one heading bin, one label
-    per point. Returns (M,) point indices.
+    ``candidates[l]`` (point indices, ``problem.n`` = missing; a list of arrays or
+    :class:`Candidates`) at one heading bin, one label per point. Returns (M,) point indices.
 
     The DP enforces "one point, one label" inside each triangle only. Where its optimum gives a
     point to labels of different triangles, :func:`resolve_duplicates` keeps the best claimant
@@ -52,18 +86,19 @@ def max_product(problem: FrameProblem, candidates: list[np.ndarray], heading_bin
     the labeler by default (``sweep_branches``, ``region_branches``: the wider search also
     finds wrong labelings the model prefers elsewhere; see the parameter table)."""
     n, M = problem.n, problem.M
-    cand = [np.asarray(c, dtype=np.int64) for c in candidates]
-    cand = [c if c.size < 2 else np.unique(c) for c in cand]
-    if any(c.size == 0 for c in cand):
+    c = Candidates.from_lists(candidates)
+    flat, off = c.flat, c.off
+    if (np.diff(off) == 0).any():
         raise ValueError("every label needs at least one candidate (n = missing)")
-    if len(cand) != M:
-        raise ValueError(f"{len(cand)} candidate lists for {M} labels")
-    raw = _dp_assignment(problem, cand, heading_bin)
+    if off.size - 1 != M:
+        raise ValueError(f"{off.size - 1} candidate lists for {M} labels")
+    raw = _dp_assignment(problem, flat, off, heading_bin)
     if raw is None:
         raise ValueError("no candidate labeling satisfies the distance bounds")
     best = resolve_duplicates(problem, raw)
     if branches <= 0 or _conflict(raw, n) is None:
         return best
+    cand = np.split(flat, off[1:-1])
     leaves = [best]
     queue, solves = deque([(cand, raw)]), 0
     while queue and solves < branches:
@@ -74,7 +109,9 @@ def max_product(problem: FrameProblem, candidates: list[np.ndarray], heading_bin
                 break
             sub = [c[c != q] if (lab in labs and lab != keep) else c for lab, c in enumerate(cs)]
             solves += 1
-            a = _dp_assignment(problem, sub, heading_bin)
+            sizes = np.fromiter((c.size for c in sub), dtype=np.int64, count=len(sub))
+            a = None if not sizes.all() else _dp_assignment(problem, np.concatenate(sub),
+                                                            np.r_[0, np.cumsum(sizes)], heading_bin)
             if a is None:
                 continue
             if _conflict(a, n) is None:
@@ -86,19 +123,16 @@ def max_product(problem: FrameProblem, candidates: list[np.ndarray], heading_bin
     return leaves[int(np.argmax(problem.fitness(leaves)))]
 
 
-def _dp_assignment(problem: FrameProblem, cand: list[np.ndarray], heading_bin: int) -> np.ndarray | None:
-    """The DP's optimum over ``cand`` (duplicates across triangles possible); None when no
-    candidate labeling satisfies the distance bounds."""
+def _dp_assignment(problem: FrameProblem, flat: np.ndarray, off: np.ndarray, heading_bin: int) -> np.ndarray | None:
+    """The DP's optimum over the candidates ``flat[off[l]:off[l + 1]]`` of each label ``l``
+    (duplicates across triangles possible); None when no candidate labeling satisfies the
+    distance bounds."""
     n, M, tri = problem.n, problem.M, problem.tri
-    sizes = np.fromiter((c.size for c in cand), dtype=np.int64, count=len(cand))
-    if not sizes.all():
-        return None
+    sizes = np.diff(off)
     # a triangle whose three labels have one candidate each only adds a constant: skipped
     multi = (sizes[tri] > 1).any(1)
     multi[0] = True
     active = np.flatnonzero(multi)
-    flat = np.concatenate(cand)
-    off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     goff, keys = grid_keys(flat, off, active, tri, problem.dist, problem.bounds, n, problem.T, n + 1,
                            int(heading_bin))
     vals = np.full(keys.size, -np.inf)
@@ -108,15 +142,15 @@ def _dp_assignment(problem: FrameProblem, cand: list[np.ndarray], heading_bin: i
     pick = dp_solve(vals, goff, active, tri, flat, off, problem.label_gain, M)
     if pick[0] < 0:
         return None
-    return np.array([cand[lab][pick[lab]] for lab in range(M)], dtype=np.int64)
+    return flat[off[:M] + np.asarray(pick[:M], dtype=np.int64)]
 
 
 def _conflict(assign: np.ndarray, n: int):
     """The first point given to several labels and those labels, or None."""
-    vals, counts = np.unique(assign[assign < n], return_counts=True)
-    if not (counts > 1).any():
+    twice = np.flatnonzero(np.bincount(assign[assign < n], minlength=n) > 1)
+    if not twice.size:
         return None
-    q = int(vals[np.argmax(counts > 1)])
+    q = int(twice[0])
     return q, np.flatnonzero(assign == q)
 
 
@@ -176,7 +210,7 @@ def local_candidates(problem: FrameProblem, ind: np.ndarray, k_near: int = 3,
 
 
 def region_candidates(problem: FrameProblem, ind: np.ndarray, free: np.ndarray,
-                      max_candidates: int = 6) -> list[np.ndarray]:
+                      max_candidates: int = 6) -> Candidates:
     """Candidates for relabelling the region ``free`` (M,) bool of ``ind`` with the other
     labels kept. The pool is every point not held by a kept label; a free label with a
     point gets the ``max_candidates`` pool points nearest to it (its own included), a
@@ -186,13 +220,17 @@ def region_candidates(problem: FrameProblem, ind: np.ndarray, free: np.ndarray,
     one heading) given the rest of the body; the cap bounds the work when many points are
     unlabelled."""
     n, M = problem.n, problem.M
+    ind = np.asarray(ind, dtype=np.int64)
     kept = np.where(free, n, ind)
     pool = np.flatnonzero(~ops.used_mask(kept[None], n)[0])
-    out = list(np.asarray(ind, dtype=np.int64)[:, None].copy())           # each kept label: its own point
+    fixed = np.flatnonzero(~free)
+    points, labels = [ind[fixed], np.full(int(free.sum()), n, dtype=np.int64)], [fixed, np.flatnonzero(free)]
     have = free & (ind < n)
-    for lab in np.flatnonzero(have):
-        d = problem.dist[ind[lab], pool]
-        out[lab] = np.append(pool[np.argsort(d, kind="stable")[:max_candidates]], n)
+    held = np.flatnonzero(have)
+    if held.size:                        # each: its max_candidates nearest pool points
+        near = np.argsort(problem.dist[np.ix_(ind[held], pool)], axis=1, kind="stable")[:, :max_candidates]
+        points.append(pool[near].ravel())
+        labels.append(np.repeat(held, near.shape[1]))
     missing = np.flatnonzero(free & (ind >= n))
     if missing.size:
         ok = problem.allowed(kept)[np.ix_(missing, pool)]
@@ -200,8 +238,10 @@ def region_candidates(problem: FrameProblem, ind: np.ndarray, free: np.ndarray,
         d = problem.dist[np.ix_(pool, ref)].min(1) if ref.size else np.zeros(pool.size)
         order = np.argsort(d, kind="stable")
         for lab, row in zip(missing, ok):
-            out[lab] = np.append(pool[order[row[order]]][:max_candidates], n)
-    return out
+            pts = pool[order[row[order]]][:max_candidates]
+            points.append(pts)
+            labels.append(np.full(pts.size, lab, dtype=np.int64))
+    return Candidates.of(np.concatenate(points), np.concatenate(labels), M)
 
 
 def model_regions(model, max_size: int = 8) -> list[np.ndarray]:
