@@ -9,8 +9,8 @@ from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
 from dtm_labeler.motion.load import load_clip
 from dtm_labeler.model.features import point_states
 from dtm_labeler.search import label_ops as ops
-from dtm_labeler.search.dtm_dp import (_conflict, _dp_assignment, chains_of, max_product, mean_shape, model_chains,
-                                       regions_of, relabel_regions)
+from dtm_labeler.search.dtm_dp import (Candidates, _conflict, _dp_assignment, chains_of, max_product, mean_shape,
+                                       model_chains, regions_of, relabel_regions)
 from dtm_labeler.search.problem import Background, FrameProblem
 from dtm_labeler.training.train import TrainConfig, train_model
 
@@ -179,5 +179,6 @@ def test_branching_on_conflicts_finds_the_exact_one_to_one_optimum(model, hdm):
             assert objective(exact[None])[0] == pytest.approx(best, abs=1e-6)
             assert objective(budget[None])[0] >= objective(plain[None])[0] - 1e-9
             assert ops.is_valid(np.stack([plain, exact, budget]), p.n).all()
-            conflicts += _conflict(_dp_assignment(p, cands, b), p.n) is not None
+            table = Candidates.from_lists(cands)
+            conflicts += _conflict(_dp_assignment(p, table.flat, table.off, b), p.n) is not None
     assert conflicts >= 1                 # the branching was exercised
