@@ -45,7 +45,9 @@ class Candidates:
         flat, lab = flat[order], lab[order]
         keep = np.ones(flat.size, dtype=bool)
         keep[1:] = (flat[1:] != flat[:-1]) | (lab[1:] != lab[:-1])
-        return cls(flat[keep], np.r_[0, np.cumsum(np.bincount(lab[keep], minlength=M))].astype(np.int64))
+        off = np.zeros(M + 1, dtype=np.int64)
+        np.cumsum(np.bincount(lab[keep], minlength=M), out=off[1:])
+        return cls(flat[keep], off)
 
     @classmethod
     def from_lists(cls, candidates) -> "Candidates":
@@ -228,19 +230,18 @@ def region_candidates(problem: FrameProblem, ind: np.ndarray, free: np.ndarray,
     have = free & (ind < n)
     held = np.flatnonzero(have)
     if held.size:                        # each: its max_candidates nearest pool points
-        near = np.argsort(problem.dist[np.ix_(ind[held], pool)], axis=1, kind="stable")[:, :max_candidates]
+        near = np.argsort(problem.dist[ind[held]][:, pool], axis=1, kind="stable")[:, :max_candidates]
         points.append(pool[near].ravel())
         labels.append(np.repeat(held, near.shape[1]))
     missing = np.flatnonzero(free & (ind >= n))
-    if missing.size:
-        ok = problem.allowed(kept)[np.ix_(missing, pool)]
+    if missing.size:                     # each: the first max_candidates allowed pool points by distance
         ref = ind[have]
-        d = problem.dist[np.ix_(pool, ref)].min(1) if ref.size else np.zeros(pool.size)
-        order = np.argsort(d, kind="stable")
-        for lab, row in zip(missing, ok):
-            pts = pool[order[row[order]]][:max_candidates]
-            points.append(pts)
-            labels.append(np.full(pts.size, lab, dtype=np.int64))
+        d = problem.dist[pool][:, ref].min(1) if ref.size else np.zeros(pool.size)
+        order = pool[np.argsort(d, kind="stable")]
+        ok = problem.allowed(kept)[missing][:, order]                   # (missing, pool) in that order
+        r, c = np.nonzero(ok & (np.cumsum(ok, axis=1) <= max_candidates))
+        points.append(order[c])
+        labels.append(missing[r])
     return Candidates.of(np.concatenate(points), np.concatenate(labels), M)
 
 
