@@ -88,8 +88,8 @@ def max_product(problem: FrameProblem, candidates, heading_bin: int, branches: i
     the labeler by default (``sweep_branches``, ``region_branches``: the wider search also
     finds wrong labelings the model prefers elsewhere; see the parameter table)."""
     n, M = problem.n, problem.M
-    c = Candidates.from_lists(candidates)
-    flat, off = c.flat, c.off
+    table = Candidates.from_lists(candidates)
+    flat, off = table.flat, table.off
     if (np.diff(off) == 0).any():
         raise ValueError("every label needs at least one candidate (n = missing)")
     if off.size - 1 != M:
