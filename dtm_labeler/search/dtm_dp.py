@@ -111,9 +111,8 @@ def max_product(problem: FrameProblem, candidates, heading_bin: int, branches: i
                 break
             sub = [c[c != q] if (lab in labs and lab != keep) else c for lab, c in enumerate(cs)]
             solves += 1
-            sizes = np.fromiter((c.size for c in sub), dtype=np.int64, count=len(sub))
-            a = None if not sizes.all() else _dp_assignment(problem, np.concatenate(sub),
-                                                            np.r_[0, np.cumsum(sizes)], heading_bin)
+            part = Candidates.from_lists(sub)
+            a = None if (np.diff(part.off) == 0).any() else _dp_assignment(problem, part.flat, part.off, heading_bin)
             if a is None:
                 continue
             if _conflict(a, n) is None:
