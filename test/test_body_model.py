@@ -406,9 +406,9 @@ def test_model_file_v2_round_trip_and_v1_files(models, tmp_path, walker):
     assert v1.body is None and v1.broad is None and v1.provenance["format_version_read"] == 1
     assert np.allclose(v1.frame_log_likelihood(states),       # the file's mixtures: the calibrated placement
                        cal.replace(body=None, broad=None).frame_log_likelihood(states))
-    header["format_version"] = 5
+    header["format_version"] = 6
     arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
-    with pytest.raises(ModelFileError, match="format version 5 is not supported"):
+    with pytest.raises(ModelFileError, match="format version 6 is not supported"):
         model_from_arrays(arrays, "v3")
     # a version-2 header announcing body terms without the arrays is refused
     with np.load(path, allow_pickle=False) as z:

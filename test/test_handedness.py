@@ -11,7 +11,7 @@ from dtm_labeler.model.features import point_states
 from dtm_labeler.model.io import FORMAT_VERSION, load_model, model_from_arrays, save_model
 from dtm_labeler.motion.load import load_clip
 from dtm_labeler.search.problem import Background, FrameProblem
-from dtm_labeler.training.body_fit import handedness_quads, quad_signs, rigid_quads
+from dtm_labeler.training.body_fit import handedness_quads, quad_signs, rigid_quads, segment_clusters
 from dtm_labeler.training.calibrate import calibrate_on_takes, calibrated_body, labelled_positions
 from dtm_labeler.training.train import TrainConfig, train_model
 
@@ -178,3 +178,47 @@ def test_toe_quadruples_do_not_take_in_the_other_foot(data_dir):
     for side in "LR":
         assert tuple(sorted(names.index(side + m) for m in ("ANK", "HEE", "TOE", "MT5"))) in learnt
     assert not any(set(q) & toes["L"] and set(q) & toes["R"] for q in learnt)
+
+
+def test_a_model_of_one_person_keeps_all_its_rigid_pairs(models, hdm, tmp_path):
+    """Beside the structure's tree segments, a marker model keeps every pair that held rigid over
+    its training frames (BodyModel.rigid_pairs: the take pass's ruler for that person); a
+    calibration to another person drops them; model files keep them (format 5) and a format-4
+    file loads without them."""
+    generic, calibrated = models
+    names = list(generic.labels)
+    body = generic.body
+    pairs = [tuple(p) for p in body.rigid_pairs.tolist()]
+    bar = tuple(sorted((names.index("LWRA"), names.index("LWRB"))))
+    assert bar in pairs and len(pairs) > len(body.segments)
+    assert tuple(sorted((names.index("LFHD"), names.index("LWRA")))) not in pairs      # head to wrist: no
+    P = labelled_positions(generic, hdm.slice(1200, 1900))
+    d = np.linalg.norm(P[:, bar[0]] - P[:, bar[1]], axis=-1)
+    assert body.rigid_length[pairs.index(bar)] == pytest.approx(np.nanmedian(d), abs=1e-3)
+    assert (body.rigid_spread > 0).all() and (body.rigid_length <= 0.4).all()
+    cluster = segment_clusters(len(names), body.segments)            # each pair within one rigid cluster
+    assert (cluster[body.rigid_pairs[:, 0]] == cluster[body.rigid_pairs[:, 1]]).all()
+    assert (cluster[body.rigid_pairs] >= 0).all()
+    assert calibrated.body.rigid_pairs.shape == (0, 2)
+
+    path = save_model(generic, tmp_path / "g.npz")
+    back = load_model(path)
+    assert FORMAT_VERSION == 5 and np.array_equal(back.body.rigid_pairs, body.rigid_pairs)
+    assert np.allclose(back.body.rigid_length, body.rigid_length) and np.allclose(back.body.rigid_spread,
+                                                                                  body.rigid_spread)
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files if not k.startswith("body_rigid_")}
+    header = json.loads(bytes(arrays["header"]).decode())
+    header["format_version"] = 4
+    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    v4 = model_from_arrays(arrays, "v4")
+    assert v4.provenance["format_version_read"] == 4 and v4.body.rigid_pairs.shape == (0, 2)
+    with pytest.raises(ValueError, match="rigid pairs"):
+        BodyModel(n_labels=3, pairs=np.zeros((0, 2)), kind=np.zeros(0), lo=np.zeros(0), hi=np.zeros(0),
+                  within_sd=np.zeros(0), between_sd=np.zeros(0), rigid_pairs=[[1, 0]], rigid_length=[0.1],
+                  rigid_spread=[0.003])
+
+
+def test_segment_clusters_are_the_segments_connected_components():
+    got = segment_clusters(7, np.array([[0, 1], [2, 3], [1, 4], [3, 5]]))
+    assert got.tolist() == [0, 0, 2, 2, 0, 2, -1]

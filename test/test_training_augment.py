@@ -5,6 +5,8 @@ positions and velocities transformed consistently, reproducible from the seed) a
 jitter must give the training of before. The real-data test checks that the default model
 labels people it never saw (cross-subject), see ``test_cross_subject_floor``.
 """
+import re
+
 import numpy as np
 import pytest
 
@@ -264,8 +266,12 @@ def test_dtm_train_grows_a_marker_sets_structure_along_the_body(data_dir, tmp_pa
     out = tmp_path / "m.npz"
     assert train_main([str(data_dir / "markers_csv/mct_walk1_28markers_60hz.csv"), "--points", "all", "--out",
                        str(out), "--mixture", "single", "--quiet"]) == 0
-    assert "structure body (auto: a marker set):" in capsys.readouterr().out
-    assert load_model(out).provenance["config"]["structure"] == "body"
+    printed = capsys.readouterr().out
+    assert "structure body (auto: a marker set):" in printed
+    model = load_model(out)
+    assert model.provenance["config"]["structure"] == "body"
+    said = re.search(r"body +(\d+) segments; (\d+) rigid marker pairs", printed)        # the person's ruler, said
+    assert said and int(said[1]) == len(model.body.segments) and int(said[2]) == len(model.body.rigid_pairs) > 0
 
 
 def test_marker_models_train_without_body_augmentation_by_default(walker):

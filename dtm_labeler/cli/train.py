@@ -161,6 +161,8 @@ def _main(argv=None) -> int:
         model, calibration = _calibrated(model, clips)
     save_model(model, args.out)
     s = summary.as_dict() | {"out": str(args.out)} | ({"calibration": calibration} if calibration else {})
+    if model.body is not None:
+        s["body"] = {"segments": int(len(model.body.segments)), "rigid_pairs": int(model.body.rigid_pairs.shape[0])}
     if args.json:
         print(json.dumps(s, indent=1))
         return 0
@@ -186,6 +188,9 @@ def _main(argv=None) -> int:
     print(f"augment   {aug['copies']} cop{'y' if aug['copies'] == 1 else 'ies'}" + (
         f": scale sd {aug['scale_sd']:g}, proportion sd {aug['proportion_sd']:g}, tempo sd {aug['tempo_sd']:g}, "
         f"yaw +-{aug['yaw_jitter_deg']:g} deg" if aug["copies"] else ""))
+    if "body" in s and s["body"]["rigid_pairs"]:
+        print(f"body      {s['body']['segments']} segments; {s['body']['rigid_pairs']} rigid marker pairs of the "
+              "person in their clusters (what dtm-label's pass over a take measures it by)")
     if calibration:
         print(f"calibrated to the takes' person: {calibration['segments']} of {calibration['segments_total']} "
               f"segment lengths from {calibration['frames']} frames (scale {calibration['scale']:.3f})")

@@ -91,7 +91,13 @@ class BodyModel:
     subject calibration (empty for a generic body). ``quads`` / ``quad_sign``: the marker
     clusters' handedness (:class:`Handedness`; none for joint centres). ``twists``: the trunk's
     twist limits (:class:`TrunkTwist`), rows ``(upper left, upper mid or -1, upper right,
-    lower left, lower right)``.
+    lower left, lower right)``. ``rigid_pairs`` / ``rigid_length`` / ``rigid_spread``: the rigid
+    marker pairs of the one person the model was trained on -- every pair of one segment cluster
+    (the segments' connected components) whose distance held within a few mm over the training
+    frames, a tree link or not (median length and robust spread, m; none for joint centres or a
+    calibrated body, few for a model of several people).
+    No term of the frame fitness: the offline pass over a whole take reads them as the person's
+    ruler (:func:`dtm_labeler.labeling.rigid_tracks.body_pairs`).
     """
 
     n_labels: int
@@ -105,6 +111,9 @@ class BodyModel:
     quads: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), dtype=np.int64))   # (Q, 4) labels
     quad_sign: np.ndarray = field(default_factory=lambda: np.zeros(0))                    # (Q,) +1 / -1
     twists: np.ndarray = field(default_factory=lambda: np.zeros((0, 5), dtype=np.int64))  # (K, 5) labels
+    rigid_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))  # (R, 2), u < v
+    rigid_length: np.ndarray = field(default_factory=lambda: np.zeros(0))                      # (R,) m
+    rigid_spread: np.ndarray = field(default_factory=lambda: np.zeros(0))                      # (R,) m
 
     def __post_init__(self) -> None:
         self.quads = np.asarray(self.quads, dtype=np.int64).reshape(-1, 4)
@@ -118,6 +127,17 @@ class BodyModel:
         if self.twists.size and (self.twists.max() >= self.n_labels or self.twists[:, [0, 2, 3, 4]].min() < 0
                                  or self.twists[:, 1].min() < -1):
             raise ValueError("body twists must be label indices (the upper mid may be -1)")
+        self.rigid_pairs = np.asarray(self.rigid_pairs, dtype=np.int64).reshape(-1, 2)
+        R = self.rigid_pairs.shape[0]
+        self.rigid_length = np.asarray(self.rigid_length, dtype=np.float64).reshape(-1)
+        self.rigid_spread = np.asarray(self.rigid_spread, dtype=np.float64).reshape(-1)
+        if self.rigid_length.shape[0] != R or self.rigid_spread.shape[0] != R:
+            raise ValueError("body rigid pairs need one length and one spread each")
+        if R and (self.rigid_pairs.min() < 0 or self.rigid_pairs.max() >= self.n_labels
+                  or (self.rigid_pairs[:, 0] >= self.rigid_pairs[:, 1]).any()
+                  or not np.isfinite(self.rigid_length).all() or not (self.rigid_spread > 0).all()):
+            raise ValueError("body rigid pairs must be label index pairs (u, v), u < v, with finite lengths "
+                             "and positive spreads")
         self.pairs = np.asarray(self.pairs, dtype=np.int64).reshape(-1, 2)
         P = self.pairs.shape[0]
         self.kind = np.asarray(self.kind, dtype=np.int64).reshape(P)
@@ -179,7 +199,8 @@ class BodyModel:
         return {"body_pairs": self.pairs.astype(np.int64), "body_kind": self.kind.astype(np.int64),
                 "body_lo": self.lo, "body_hi": self.hi, "body_within_sd": self.within_sd,
                 "body_between_sd": self.between_sd, "body_quads": self.quads, "body_quad_sign": self.quad_sign,
-                "body_twists": self.twists}
+                "body_twists": self.twists, "body_rigid_pairs": self.rigid_pairs,
+                "body_rigid_length": self.rigid_length, "body_rigid_spread": self.rigid_spread}
 
     @classmethod
     def from_arrays(cls, arrays: dict, n_labels: int, calibration: dict | None = None) -> "BodyModel":
@@ -188,7 +209,8 @@ class BodyModel:
                                                                  "between_sd")}
         except KeyError as e:
             raise ValueError(f"body terms lack {e.args[0]!r}") from None
-        for k in ("quads", "quad_sign", "twists"):   # format 3: handedness, 4: twists (older: none)
+        for k in ("quads", "quad_sign", "twists", "rigid_pairs", "rigid_length", "rigid_spread"):
+            # format 3: handedness, 4: twists, 5: the person's rigid pairs (older: none)
             if "body_" + k in arrays:
                 kw[k] = np.asarray(arrays["body_" + k])
         for k, a in kw.items():

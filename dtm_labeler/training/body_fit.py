@@ -258,6 +258,49 @@ def rigid_quads(positions: np.ndarray, quads: np.ndarray, seen: np.ndarray | Non
 MEDIAN_CLIPS = 3
 
 
+def person_rigid_pairs(clips: Sequence[np.ndarray], segments: np.ndarray, max_frames: int = 3000) -> dict[str, np.ndarray]:
+    """The trained person's rigid marker pairs (:attr:`BodyModel.rigid_pairs`) from the (F, M, 3)
+    positions of the training clips, pooled (at most ``max_frames`` frames spread over them): the
+    pairs the take pass measures on a take (:func:`dtm_labeler.labeling.rigid_tracks.rigid_pairs`:
+    seen together often, short, robust spread of a few mm), measured on the training labels, and
+    kept where both labels lie in one rigid cluster of the body's ``segments`` (the connected
+    components of the structure's tree links that held rigid, :func:`segment_clusters`).
+
+    Why: the offline pass over a take (:mod:`dtm_labeler.labeling.rigid_tracks`) reads the
+    person's rigid pairs from the take's own labels, which are wrong where it needs them most,
+    and from the body's segments, which are only the tree's links (HDM05's 41 markers: 24
+    segments). A marker cluster on one segment is rigid in every pair, as
+    :class:`~dtm_labeler.model.body.CrossSegments` reads it; a model of one person knows those
+    pairs' lengths. Why only within the clusters: a pair that merely held still in the training
+    frames need not hold in another motion -- HDM05's left shoulder and upper-arm markers, steady
+    within 11 mm over the first half of the take, lie 4 cm closer in the second, and with them
+    the take pass gave the upper arm's label to the shoulder (gap seed 1, capture ids, 97.91 ->
+    96.82 %). Pooled over several people the spreads grow and most pairs drop out; the take pass
+    uses them only where the take agrees with the body (``RigidPairs.with_body``)."""
+    from ..labeling.rigid_tracks import rigid_pairs
+    P = np.concatenate([np.asarray(c, dtype=np.float64) for c in clips]) if len(clips) else np.zeros((0, 0, 3))
+    if P.shape[0] == 0:
+        return {}
+    P = P[np.unique(np.linspace(0, P.shape[0] - 1, min(P.shape[0], max_frames)).round().astype(np.int64))]
+    measured = rigid_pairs(P)
+    cluster = segment_clusters(P.shape[1], segments)
+    u, v = np.nonzero(np.triu(measured.rigid & (cluster[:, None] == cluster[None, :]) & (cluster[:, None] >= 0), 1))
+    return {"rigid_pairs": np.stack([u, v], 1), "rigid_length": measured.length[u, v],
+            "rigid_spread": measured.spread[u, v]}
+
+
+def segment_clusters(M: int, segments: np.ndarray) -> np.ndarray:
+    """(M,) the rigid cluster of each label: the connected components of the body's segments
+    (``segments`` (S, 2) label pairs); -1 for a label on no segment."""
+    comp = np.arange(M)
+    for u, v in np.asarray(segments, dtype=np.int64).reshape(-1, 2):
+        a, b = comp[u], comp[v]
+        comp[comp == max(a, b)] = min(a, b)
+    on = np.zeros(M, dtype=bool)
+    on[np.asarray(segments, dtype=np.int64).reshape(-1)] = True
+    return np.where(on, comp, -1)
+
+
 def clip_spread(sd: np.ndarray) -> np.ndarray:
     """(M, M) the within-person spread of each pair from its within-clip sds ``sd`` (C, M, M; NaN
     where a clip never shows the pair): the worst clip's while one or two clips show the pair, the

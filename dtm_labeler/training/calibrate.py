@@ -298,8 +298,10 @@ def calibrated_body(body: BodyModel, positions: np.ndarray, settings: Calibratio
     if check_labels:
         quads, signs, summary["handedness_flips_dropped"] = unflipped_quads(body, quads, signs)
     summary["handedness_quads"] = int(quads.shape[0])
+    # the trained person's rigid pairs are not this person's: the calibrated segments are the ruler now
     return replace(body, lo=lo, hi=hi, within_sd=within, between_sd=between, calibration=summary,
-                   quads=quads, quad_sign=signs), summary
+                   quads=quads, quad_sign=signs, rigid_pairs=np.zeros((0, 2), dtype=np.int64),
+                   rigid_length=np.zeros(0), rigid_spread=np.zeros(0)), summary
 
 
 def unflipped_quads(body: BodyModel, quads: np.ndarray, signs: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:

@@ -51,7 +51,7 @@ from .gaps import (MIN_TRIPLE_FRAMES, coverage_report, fill_yaw, fit_rows, fit_t
 from ..model.structure import BODY14_GIVEN, Structure
 from ..search import structure_search as ss
 from .body_fit import (BodySettings, broad_components, edge_prior, fit_body, handedness_quads, pair_statistics,
-                       trunk_twists, validation_rows)
+                       trunk_twists, validation_rows, person_rigid_pairs)
 
 STRUCTURE_METHODS = ("auto", "cbga", "greedy", "given", "sga", "body")
 MIXTURE_KINDS = ("mdl", "fixed", "single")
@@ -403,7 +403,8 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
                         joint_centres=joint_centres, mirror_pairs=all_pairs)
         if not joint_centres:        # marker clusters: their handedness (model/body.py Handedness)
             quads, signs = handedness_quads(positions, max_frames=config.body.max_frames)
-            body = replace(body, quads=quads, quad_sign=signs)
+            body = replace(body, quads=quads, quad_sign=signs,
+                           **person_rigid_pairs(positions, body.segments, config.body.max_frames))
         else:                        # joint centres: the trunk's twist limit (model/body.py TrunkTwist)
             body = replace(body, twists=trunk_twists(labels, positions))
         if scores is not None and config.body.segment_edge_prior > 0:
