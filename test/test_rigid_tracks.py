@@ -3,7 +3,7 @@ HDM05's 41 markers, half of them hidden at a time, the capture's trajectories as
 import numpy as np
 import pytest
 
-from dtm_labeler.labeling.rigid_tracks import RigidPairs, body_pairs, label_positions, relabel_tracks, rigid_pairs
+from dtm_labeler.labeling.rigid_tracks import body_pairs, label_positions, relabel_tracks, rigid_pairs
 from dtm_labeler.model.body import SEGMENT, BodyModel
 from dtm_labeler.motion.load import load_clip
 from test_gappy_training import HDM, _gapped
@@ -332,7 +332,7 @@ def test_the_persons_pairs_off_the_tree_fill_in_what_the_take_does_not_measure(t
     truth = np.concatenate(take["truth"])
     person = _off_the_tree(_body_of(take, slice(0, 300)))
     prior = body_pairs(person)
-    assert prior is not None and prior.count == person.rigid_pairs.shape[0] and not prior.overrides.any()
+    assert prior is not None and prior.count == person.rigid_pairs.shape[0]
     filled, _ = relabel_tracks(take["xyz"], take["tracks"], labels, take["n_labels"], prior=prior)
     other, _ = relabel_tracks(take["xyz"], take["tracks"], labels, take["n_labels"],
                               prior=body_pairs(_off_the_tree(_body_of(take, slice(0, 300), scale=1.15))))
@@ -342,29 +342,20 @@ def test_the_persons_pairs_off_the_tree_fill_in_what_the_take_does_not_measure(t
     assert (np.concatenate(filled)[others] == truth[others]).mean() > 0.999
 
 
-def test_pairs_off_the_tree_do_not_override_what_the_take_measured():
-    """A segment's length replaces a take's measurement that disagrees with it; a pair that
-    merely held still in training (a marker may slip, a pose may change) only fills in pairs
-    the take did not measure."""
-    M = 4
-    take_pairs = RigidPairs(rigid=np.zeros((M, M), bool), length=np.zeros((M, M)), spread=np.ones((M, M)),
-                            measured=np.ones((M, M), bool))
-    lengths = np.array([[0, .10, .20, .30], [.10, 0, .15, .25], [.20, .15, 0, .12], [.30, .25, .12, 0]])
-    for a, b in ((0, 1), (0, 2), (1, 2), (2, 3)):                          # the take's own rigid pairs
-        take_pairs.rigid[a, b] = take_pairs.rigid[b, a] = True
-    take_pairs.length[:] = lengths
-    take_pairs.length[2, 3] = take_pairs.length[3, 2] = 0.14             # measured 2 cm off the body
-    take_pairs.measured[1, 3] = take_pairs.measured[3, 1] = False        # never seen together
-    body = BodyModel(n_labels=M, pairs=np.array([[0, 1], [0, 2], [1, 2]]), kind=np.full(3, SEGMENT),
-                     lo=np.array([.10, .20, .15]), hi=np.array([.10, .20, .15]), within_sd=np.full(3, .003),
-                     between_sd=np.zeros(3), rigid_pairs=np.array([[1, 3], [2, 3]]),
-                     rigid_length=np.array([.25, .12]), rigid_spread=np.full(2, .003))
-    prior = body_pairs(body)
-    assert prior.overrides[0, 1] and prior.overrides[1, 2] and not prior.overrides[2, 3]
-    got = take_pairs.with_body(prior, same_share=0.7, min_segments=3)
-    assert got.rigid[1, 3] and got.length[1, 3] == pytest.approx(.25)          # filled in
-    assert got.length[2, 3] == pytest.approx(.14)                               # the take's own kept
-    segment_body = BodyModel(n_labels=M, pairs=np.array([[0, 1], [0, 2], [1, 2], [2, 3]]), kind=np.full(4, SEGMENT),
-                             lo=np.array([.10, .20, .15, .12]), hi=np.array([.10, .20, .15, .12]),
-                             within_sd=np.full(4, .003), between_sd=np.zeros(4))
-    assert take_pairs.with_body(body_pairs(segment_body), same_share=0.7, min_segments=3).length[2, 3] == pytest.approx(.12)
+def test_the_persons_cluster_pairs_correct_what_the_take_measured_on_a_wrong_marker(take):
+    """Read as segments are: where the take measured a pair on the wrong marker (RANK labelled
+    RHEE for the whole take), the person's pairs give the length back, and the marker its label."""
+    names = take["names"]
+    own, wrong = names.index("RANK"), names.index("RHEE")
+    labels, xyz, tracks = [], [], []
+    for t, x, tid in zip(take["truth"], take["xyz"], take["tracks"]):
+        keep = t != wrong
+        lab = np.where(t[keep] >= 0, t[keep], -1)
+        lab[lab == own] = wrong
+        labels.append(lab)
+        xyz.append(x[keep])
+        tracks.append(tid[keep])
+    right = np.concatenate([t[t != wrong] for t in take["truth"]])
+    fixed, _ = relabel_tracks(xyz, tracks, labels, take["n_labels"],
+                              prior=body_pairs(_off_the_tree(_body_of(take, slice(0, 600)))))
+    assert (np.concatenate(fixed)[right == own] == own).mean() > 0.95

@@ -153,16 +153,12 @@ BACKGROUND_M = 1.0          # the alternative: a distance spread evenly over thi
 @dataclass(frozen=True)
 class RigidPairs:
     """(M, M) symmetric: which label pairs are rigid in the take, their length and spread (m);
-    ``measured``: the pairs the take showed together often enough to judge (None: all);
-    ``overrides`` (a body's pairs, :func:`body_pairs`): the pairs whose length replaces a take's
-    measurement that disagrees with it (None: all), the others fill in only what the take did
-    not measure."""
+    ``measured``: the pairs the take showed together often enough to judge (None: all)."""
 
     rigid: np.ndarray
     length: np.ndarray
     spread: np.ndarray
     measured: np.ndarray | None = None
-    overrides: np.ndarray | None = None
 
     @property
     def count(self) -> int:
@@ -182,21 +178,16 @@ class RigidPairs:
         (:func:`body_pairs`) where the take shows that person: when at least ``same_share`` of
         the body's segments the take measures (at least ``min_segments``) agree with it -- within
         two spreads or ``tolerance_m`` -- every body segment the take did not measure, or measured
-        otherwise, takes the body's length (module doc; "measured otherwise" only for the body's
-        ``overrides``); else (another person) the take's own."""
+        otherwise, takes the body's length (module doc); else (another person) the take's own."""
         if body is None or self.measured is None:
             return self
-        judged = body.overrides if body.overrides is not None and body.overrides.any() else body.rigid
-        seen = judged & self.measured                   # the person is judged by the segments when there are any
+        seen = body.rigid & self.measured
         if seen.sum() // 2 < min_segments:
             return self
         agree = np.abs(self.length - body.length) <= np.maximum(2.0 * body.spread, tolerance_m)
         if agree[seen].mean() < same_share:
             return self
-        seen = body.rigid & self.measured
         use = body.rigid & ~(seen & agree)
-        if body.overrides is not None:
-            use &= body.overrides | ~self.measured
         return RigidPairs(rigid=self.rigid | use, length=np.where(use, body.length, self.length),
                           spread=np.where(use, body.spread, self.spread), measured=self.measured)
 
@@ -205,48 +196,41 @@ def body_pairs(body: BodyModel | None, max_range_m: float = 0.01, spread_floor_m
     """The pairs of a model's body (:mod:`dtm_labeler.model.body`) whose length it knows for one
     person, as rigid pairs: its segments whose length range ``hi - lo`` is at most ``max_range_m``
     (a calibrated body, or a model of one person), spread the within-person spread (floored at
-    ``spread_floor_m``), and the trained person's other rigid pairs
-    (:attr:`~dtm_labeler.model.body.BodyModel.rigid_pairs`, off the structure's tree). A segment
-    overrides a take's measurement that disagrees with it (:meth:`RigidPairs.with_body`); the
-    other pairs only fill in what the take did not measure. None without such pairs.
+    ``spread_floor_m``), and the trained person's rigid pairs of the segments' clusters
+    (:attr:`~dtm_labeler.model.body.BodyModel.rigid_pairs`: the pairs of a marker cluster that
+    are not tree links, measured on the training frames). None without such pairs.
 
-    Why the two differ: a segment is a link of the body's tree whose length is what the
-    triangles' edge factors hold; the other pairs complete the segments' rigid clusters from the
-    training frames, and a marker can slip between takes (HDM05: the left forearm marker 6 mm
-    along the wrist bar between the halves of one take). So where the take measured such a pair
-    otherwise, the take's own length stands. The segments also judge whether the take is the
-    body's person (with the cluster pairs in that judgment, a pose the training held and the
-    take does not could turn the whole prior away). Measured on ``benchmarks/bench_captures.py``'s
-    gapped halves (50 % hidden; gap seeds 1-4; capture ids / own tracker), segments only ->
-    with the cluster pairs: the Qualisys walk 99.55 / 99.66 -> 99.66 / 99.76, 96.49 / 92.73 ->
-    96.82 / 95.36, 96.07 / 96.11 -> 96.33 / 96.51, 92.97 / 97.08 -> 93.12 / 97.54 %; HDM05
-    unchanged in all 8 cells (Qualisys mean 96.33 -> 96.89 %). Every rigid pair of the training
-    frames instead of the clusters', filling in only: the Qualisys mean 97.27 %, but HDM05 gap
-    seed 1 with capture ids 97.91 -> 96.82 % (the shoulder above); those pairs also overriding
-    the take: Qualisys 97.97 %, HDM05 98.15 -> 97.40 % on average.
-    """
+    The cluster pairs are read as the segments are: a marker cluster on one segment is rigid in
+    every pair. Measured on ``benchmarks/bench_captures.py``'s gapped halves (50 % hidden; gap
+    seeds 1-4; capture ids / own tracker), segments only -> with the cluster pairs: HDM05 97.91 /
+    98.43 (the same), 99.02 / 99.68 -> 98.71 / 99.65, 95.61 / 97.33 -> 96.78 / 97.83, 98.22 / 99.01
+    -> 98.10 / 98.93 %; the Qualisys walk 99.55 / 99.66 -> 99.66 / 99.76, 96.49 / 92.73 -> 96.82 /
+    95.46, 96.07 / 96.11 -> 96.33 / 96.51, 92.97 / 97.08 -> 93.23 / 99.60 %. Means: HDM05 98.15 ->
+    98.29 %, Qualisys 96.33 -> 97.17 %. Tried and not kept: the cluster pairs filling in only
+    the pairs the take did not measure (no cell lower, but means 98.15 and 96.89 %); every rigid
+    pair of the training frames, not only the clusters' (Qualisys 97.97 %, HDM05 97.40 %; gap
+    seed 1, capture ids, 97.91 -> 94.31 %, and 96.82 % with those pairs only filling in: a
+    shoulder and an upper-arm marker steady within 11 mm over the first half of the take lie
+    4 cm closer in the second, and the pass gave the upper arm's label to the shoulder)."""
     if body is None:
         return None
     seg = (body.kind == SEGMENT) & (body.hi - body.lo <= max_range_m)
-    R = body.rigid_pairs.shape[0]
-    if not seg.any() and not R:
+    if not seg.any() and not body.rigid_pairs.shape[0]:
         return None
     M = body.n_labels
     rigid = np.zeros((M, M), dtype=bool)
     length, spread = np.zeros((M, M)), np.ones((M, M))
-    if R:
-        u, v = body.rigid_pairs.T
-        for a, b in ((u, v), (v, u)):
-            rigid[a, b] = True
-            length[a, b] = body.rigid_length
-            spread[a, b] = np.maximum(body.rigid_spread, spread_floor_m)
-    overrides = np.zeros((M, M), dtype=bool)
-    u, v = body.pairs[seg].T
+    u, v = body.rigid_pairs.T
     for a, b in ((u, v), (v, u)):
-        rigid[a, b] = overrides[a, b] = True
+        rigid[a, b] = True
+        length[a, b] = body.rigid_length
+        spread[a, b] = np.maximum(body.rigid_spread, spread_floor_m)
+    u, v = body.pairs[seg].T                          # a segment's own length where it is both
+    for a, b in ((u, v), (v, u)):
+        rigid[a, b] = True
         length[a, b] = (body.lo[seg] + body.hi[seg]) / 2.0
         spread[a, b] = np.maximum(body.within_sd[seg], spread_floor_m)
-    return RigidPairs(rigid=rigid, length=length, spread=spread, overrides=overrides)
+    return RigidPairs(rigid=rigid, length=length, spread=spread)
 
 
 def label_positions(xyz: Sequence[np.ndarray], labels: Sequence[np.ndarray], n_labels: int) -> np.ndarray:
