@@ -63,7 +63,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import shortest_path
+from scipy.sparse.csgraph import connected_components, shortest_path
 
 from ..model.body import (HANDEDNESS_SHARE, REACH, RIGID_SPREAD, SEGMENT, TWIST_COS_MIN, TWIST_COS_SD, BodyModel,
                           BroadMotion, Handedness, broad_covariance)
@@ -71,6 +71,7 @@ from ..model.body_kernel import twist_cosines
 from ..model.features import FULL, MISSING, feature_map_for, observed_map, triangle_features
 from ..model.mixture import GaussianMixture, logsumexp_rows
 from ..model.structure import Structure
+from ..labeling.rigid_tracks import rigid_pairs
 from ..motion.pointsets import MARKER_SETS
 
 
@@ -275,9 +276,9 @@ def person_rigid_pairs(clips: Sequence[np.ndarray], segments: np.ndarray, max_fr
     frames need not hold in another motion -- HDM05's left shoulder and upper-arm markers, steady
     within 11 mm over the first half of the take, lie 4 cm closer in the second, and with them
     the take pass gave the upper arm's label to the shoulder (gap seed 1, capture ids, 97.91 ->
-    94.31 %; :func:`~dtm_labeler.labeling.rigid_tracks.body_pairs` has the figures). Pooled over several people the spreads grow and most pairs drop out; the take pass
-    uses them only where the take agrees with the body (``RigidPairs.with_body``)."""
-    from ..labeling.rigid_tracks import rigid_pairs
+    94.31 %; :func:`~dtm_labeler.labeling.rigid_tracks.body_pairs` has the figures). Pooled over
+    several people the spreads grow and most pairs drop out; the take pass uses them only where
+    the take agrees with the body (``RigidPairs.with_body``)."""
     P = np.concatenate([np.asarray(c, dtype=np.float64) for c in clips]) if len(clips) else np.zeros((0, 0, 3))
     if P.shape[0] == 0:
         return {}
@@ -292,12 +293,11 @@ def person_rigid_pairs(clips: Sequence[np.ndarray], segments: np.ndarray, max_fr
 def segment_clusters(M: int, segments: np.ndarray) -> np.ndarray:
     """(M,) the rigid cluster of each label: the connected components of the body's segments
     (``segments`` (S, 2) label pairs); -1 for a label on no segment."""
-    comp = np.arange(M)
-    for u, v in np.asarray(segments, dtype=np.int64).reshape(-1, 2):
-        a, b = comp[u], comp[v]
-        comp[comp == max(a, b)] = min(a, b)
+    seg = np.asarray(segments, dtype=np.int64).reshape(-1, 2)
+    _, comp = connected_components(coo_matrix((np.ones(len(seg)), (seg[:, 0], seg[:, 1])), shape=(M, M)),
+                                   directed=False)
     on = np.zeros(M, dtype=bool)
-    on[np.asarray(segments, dtype=np.int64).reshape(-1)] = True
+    on[seg.reshape(-1)] = True
     return np.where(on, comp, -1)
 
 

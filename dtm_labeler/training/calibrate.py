@@ -97,7 +97,7 @@ from ..model.dtm import TriangulatedModel
 from ..motion.clip import MotionClip
 from ..motion.pointsets import model_points
 from ..search.problem import Background
-from .body_fit import quad_signs, sides
+from .body_fit import person_rigid_pairs, quad_signs, sides
 from .placement import adapted_mixtures
 from .gaps import facing_states, loglik_per_label
 
@@ -298,10 +298,23 @@ def calibrated_body(body: BodyModel, positions: np.ndarray, settings: Calibratio
     if check_labels:
         quads, signs, summary["handedness_flips_dropped"] = unflipped_quads(body, quads, signs)
     summary["handedness_quads"] = int(quads.shape[0])
-    # the trained person's rigid pairs are not this person's: the calibrated segments are the ruler now
+    rigid = cluster_pairs(body, positions, seg | borrowed)
+    summary["rigid_pairs"] = int(rigid["rigid_pairs"].shape[0])
     return replace(body, lo=lo, hi=hi, within_sd=within, between_sd=between, calibration=summary,
-                   quads=quads, quad_sign=signs, rigid_pairs=np.zeros((0, 2), dtype=np.int64),
-                   rigid_length=np.zeros(0), rigid_spread=np.zeros(0)), summary
+                   quads=quads, quad_sign=signs, **rigid), summary
+
+
+def cluster_pairs(body: BodyModel, positions: np.ndarray, calibrated: np.ndarray) -> dict[str, np.ndarray]:
+    """The calibrated person's rigid pairs within the segment clusters
+    (:attr:`~dtm_labeler.model.body.BodyModel.rigid_pairs`), measured on the calibration frames
+    as training measures them (:func:`~dtm_labeler.training.body_fit.person_rigid_pairs`), the
+    clusters those of the ``calibrated`` (P,) segments -- for a marker body (one with handedness
+    quadruples or rigid pairs); none for joint centres. The trained person's pairs are not this
+    person's, so they are never kept."""
+    if not (body.quads.shape[0] or body.rigid_pairs.shape[0]):
+        return {"rigid_pairs": np.zeros((0, 2), dtype=np.int64), "rigid_length": np.zeros(0),
+                "rigid_spread": np.zeros(0)}
+    return person_rigid_pairs([positions], body.pairs[calibrated & (body.kind == SEGMENT)])
 
 
 def unflipped_quads(body: BodyModel, quads: np.ndarray, signs: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
