@@ -94,8 +94,8 @@ class BodyModel:
     lower left, lower right)``. ``rigid_pairs`` / ``rigid_length`` / ``rigid_spread``: the rigid
     marker pairs of the one person the model was trained on -- every pair of one segment cluster
     (the segments' connected components) whose distance held within a few mm over the training
-    frames, a tree link or not (median length and robust spread, m; none for joint centres or a
-    calibrated body, few for a model of several people).
+    frames, a tree link or not (median length and robust spread, m; none for joint centres, few
+    for a model of several people; a calibration measures them again on its person).
     No term of the frame fitness: the offline pass over a whole take reads them as the person's
     ruler (:func:`dtm_labeler.labeling.rigid_tracks.body_pairs`).
     """

@@ -281,7 +281,8 @@ def person_rigid_pairs(clips: Sequence[np.ndarray], segments: np.ndarray, max_fr
     the take agrees with the body (``RigidPairs.with_body``)."""
     P = np.concatenate([np.asarray(c, dtype=np.float64) for c in clips]) if len(clips) else np.zeros((0, 0, 3))
     if P.shape[0] == 0:
-        return {}
+        return {"rigid_pairs": np.zeros((0, 2), dtype=np.int64), "rigid_length": np.zeros(0),
+                "rigid_spread": np.zeros(0)}
     P = P[np.unique(np.linspace(0, P.shape[0] - 1, min(P.shape[0], max_frames)).round().astype(np.int64))]
     measured = rigid_pairs(P)
     cluster = segment_clusters(P.shape[1], segments)
