@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 
 from dtm_labeler.model.body import HANDEDNESS_NATS, BodyModel, Handedness
+from dtm_labeler.labeling.rigid_tracks import body_pairs
+from dtm_labeler.labeling.take_pass import person_handedness
 from dtm_labeler.model.features import point_states
 from dtm_labeler.model.io import FORMAT_VERSION, load_model, model_from_arrays, save_model
 from dtm_labeler.motion.load import load_clip
@@ -226,3 +228,37 @@ def test_segment_clusters_are_the_segments_connected_components():
     got = segment_clusters(7, np.array([[0, 1], [2, 3], [1, 4], [3, 5]]))
     assert got[0] == got[1] == got[4] >= 0 and got[2] == got[3] == got[5] >= 0 and got[0] != got[2]
     assert got[6] == -1                                                   # on no segment
+
+
+def test_the_take_pass_applies_a_generic_bodys_handedness_only_to_its_person(models, hdm):
+    """The take pass searches with the clusters' handedness when the model's body is one person's
+    and the take shows that person (take_pass.person_handedness); another person's proportions,
+    or no one-person body, leave the model as it is. (Frames of the training window: a window
+    whose poses break the person's pairs -- this small model's elbow-to-hand pairs held over its
+    700 training frames and not in 2400-2700 -- is judged another person, and nothing changes.)"""
+    generic, calibrated = models
+    names = list(generic.labels)
+    P = labelled_positions(generic, hdm.slice(1400, 1700))
+    xyz = [p[np.isfinite(p).all(1)] for p in P]
+    labels = [np.flatnonzero(np.isfinite(p).all(1)) for p in P]
+    prior = body_pairs(generic.body)
+    same = person_handedness(generic, xyz, labels, prior)
+    assert same is not generic and same.body_handedness is not None and generic.body_handedness is None
+    assert same.labels == generic.labels and same.body is generic.body
+    other = person_handedness(generic, [x * 1.15 for x in xyz], labels, prior)      # 15 % larger person
+    assert other is generic
+    assert person_handedness(generic, xyz, labels, None) is generic
+    late = labelled_positions(generic, hdm.slice(2400, 2700))
+    assert person_handedness(generic, [p[np.isfinite(p).all(1)] for p in late],
+                             [np.flatnonzero(np.isfinite(p).all(1)) for p in late], prior) is generic
+    assert person_handedness(calibrated, xyz, labels, body_pairs(calibrated.body)) is calibrated   # applied already
+    # the copy scores a mirrored wrist cluster lower, the model it came from does not
+    a, b = names.index("LWRA"), names.index("LWRB")
+    X = P[:2]
+    states = point_states(X, hdm.rate)[1]
+    truth = np.arange(len(names))
+    swap = truth.copy()
+    swap[[a, b]] = swap[[b, a]]
+    pop = np.stack([truth, swap])
+    gain = FrameProblem(same, states, Background()).fitness(pop) - FrameProblem(generic, states, Background()).fitness(pop)
+    assert gain[0] == 0.0 and gain[1] < 0

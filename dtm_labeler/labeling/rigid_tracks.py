@@ -172,6 +172,19 @@ class RigidPairs:
         e = -np.log(np.sqrt(2.0 * np.pi) * S / BACKGROUND_M) - z * z / 2.0
         return np.where(R, e, 0.0)
 
+    def shows(self, body: "RigidPairs | None", same_share: float = 0.8, min_segments: int = 5,
+              tolerance_m: float = 0.01) -> bool:
+        """Whether these pairs (measured by :func:`rigid_pairs`) show the person of ``body``
+        (:func:`body_pairs`): at least ``same_share`` of the body's pairs the take measures (at
+        least ``min_segments``) agree with it, within two spreads or ``tolerance_m`` (module doc)."""
+        if body is None or self.measured is None:
+            return False
+        seen = body.rigid & self.measured
+        if seen.sum() // 2 < min_segments:
+            return False
+        agree = np.abs(self.length - body.length) <= np.maximum(2.0 * body.spread, tolerance_m)
+        return bool(agree[seen].mean() >= same_share)
+
     def with_body(self, body: "RigidPairs | None", same_share: float = 0.8, min_segments: int = 5,
                   tolerance_m: float = 0.01) -> "RigidPairs":
         """These pairs (measured by :func:`rigid_pairs`) with the person's segments
@@ -179,14 +192,10 @@ class RigidPairs:
         the body's segments the take measures (at least ``min_segments``) agree with it -- within
         two spreads or ``tolerance_m`` -- every body segment the take did not measure, or measured
         otherwise, takes the body's length (module doc); else (another person) the take's own."""
-        if body is None or self.measured is None:
+        if not self.shows(body, same_share, min_segments, tolerance_m):
             return self
         seen = body.rigid & self.measured
-        if seen.sum() // 2 < min_segments:
-            return self
         agree = np.abs(self.length - body.length) <= np.maximum(2.0 * body.spread, tolerance_m)
-        if agree[seen].mean() < same_share:
-            return self
         use = body.rigid & ~(seen & agree)
         return RigidPairs(rigid=self.rigid | use, length=np.where(use, body.length, self.length),
                           spread=np.where(use, body.spread, self.spread), measured=self.measured)
