@@ -143,7 +143,7 @@ import numpy as np
 
 from ..model.body import SEGMENT, BodyModel
 
-__all__ = ["RigidPairs", "Support", "body_pairs", "rigid_pairs", "relabel_tracks"]
+__all__ = ["RigidPairs", "Support", "body_pairs", "rigid_pairs", "relabel_tracks", "spread_sample"]
 
 Z_CAP = 4.0                 # a broken distance costs at most Z_CAP^2 / 2 nats
 MAX_CELLS = 20_000_000      # evidence cells (pieces x labels^2) of one block: 160 MB
@@ -240,6 +240,13 @@ def body_pairs(body: BodyModel | None, max_range_m: float = 0.01, spread_floor_m
         length[a, b] = (body.lo[seg] + body.hi[seg]) / 2.0
         spread[a, b] = np.maximum(body.within_sd[seg], spread_floor_m)
     return RigidPairs(rigid=rigid, length=length, spread=spread)
+
+
+def spread_sample(n_frames: int, count: int) -> np.ndarray:
+    """At most ``count`` frame indices spread evenly over ``n_frames`` (all when fewer)."""
+    if n_frames <= 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.unique(np.linspace(0, n_frames - 1, min(n_frames, count)).round().astype(np.int64))
 
 
 def label_positions(xyz: Sequence[np.ndarray], labels: Sequence[np.ndarray], n_labels: int) -> np.ndarray:
@@ -351,7 +358,7 @@ def _relabel_block(xyz, pieces, labels, M, support, partner_cap, table_frames, m
     F = len(xyz)
     labels = [np.asarray(lab, dtype=np.int64) for lab in labels]
     positions = label_positions(xyz, labels, M)
-    sample = np.unique(np.linspace(0, F - 1, min(F, table_frames)).round().astype(np.int64)) if F else []
+    sample = spread_sample(F, table_frames)
     pairs = rigid_pairs(positions[sample], **pair_kw).with_body(prior)
     pid, n_pieces = pieces
     if not pairs.count or not n_pieces:

@@ -71,7 +71,7 @@ from ..model.dtm import TriangulatedModel
 from ..model.features import STATE_DIM, lateral_yaw
 from ..search.label_search import sweep_regions
 from ..search.problem import Background, FrameProblem
-from .rigid_tracks import body_pairs, label_positions, relabel_tracks, rigid_pairs
+from .rigid_tracks import body_pairs, label_positions, relabel_tracks, rigid_pairs, spread_sample
 from .take_votes import take_votes
 
 #: frames of a take (spread over it) on which :func:`person_handedness` judges the person
@@ -185,9 +185,9 @@ def person_handedness(model: TriangulatedModel, xyz: Sequence[np.ndarray], label
     b = model.body
     if b is None or b.calibration or model.body_handedness is not None or not b.quads.shape[0] or prior is None:
         return model
-    sample = np.unique(np.linspace(0, len(xyz) - 1, min(len(xyz), JUDGE_FRAMES)).round().astype(np.int64))
-    if not len(xyz) or not rigid_pairs(label_positions([xyz[f] for f in sample], [labels[f] for f in sample],
-                                                       model.n_labels)).shows(prior):
+    sample = spread_sample(len(xyz), JUDGE_FRAMES)
+    if not sample.size or not rigid_pairs(label_positions([xyz[f] for f in sample], [labels[f] for f in sample],
+                                                          model.n_labels)).shows(prior):
         return model
     hand = Handedness(b)
     if not hand.active:

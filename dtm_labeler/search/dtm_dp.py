@@ -112,7 +112,7 @@ def max_product(problem: FrameProblem, candidates, heading_bin: int, branches: i
             sub = [c[c != q] if (lab in labs and lab != keep) else c for lab, c in enumerate(cs)]
             solves += 1
             part = Candidates.from_lists(sub)
-            a = None if (np.diff(part.off) == 0).any() else _dp_assignment(problem, part.flat, part.off, heading_bin)
+            a = _dp_assignment(problem, part.flat, part.off, heading_bin)
             if a is None:
                 continue
             if _conflict(a, n) is None:
@@ -126,10 +126,12 @@ def max_product(problem: FrameProblem, candidates, heading_bin: int, branches: i
 
 def _dp_assignment(problem: FrameProblem, flat: np.ndarray, off: np.ndarray, heading_bin: int) -> np.ndarray | None:
     """The DP's optimum over the candidates ``flat[off[l]:off[l + 1]]`` of each label ``l``
-    (duplicates across triangles possible); None when no candidate labeling satisfies the
-    distance bounds."""
+    (duplicates across triangles possible); None when a label has no candidate or no candidate
+    labeling satisfies the distance bounds."""
     n, M, tri = problem.n, problem.M, problem.tri
     sizes = np.diff(off)
+    if (sizes == 0).any():
+        return None
     # a triangle whose three labels have one candidate each only adds a constant: skipped
     multi = (sizes[tri] > 1).any(1)
     multi[0] = True

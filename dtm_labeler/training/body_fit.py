@@ -71,7 +71,7 @@ from ..model.body_kernel import twist_cosines
 from ..model.features import FULL, MISSING, feature_map_for, observed_map, triangle_features
 from ..model.mixture import GaussianMixture, logsumexp_rows
 from ..model.structure import Structure
-from ..labeling.rigid_tracks import rigid_pairs
+from ..labeling.rigid_tracks import rigid_pairs, spread_sample
 from ..motion.pointsets import MARKER_SETS
 
 
@@ -283,8 +283,7 @@ def person_rigid_pairs(clips: Sequence[np.ndarray], segments: np.ndarray, max_fr
     if P.shape[0] == 0:
         return {"rigid_pairs": np.zeros((0, 2), dtype=np.int64), "rigid_length": np.zeros(0),
                 "rigid_spread": np.zeros(0)}
-    P = P[np.unique(np.linspace(0, P.shape[0] - 1, min(P.shape[0], max_frames)).round().astype(np.int64))]
-    measured = rigid_pairs(P)
+    measured = rigid_pairs(P[spread_sample(P.shape[0], max_frames)])
     cluster = segment_clusters(P.shape[1], segments)
     u, v = np.nonzero(np.triu(measured.rigid & (cluster[:, None] == cluster[None, :]) & (cluster[:, None] >= 0), 1))
     return {"rigid_pairs": np.stack([u, v], 1), "rigid_length": measured.length[u, v],

@@ -151,7 +151,7 @@ class WindowNotFollowed(CalibrationError):
 @dataclass
 class SearchBudget:
     """The full searches a self-calibration may spend (:func:`auto_calibrate`): ``share`` of each
-    self-labelling's frames, and ``left`` over all of its self-labellings together. A full
+    self-labelling's frames, and ``total`` over all of its self-labellings together. A full
     search is the labeler's expensive step (0.2-0.5 s at 47 labels); a model that follows the
     take needs one or two per self-labelling."""
     share: float
@@ -311,10 +311,8 @@ def cluster_pairs(body: BodyModel, positions: np.ndarray, calibrated: np.ndarray
     clusters those of the ``calibrated`` (P,) segments -- for a marker body (one with handedness
     quadruples or rigid pairs); none for joint centres. The trained person's pairs are not this
     person's, so they are never kept."""
-    if not (body.quads.shape[0] or body.rigid_pairs.shape[0]):
-        return {"rigid_pairs": np.zeros((0, 2), dtype=np.int64), "rigid_length": np.zeros(0),
-                "rigid_spread": np.zeros(0)}
-    return person_rigid_pairs([positions], body.pairs[calibrated & (body.kind == SEGMENT)])
+    marker_body = bool(body.quads.shape[0] or body.rigid_pairs.shape[0])
+    return person_rigid_pairs([positions] if marker_body else [], body.pairs[calibrated & (body.kind == SEGMENT)])
 
 
 def unflipped_quads(body: BodyModel, quads: np.ndarray, signs: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
