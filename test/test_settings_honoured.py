@@ -60,6 +60,7 @@ CHANGES = {
     "hold_nats": 1000.0,
     "hold_s": 0.0,
     "turn_check": False,
+    "upright_deg": 1.0,
     "region_checks": 0,
     "region_size": 2,
     "region_every": 1,
