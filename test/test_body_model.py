@@ -512,24 +512,35 @@ def test_calibration_measures_its_fit_reference(models):
     assert again.settings["fit_reference_per_label"] == pytest.approx(min(train, ref), abs=0.05)
 
 
-def test_fit_reference_moves_confidences_not_labels(person):
+def test_fit_reference_moves_confidences_not_labels(models, person):
     """The confidence's fit factor reads ``fit_reference_per_label``: a reference 40 nats per
-    label above the frames' fit lowers every confidence (the frames look unlike the model), one
-    far below leaves the factor at 1; the labels stay the same."""
+    label above the frames' fit lowers every confidence of a generic body (the frames look unlike
+    the model), one far below leaves the factor at 1; the labels stay the same. A calibrated
+    body's published confidences leave the factor out (its labels are held by the person's body,
+    not by how well the motion fits), its strict confirmations keep it."""
     from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
     clip = synthesize(duration=0.5, seed=7, heading=0.4)
-    runs = {}
-    for shift in (None, 40.0, -40.0):
-        m = person if shift is None else person.replace(
-            settings=dict(person.settings, fit_reference_per_label=person.settings["loglik_per_label"] + shift))
-        lab = StreamLabeler(m, LabelerSettings(seed=0))
-        runs[shift] = [lab.process(x, k / clip.rate) for k, x in enumerate(clip.positions)]
-    base, high, low = (np.array([r.confidence for r in runs[k][5:]]) for k in (None, 40.0, -40.0))
-    for k in (40.0, -40.0):
-        assert all(np.array_equal(a.labels, b.labels) for a, b in zip(runs[None], runs[k]))
-    labelled = np.array([r.labels for r in runs[None][5:]]) >= 0
-    assert (high[labelled] < 0.5 * base[labelled]).all()
-    assert (low[labelled] >= base[labelled] - 1e-12).all() and base[labelled].mean() > 0.9
+    for model, calibrated in ((models[0], False), (person, True)):
+        runs = {}
+        for shift in (None, 40.0, -40.0):
+            m = model if shift is None else model.replace(
+                settings=dict(model.settings, fit_reference_per_label=model.settings["loglik_per_label"] + shift))
+            lab = StreamLabeler(m, LabelerSettings(seed=0))
+            runs[shift] = [lab.process(x, k / clip.rate) for k, x in enumerate(clip.positions)]
+        for k in (40.0, -40.0):
+            assert all(np.array_equal(a.labels, b.labels) for a, b in zip(runs[None], runs[k]))
+        labelled = np.array([r.labels for r in runs[None][5:]]) >= 0
+        conf = {k: np.array([r.confidence for r in runs[k][5:]])[labelled] for k in runs}
+        confirm = {k: np.array([r.confirmation for r in runs[k][5:]])[labelled] for k in runs}
+        assert (confirm[40.0] < 0.5 * confirm[None]).all()
+        assert (confirm[-40.0] >= confirm[None] - 1e-12).all()
+        if calibrated:
+            np.testing.assert_allclose(conf[40.0], conf[None])
+            np.testing.assert_allclose(conf[-40.0], conf[None])
+        else:
+            assert (conf[40.0] < 0.5 * conf[None]).all()
+            assert (conf[-40.0] >= conf[None] - 1e-12).all()
+        assert conf[None].mean() > 0.9
 
 
 def test_broad_weight_floor_by_point_set(models, walker, data_dir):

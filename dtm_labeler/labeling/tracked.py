@@ -1403,7 +1403,8 @@ class TrackedLabeler:
         post_point[assign[present]] = post[present]
         strict_point[assign[present]] = strict[present]
         deficit = self._fit_deficit(problem, best)
-        conf = published_confidence(post_point, search_labels, pub, share, doubtful, deficit)
+        calibrated = problem.model.body is not None and bool(problem.model.body.calibration)
+        conf = published_confidence(post_point, search_labels, pub, share, doubtful, 0.0 if calibrated else deficit)
         confirmation = published_confidence(strict_point, search_labels, pub, share, doubtful, deficit,
                                             CONFIRMATION_POWER)
         # the next frame starts from this frame's search result, not from the votes: a
