@@ -197,7 +197,7 @@ PARAMS: Tuple[Param, ...] = (
     Param("upright_deg", 15.0, "A search from scratch also runs on the frame's points turned upright "
           "(their long axis onto the vertical) when that axis leans more than this many degrees, and keeps "
           "what it finds there when it fits the frame as it is better (a body on the floor under a model of "
-          "standing motions: CMU 85 breakdance, 27 -> 96 % right). One more search per leaning frame. "
+          "standing motions: CMU 85 breakdance, 27 -> 97 % right). One more search per leaning frame. "
           "0 = off.", range=(0.0, 90.0)),
     Param("region_checks", 1, "Body regions relabelled exactly (max-product DP "
           "given the rest of the body) per frame while checks are due (one pass over the "
