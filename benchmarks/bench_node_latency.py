@@ -17,7 +17,9 @@ frame was skipped after the first 0.5 s of a run (the start has a cold search).
 Flicker cases (issue 12): markers hidden with a new set every frame (``gap_frames`` 1, the
 flicker of partly occluded markers) plus ghosts -- ``flicker14``: the synthetic walker of
 ``dtm-demo`` (model trained on another walker), 2 of 14 hidden + 2 ghosts, 10 s at 120 and
-360 Hz; ``flicker41``: the HDM05 41-marker take (last 30 %), 3 flickering + 2 ghosts, 120 Hz; ``flicker41cal``: the
+360 Hz; ``floor41``: CMU 85's breakdance from its middle (upside down, then on the floor) under a model of
+CMU 85's jump + twist and HDM05's take, 3 flickering + 2 ghosts, 10 s at 120 Hz;
+``flicker41``: the HDM05 41-marker take (last 30 %), 3 flickering + 2 ghosts, 120 Hz; ``flicker41cal``: the
 same with the subject's calibrated model (``dtm-train --calibrate`` on the first 70 %, greedy structure
 as the other cases); ``flicker41cbga``: the model ``dtm-demo`` trains for this take (``dtm-train
 --calibrate --structure cbga``, a 40 s training; ``dtm-train``'s default for marker sets grows the
@@ -72,6 +74,13 @@ CASES = {
     # the faster greedy one; on this stream it limits the labels, 96 % against 99.5 % inline)
     "flicker41cbga": dict(path=HDM05, points="all", train="0:70%", test="70%:100%", rates=(120.0,), ramp=False,
                           corrupt=dict(occlude=3, clutter=2, gap_frames=1.0), calibrate=True, structure="cbga"),
+    # breakdance on the floor (CMU 85_12 from 50 %: the trunk past 90 deg in 311 frames, then leaning
+    # 30-50 deg) under a model of CMU 85's jump + twist and HDM05's take (dtm-eval's floor-moves
+    # cell's training takes, HDM05 whole): the node starts mid-move, on a leaning body
+    "floor41": dict(path="markers_c3d/cmu_85_12_breakdance_s85_41markers.c3d", points="all",
+                    train_paths=["markers_c3d/cmu_85_02_jumptwist_s85_41markers.c3d", HDM05],
+                    train="0:100%", test="50%:100%", seconds=10.0, rates=(120.0,), ramp=False,
+                    corrupt=dict(occlude=3, clutter=2, gap_frames=1.0)),
     # another person: subject 55's lambada under a model of subjects 5, 7 and 9 (as dtm-eval's
     # leave-one-subject-out cell), 2 flickering + 2 ghosts; run it with and without
     # --param auto_calibrate:=true (the node's self-calibration on its first calibration_s)
