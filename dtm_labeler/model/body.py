@@ -362,6 +362,15 @@ class Handedness:
       93.8 %; 85_12 -> 85_02 95.0 -> 96.1 %; HDM05 itself 94.6 -> 95.4 %), across labs it
       failed: HDM05 -> CMU 85_02 46.6 -> 3.3 % (the two labs' clusters are placed with
       other handedness) -- hence calibrated bodies only.
+
+    What a still window cannot tell: HDM05's model calibrated on CMU 85 jump + twist's first
+    270 frames keeps (RELB | RFRM, RWRA, RWRB, RFIN) -- their sign holds in the standing
+    training and in the standing window -- while the take's true labels show it in 68-74 % of
+    frames (the hand flexes at the wrist), and the wrist bar is published exchanged in 81 of
+    360 (``dtm-eval``'s calibrated cell, 97.7 %). Tried: only quadruples within one segment
+    cluster (the segments' connected components, as the take pass's rigid pairs): that cell
+    97.74 -> 96.17 %, CMU 85 -> HDM05 calibrated 93.62 -> 78.05 %, breakdance -> jump + twist
+    100 -> 98.06 % (2026-11-28, not kept).
     """
 
     def __init__(self, body: BodyModel):
