@@ -39,7 +39,7 @@ MIN_TILT_DEG = 15.0
 #: points a long axis is read from, at least
 MIN_POINTS = 4
 
-__all__ = ["MIN_TILT_DEG", "long_axis", "rotation_to_up", "upright_rotation", "upright_problems"]
+__all__ = ["MIN_TILT_DEG", "long_axis", "leaning_axis", "rotation_to_up", "upright_rotation", "upright_problems"]
 
 
 def long_axis(xyz: np.ndarray) -> np.ndarray | None:
@@ -66,14 +66,19 @@ def tilt_deg(axis: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(axis[2], -1.0, 1.0))))
 
 
+def leaning_axis(xyz: np.ndarray, min_tilt_deg: float = MIN_TILT_DEG) -> np.ndarray | None:
+    """The long axis of the points ``xyz`` (:func:`long_axis`) when it leans at least
+    ``min_tilt_deg`` off vertical; None when it cannot be read or stands upright."""
+    axis = long_axis(xyz)
+    return None if axis is None or tilt_deg(axis) < min_tilt_deg else axis
+
+
 def upright_rotation(xyz: np.ndarray, min_tilt_deg: float = MIN_TILT_DEG) -> np.ndarray | None:
     """(3, 3) the smallest rotation taking the long axis of the points ``xyz`` onto +z, its end
-    nearer +z kept up (:func:`long_axis`); None when it cannot be read or is within
-    ``min_tilt_deg`` of vertical (module doc)."""
-    axis = long_axis(xyz)
-    if axis is None or tilt_deg(axis) < min_tilt_deg:
-        return None
-    return rotation_to_up(axis)
+    nearer +z kept up; None when it cannot be read or is within ``min_tilt_deg`` of vertical
+    (:func:`leaning_axis`, module doc)."""
+    axis = leaning_axis(xyz, min_tilt_deg)
+    return None if axis is None else rotation_to_up(axis)
 
 
 def upright_problems(problem: FrameProblem, min_tilt_deg: float = MIN_TILT_DEG,
@@ -90,8 +95,8 @@ def upright_problems(problem: FrameProblem, min_tilt_deg: float = MIN_TILT_DEG,
     41, their axis 19 deg off vertical where all 41 lean 44 deg), so both are tried."""
     states = problem.states[:-1]
     pts = states[:, :3] if body is None else states[np.asarray(body, dtype=np.int64), :3]
-    axis = long_axis(pts)
-    if axis is None or tilt_deg(axis) < min_tilt_deg:
+    axis = leaning_axis(pts, min_tilt_deg)
+    if axis is None:
         return []
     starts = [(axis, pts)]
     if body is not None:
