@@ -21,8 +21,8 @@ from dtm_labeler.search import structure_search as ss
 from dtm_labeler.search.problem import Background, FrameProblem
 from dtm_labeler.training.body_fit import (broad_weight, clip_spread, fit_body, reach_limits, spans_a_point,
                                           unmirrored_crossing)
-from dtm_labeler.training.calibrate import (CalibrationError, calibrate, calibrated_body, fit_per_label, self_calibrate,
-                                           wrong_side)
+from dtm_labeler.training.calibrate import (CalibrationError, CalibrationSettings, calibrate, calibrated_body,
+                                           fit_per_label, self_calibrate, symmetric_segments, wrong_side)
 from dtm_labeler.training.train import TrainConfig, canonical_states, train_model
 from dtm_labeler.model.features import point_states
 
@@ -344,6 +344,26 @@ def test_calibration_checks_left_against_right(models):
     assert naive.lo[up_r] > true_l + 0.05 or naive.lo[up_r] == model.body.lo[up_r]
 
 
+def test_mirror_check_only_where_both_training_ranges_agree():
+    """CMU 85 + HDM05's shank markers: left shank-ankle 0.242-0.259 m, right 0.207-0.321 m over
+    the training people (the labs place the right marker at another height), midpoints 1.4 cm
+    apart. The person's right pair measures 0.333 m, the left 0.238 m: both are the person's, and
+    neither is replaced by the other's. A pair whose training ranges agree at both ends (the
+    heel-toe pairs) is still checked: the one farther outside its range takes its mirror's."""
+    # labels: 0 lshank, 1 lankle, 2 rshank, 3 rankle, 4 lheel, 5 ltoe, 6 rheel, 7 rtoe
+    pairs = np.array([[0, 1], [2, 3], [4, 5], [6, 7]])
+    body = BodyModel(n_labels=8, pairs=pairs, kind=np.full(4, SEGMENT), lo=[0.242, 0.207, 0.224, 0.233],
+                     hi=[0.259, 0.321, 0.271, 0.285], within_sd=np.full(4, 0.005), between_sd=np.full(4, 0.07))
+    mirror = np.array([1, 0, 3, 2])
+    measured = np.ones(4, dtype=bool)
+    kept, borrowed = symmetric_segments(body, measured, np.array([0.238, 0.333, 0.221, 0.330]), mirror,
+                                        CalibrationSettings())
+    assert kept.tolist() == [True, True, True, False] and borrowed.tolist() == [False, False, False, True]
+    kept, borrowed = symmetric_segments(body, np.array([False, True, True, True]),
+                                        np.array([np.nan, 0.333, 0.221, 0.222]), mirror, CalibrationSettings())
+    assert not borrowed[0]                                   # the left shank keeps its generic range
+
+
 def test_calibration_checks_each_point_on_its_side(models):
     """Confirmed labels with the legs exchanged below the hips for the whole window (lknee,
     lankle on the right leg's points and vice versa; the hips kept): those labels lie on the
@@ -406,9 +426,9 @@ def test_model_file_v2_round_trip_and_v1_files(models, tmp_path, walker):
     assert v1.body is None and v1.broad is None and v1.provenance["format_version_read"] == 1
     assert np.allclose(v1.frame_log_likelihood(states),       # the file's mixtures: the calibrated placement
                        cal.replace(body=None, broad=None).frame_log_likelihood(states))
-    header["format_version"] = 6
+    header["format_version"] = 7
     arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
-    with pytest.raises(ModelFileError, match="format version 6 is not supported"):
+    with pytest.raises(ModelFileError, match="format version 7 is not supported"):
         model_from_arrays(arrays, "v3")
     # a version-2 header announcing body terms without the arrays is refused
     with np.load(path, allow_pickle=False) as z:

@@ -74,7 +74,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .body_kernel import mirrored_quads, twist_cosines, twist_factors
+from .body_kernel import mirrored_quads, reversed_orders, twist_cosines, twist_factors
 from .mixture import GaussianMixture
 
 SEGMENT, REACH = 0, 1
@@ -97,7 +97,8 @@ class BodyModel:
     frames, a tree link or not (median length and robust spread, m; none for joint centres, few
     for a model of several people; a calibration measures them again on its person).
     No term of the frame fitness: the offline pass over a whole take reads them as the person's
-    ruler (:func:`dtm_labeler.labeling.rigid_tracks.body_pairs`).
+    ruler (:func:`dtm_labeler.labeling.rigid_tracks.body_pairs`). ``orders``: the marker bars'
+    order (:class:`BarOrder`), rows ``(x, near, far)`` of label indices (none for joint centres).
     """
 
     n_labels: int
@@ -114,8 +115,13 @@ class BodyModel:
     rigid_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))  # (R, 2), u < v
     rigid_length: np.ndarray = field(default_factory=lambda: np.zeros(0))                      # (R,) m
     rigid_spread: np.ndarray = field(default_factory=lambda: np.zeros(0))                      # (R,) m
+    orders: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.int64))       # (K, 3) labels
 
     def __post_init__(self) -> None:
+        self.orders = np.asarray(self.orders, dtype=np.int64).reshape(-1, 3)
+        if self.orders.size and (self.orders.min() < 0 or self.orders.max() >= self.n_labels
+                                 or (np.diff(np.sort(self.orders, axis=1), axis=1) == 0).any()):
+            raise ValueError("body orders must be three distinct label indices (x, near, far)")
         self.quads = np.asarray(self.quads, dtype=np.int64).reshape(-1, 4)
         self.quad_sign = np.asarray(self.quad_sign, dtype=np.float64).reshape(-1)
         if self.quad_sign.shape[0] != self.quads.shape[0] or not np.isin(self.quad_sign, (-1.0, 1.0)).all():
@@ -200,7 +206,8 @@ class BodyModel:
                 "body_lo": self.lo, "body_hi": self.hi, "body_within_sd": self.within_sd,
                 "body_between_sd": self.between_sd, "body_quads": self.quads, "body_quad_sign": self.quad_sign,
                 "body_twists": self.twists, "body_rigid_pairs": self.rigid_pairs,
-                "body_rigid_length": self.rigid_length, "body_rigid_spread": self.rigid_spread}
+                "body_rigid_length": self.rigid_length, "body_rigid_spread": self.rigid_spread,
+                "body_orders": self.orders}
 
     @classmethod
     def from_arrays(cls, arrays: dict, n_labels: int, calibration: dict | None = None) -> "BodyModel":
@@ -209,8 +216,8 @@ class BodyModel:
                                                                  "between_sd")}
         except KeyError as e:
             raise ValueError(f"body terms lack {e.args[0]!r}") from None
-        for k in ("quads", "quad_sign", "twists", "rigid_pairs", "rigid_length", "rigid_spread"):
-            # format 3: handedness, 4: twists, 5: the person's rigid pairs (older: none)
+        for k in ("quads", "quad_sign", "twists", "rigid_pairs", "rigid_length", "rigid_spread", "orders"):
+            # format 3: handedness, 4: twists, 5: the person's rigid pairs, 6: bar orders (older: none)
             if "body_" + k in arrays:
                 kw[k] = np.asarray(arrays["body_" + k])
         for k, a in kw.items():
@@ -370,7 +377,9 @@ class Handedness:
     360 (``dtm-eval``'s calibrated cell, 97.7 %). Tried: only quadruples within one segment
     cluster (the segments' connected components, as the take pass's rigid pairs): that cell
     97.74 -> 96.17 %, CMU 85 -> HDM05 calibrated 93.62 -> 78.05 %, breakdance -> jump + twist
-    100 -> 98.06 % (2026-11-28, not kept).
+    100 -> 98.06 % (2026-11-28, not kept). What holds instead is the bar's order
+    (:class:`BarOrder`): a calibrated body leaves the quadruples with both ends of an ordered bar
+    to it (:func:`quads_off_ordered_bars`).
     """
 
     def __init__(self, body: BodyModel):
@@ -409,6 +418,92 @@ HANDEDNESS_NATS = 3.0
 #: a quadruple is a cluster when its six distances spread (sd / median) at most this much
 #: (one segment's markers: under 0.25; across two limbs: 0.6-0.8 in a take that moves them)
 RIGID_SPREAD = 0.3
+
+
+class BarOrder:
+    """Body factors of the marker bars' order: which end of a bar lies nearer the rest of the limb.
+
+    Some clusters hold two markers that are each other's mirror image on their segment: the two
+    ends of a wrist bar (radial and ulnar styloid), equally far from the forearm marker. An
+    exchange of the two costs the cluster's distances nothing, the eq. 12 features of a triangle
+    a few cm, and the clusters' handedness (:class:`Handedness`) holds only while the hand does
+    not flex: the quadruples that tell the two ends apart take the finger or hand marker, which
+    turns about the wrist's flexion axis -- the very line between the two ends -- and shows
+    either sign (CMU 85's true labels: 68-74 % of the jump + twist frames). Distances to the two
+    ends do not turn with it. What holds in every pose is the order: the shoulder and upper-arm
+    markers lie nearer the radial end than the ulnar end in every frame of the shared takes
+    (CMU 85's jump + twist and breakdance, HDM05's standing take, both arms: 0-0.3 % of frames the
+    other way, median margins 3-10 cm), as pronation turns the bar about the forearm but leaves
+    the radius on the upper arm's side. The training fixes, for every *bar* -- two labels of one
+    segment cluster whose distances to each other label of the cluster differ by less than
+    ``BAR_TOLERANCE_M`` (median over the frames) -- the labels ``x`` near it (within two
+    triangle edges of either end in the model's structure) whose nearer end is the same in at
+    least ``ORDER_SHARE`` of the frames of every training clip, with a median margin of at least
+    ``ORDER_MARGIN_M``; the ``ORDERS_PER_BAR`` of them with the clearest margin (median over
+    robust spread) are kept as rows ``(x, near, far)``. A labeling whose points show ``x``
+    nearer ``far`` pays ``ORDER_NATS`` per row, one more factor of the product of experts as
+    :class:`Handedness`:
+
+        log P(X | G) = ... eq. 14 + edge factors ... + sum_k -w [|x_x - x_near| > |x_x - x_far|]
+
+    A row with a missing point drops its factor (eq. 30-31 unchanged). Marker sets only (joint
+    centres have no bars). Whose order: as the handedness, a generic body keeps its rows but does
+    not apply them, a calibrated one does (:func:`~dtm_labeler.training.calibrate.calibrated_body`
+    keeps the rows the person's frames do not contradict): the order depends on where a lab puts
+    its markers (HDM05's finger marker lies as near one end as the other).
+    """
+
+    def __init__(self, body: BodyModel):
+        self.orders = np.ascontiguousarray(body.orders, dtype=np.int64).reshape(-1, 3)
+        self.active = bool(self.orders.shape[0])
+
+    def __call__(self, pop: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+        """(P,) summed factors of (P, M) assignments given the frame's (n+1, 3) positions
+        (row ``n``, "missing", NaN: the factor drops)."""
+        return self._factors(np.ascontiguousarray(pop, dtype=np.int64), np.ascontiguousarray(xyz, dtype=np.float64))
+
+    def labelled(self, positions: np.ndarray) -> np.ndarray:
+        """(F,) summed factors of labelled frames (F, M, 3) (NaN = unseen: the factor drops)."""
+        F, M = positions.shape[:2]
+        return self._factors(np.arange(F * M, dtype=np.int64).reshape(F, M),
+                             np.ascontiguousarray(positions, dtype=np.float64).reshape(F * M, 3))
+
+    def _factors(self, idx: np.ndarray, pts: np.ndarray) -> np.ndarray:
+        """(P,) summed factors (compiled: :func:`~dtm_labeler.model.body_kernel.reversed_orders`)."""
+        return -ORDER_NATS * reversed_orders(idx, pts, self.orders)
+
+
+def quads_off_ordered_bars(quads: np.ndarray, signs: np.ndarray, orders: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray, int]:
+    """The handedness quadruples (and signs) that do not hold both ends of a bar with an order
+    (:class:`BarOrder`), and how many did.
+
+    A bar's two ends and two more labels show one sign only while the cluster is rigid, and the
+    labels that tell the ends apart sit across the joint the bar marks: the hand turns about the
+    wrist's flexion axis, the line between the wrist bar's ends. HDM05's model calibrated on CMU
+    85 jump + twist's first 270 frames kept (RELB | RFRM, RWRA, RWRB, RFIN), whose sign holds in
+    the standing window and in 68-74 % of the take's frames; against them the bar's order lost,
+    and the wrist bar stayed exchanged in 40 of 360 frames (98.33 %); with the bar left to its
+    order, none (98.77 %). Quadruples that hold one end only keep telling the cluster's mirror
+    image apart."""
+    q = np.asarray(quads, dtype=np.int64).reshape(-1, 4)
+    ends = np.asarray(orders, dtype=np.int64).reshape(-1, 3)[:, 1:]
+    if q.shape[0] == 0 or ends.shape[0] == 0:
+        return q, np.asarray(signs), 0
+    both = ((q[:, None, :, None] == ends[None, :, None, :]).any(2).all(2)).any(1)      # (Q,)
+    return q[~both], np.asarray(signs)[~both], int(both.sum())
+
+
+#: two labels of a cluster are a bar when their distances to each other label of it differ less
+BAR_TOLERANCE_M = 0.015
+#: a label's nearer end of a bar is learnt when it is the same in this share of every clip's frames
+ORDER_SHARE = 0.995
+#: ... with at least this median margin (m)
+ORDER_MARGIN_M = 0.01
+#: labels kept per bar (the clearest margins)
+ORDERS_PER_BAR = 3
+#: nats a labeling pays per order it shows reversed (as a mirrored quadruple, HANDEDNESS_NATS)
+ORDER_NATS = 3.0
 
 
 class TrunkTwist:
@@ -554,5 +649,6 @@ class BroadMotion:
         return cls(w, gs)
 
 
-__all__ = ["BodyModel", "BroadMotion", "EdgeTerms", "Handedness", "HANDEDNESS_SHARE", "HANDEDNESS_NATS", "SEGMENT",
+__all__ = ["BarOrder", "BodyModel", "BroadMotion", "EdgeTerms", "Handedness", "HANDEDNESS_SHARE", "HANDEDNESS_NATS",
+           "ORDER_NATS", "SEGMENT", "quads_off_ordered_bars",
            "REACH", "KIND_NAMES", "slot_distances", "broad_covariance"]

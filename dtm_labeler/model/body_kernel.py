@@ -1,5 +1,6 @@
-"""Compiled kernels of the clusters' handedness (:class:`~dtm_labeler.model.body.Handedness`)
-and the trunk's twist limit (:class:`~dtm_labeler.model.body.TrunkTwist`).
+"""Compiled kernels of the clusters' handedness (:class:`~dtm_labeler.model.body.Handedness`),
+the marker bars' order (:class:`~dtm_labeler.model.body.BarOrder`) and the trunk's twist limit
+(:class:`~dtm_labeler.model.body.TrunkTwist`).
 
 A fitness call scores up to a few hundred candidate labelings; at 41 markers a calibrated body
 holds some 70 quadruples, so each call takes the signed volume of 10^4 point quadruples. In
@@ -105,4 +106,22 @@ def twist_factors(idx, pts, twists, cos_min, cos_sd):  # pragma: no cover - comp
     return out
 
 
-__all__ = ["mirrored_quads", "twist_cosines", "twist_factors"]
+@njit(cache=True, nogil=True)
+def reversed_orders(idx, pts, orders):  # pragma: no cover - compiled
+    """(P,) number of bar orders each row of ``idx`` (P, M) shows reversed: for order ``k``
+    (label indices ``orders[k] = (x, near, far)``), the point of ``x`` farther from the point of
+    ``near`` than from the point of ``far``; a NaN point (missing) leaves the order as it is."""
+    out = np.zeros(idx.shape[0], dtype=np.int64)
+    for p in range(idx.shape[0]):
+        count = 0
+        for k in range(orders.shape[0]):
+            x = idx[p, orders[k, 0]]
+            a0, a1, a2 = _diff(pts, x, idx[p, orders[k, 1]])
+            b0, b1, b2 = _diff(pts, x, idx[p, orders[k, 2]])
+            if a0 * a0 + a1 * a1 + a2 * a2 > b0 * b0 + b1 * b1 + b2 * b2:    # NaN compares False
+                count += 1
+        out[p] = count
+    return out
+
+
+__all__ = ["mirrored_quads", "reversed_orders", "twist_cosines", "twist_factors"]

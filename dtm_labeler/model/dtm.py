@@ -32,7 +32,8 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 import numpy as np
 
-from .body import SEGMENT, BodyModel, BroadMotion, CrossSegments, EdgeTerms, Handedness, TrunkTwist, slot_distances
+from .body import (SEGMENT, BarOrder, BodyModel, BroadMotion, CrossSegments, EdgeTerms, Handedness, TrunkTwist,
+                   slot_distances)
 from .features import (FEATURE_DIM, MISSING, N_PATTERNS, STATE_DIM, TRIPLE_DIM, feature_map_for, observation_state,
                        observed_map, pattern_codes, pattern_id)
 from .mixture import GaussianMixture
@@ -357,6 +358,8 @@ class TriangulatedModel:
         self.body_cross = cross if cross is not None and cross.active else None     # rigid pairs off the edges
         hand = Handedness(self.body) if self.body is not None and self.body.calibration else None
         self.body_handedness = hand if hand is not None and hand.active else None  # clusters' handedness
+        order = BarOrder(self.body) if self.body is not None and self.body.calibration else None
+        self.body_order = order if order is not None and order.active else None     # the bars' order
         twist = TrunkTwist(self.body) if self.body is not None else None
         self.body_twist = twist if twist is not None and twist.active else None     # trunk's twist limit
         if self.broad is not None and len(self.broad.gaussians) != len(self.mixtures):
@@ -545,7 +548,8 @@ class TriangulatedModel:
         (the log density of an unmodelled absolute position; 0 gives the pure model term).
         Body terms (if any) included: the edge factors and a calibrated body's rigid pairs off
         the edges (:class:`~dtm_labeler.model.body.CrossSegments`), the clusters' handedness
-        (:class:`~dtm_labeler.model.body.Handedness`) and the trunk's twist limit
+        (:class:`~dtm_labeler.model.body.Handedness`), the bars' order
+        (:class:`~dtm_labeler.model.body.BarOrder`) and the trunk's twist limit
         (:class:`~dtm_labeler.model.body.TrunkTwist`), as the frame fitness has them.
         """
         states = np.asarray(states, dtype=np.float64)
@@ -563,6 +567,8 @@ class TriangulatedModel:
             total += self.body_cross.labelled(states[..., :3])
         if self.body_handedness is not None:
             total += self.body_handedness.labelled(states[..., :3])
+        if self.body_order is not None:
+            total += self.body_order.labelled(states[..., :3])
         if self.body_twist is not None:
             total += self.body_twist.labelled(states[..., :3])
         return total

@@ -19,6 +19,8 @@ Layout (all entries plain numeric arrays; loaded with ``allow_pickle=False``)::
     body_rigid_pairs  (R,2)   int64     the trained person's rigid marker pairs (version 5): label
     body_rigid_length (R,)    float64   pairs, median length and robust spread (m)
     body_rigid_spread (R,)    float64
+    body_orders       (K,3)   int64     the marker bars' order (version 6): a label and the bar's
+                                        end it lies nearer, then the other end
     broad_weights     (T,)    float64   broad part of each triangle's conditional (version 2, when
     broad<t>_mean     (15,)   float64   the header's "broad" is true; see dtm_labeler.model.body)
     broad<t>_covariance (15,15) float64
@@ -26,9 +28,11 @@ Layout (all entries plain numeric arrays; loaded with ``allow_pickle=False``)::
 Versions: 2 adds the body terms and the broad components (issue 13); 3 the clusters' handedness
 (:class:`~dtm_labeler.model.body.Handedness`); 4 the trunk's twist limit
 (:class:`~dtm_labeler.model.body.TrunkTwist`); 5 the trained person's rigid marker pairs
-(:attr:`~dtm_labeler.model.body.BodyModel.rigid_pairs`, read by the offline take pass only). Version 1
+(:attr:`~dtm_labeler.model.body.BodyModel.rigid_pairs`, read by the offline take pass only); 6 the
+marker bars' order (:class:`~dtm_labeler.model.body.BarOrder`). Version 1
 files still load, as models without body terms, version 2 files as bodies without handedness, version 3
-files as bodies without twist limits, version 4 files as bodies without the person's rigid pairs (all
+files as bodies without twist limits, version 4 files as bodies without the person's rigid pairs,
+version 5 files as bodies without bar orders (all
 score exactly as they did;
 ``provenance["format_version_read"]`` says which). A file that is
 not a model, has an unknown format version, or whose arrays disagree with the header raises
@@ -51,8 +55,8 @@ from .mixture import GaussianMixture
 from .structure import Structure
 
 FORMAT_NAME = "dtm_labeler.model"
-FORMAT_VERSION = 5
-READABLE_VERSIONS = (1, 2, 3, 4, 5)
+FORMAT_VERSION = 6
+READABLE_VERSIONS = (1, 2, 3, 4, 5, 6)
 
 
 class ModelFileError(ValueError):

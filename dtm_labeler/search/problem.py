@@ -182,6 +182,8 @@ class FrameProblem:
             f = f + self.model.body_cross(pop, self.dist, self.n)
         if self.model.body_handedness is not None:  # marker clusters shown mirrored (model/body.py)
             f = f + self.model.body_handedness(pop, self.states[:, :3])
+        if self.model.body_order is not None:       # a marker bar's ends exchanged (model/body.py)
+            f = f + self.model.body_order(pop, self.states[:, :3])
         if self.model.body_twist is not None:       # hips exchanged under the shoulders (model/body.py)
             f = f + self.model.body_twist(pop, self.states[:, :3])
         return (f, bins) if return_bins else f

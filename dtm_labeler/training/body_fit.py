@@ -65,8 +65,9 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components, shortest_path
 
-from ..model.body import (HANDEDNESS_SHARE, REACH, RIGID_SPREAD, SEGMENT, TWIST_COS_MIN, TWIST_COS_SD, BodyModel,
-                          BroadMotion, Handedness, broad_covariance)
+from ..model.body import (BAR_TOLERANCE_M, HANDEDNESS_SHARE, ORDER_MARGIN_M, ORDER_SHARE, ORDERS_PER_BAR, REACH,
+                          RIGID_SPREAD, SEGMENT, TWIST_COS_MIN, TWIST_COS_SD, BodyModel, BroadMotion, Handedness,
+                          broad_covariance)
 from ..model.body_kernel import twist_cosines
 from ..model.features import FULL, MISSING, feature_map_for, observed_map, triangle_features
 from ..model.mixture import GaussianMixture, logsumexp_rows
@@ -171,6 +172,81 @@ def handedness_quads(clips: Sequence[np.ndarray], share: float = HANDEDNESS_SHAR
     if not cand:
         return np.zeros((0, 4), dtype=np.int64), np.zeros(0)
     return quad_signs(P, np.array(sorted(cand), dtype=np.int64), share, min_frames)
+
+
+def bars(positions: np.ndarray, segments: np.ndarray, tolerance: float = BAR_TOLERANCE_M) -> np.ndarray:
+    """(B, 2) the marker bars (:class:`~dtm_labeler.model.body.BarOrder`) of (F, M, 3) labelled
+    positions: two labels of one segment cluster (:func:`segment_clusters` of ``segments``) with
+    at least one more label in it, each of which lies as far from the one as from the other
+    within ``tolerance`` (median over the frames)."""
+    P = np.asarray(positions, dtype=np.float64)
+    M = P.shape[1]
+    cluster = segment_clusters(M, segments)
+    out = []
+    for c in np.unique(cluster[cluster >= 0]):
+        members = np.flatnonzero(cluster == c)
+        if members.size < 3:
+            continue
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            d = np.linalg.norm(P[:, members, None] - P[:, None, members], axis=-1)           # (F, C, C)
+            for i, j in itertools.combinations(range(members.size), 2):
+                rest = np.delete(np.arange(members.size), [i, j])
+                gap = np.nanmedian(np.abs(d[:, i, rest] - d[:, j, rest]), axis=0)
+                if np.isfinite(gap).all() and (gap < tolerance).all():
+                    out.append((members[i], members[j]))
+    return np.array(out, dtype=np.int64).reshape(-1, 2)
+
+
+def bar_orders(clips: Sequence[np.ndarray], segments: np.ndarray, triangles: np.ndarray,
+               share: float = ORDER_SHARE, margin: float = ORDER_MARGIN_M, per_bar: int = ORDERS_PER_BAR,
+               min_frames: int = 20, max_frames: int = 3000) -> np.ndarray:
+    """(K, 3) the marker bars' order (:class:`~dtm_labeler.model.body.BarOrder`) from (F, M, 3)
+    labelled positions per clip: for each bar (:func:`bars`), the labels within two edges of the
+    structure's ``triangles`` of either end, outside the bar's cluster, whose nearer end is the
+    same in at least ``share`` of the frames of every clip that shows it (at least ``min_frames``)
+    and whose median margin is at least ``margin``; the ``per_bar`` with the clearest margin
+    (median over robust spread, 5 mm added), as rows ``(x, near, far)``."""
+    clips = [np.asarray(c, dtype=np.float64)[spread_sample(len(c), max_frames)] for c in clips if len(c)]
+    if not clips:
+        return np.zeros((0, 3), dtype=np.int64)
+    P = np.concatenate(clips)
+    M = P.shape[1]
+    adjacent = np.eye(M, dtype=np.int64)
+    for tri in np.asarray(triangles, dtype=np.int64).reshape(-1, 3):
+        adjacent[np.ix_(tri, tri)] = 1
+    near = (adjacent @ adjacent) > 0                                   # within two triangle edges
+    cluster = segment_clusters(M, segments)
+    rows = []
+    for a, b in bars(P, segments):
+        candidates = np.flatnonzero((near[a] | near[b]) & (cluster != cluster[a]))
+        if candidates.size == 0:
+            continue
+        holds = np.ones(candidates.size, dtype=bool)
+        sides = []
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            for c in clips:
+                gap = (np.linalg.norm(c[:, candidates] - c[:, [a]], axis=-1)
+                       - np.linalg.norm(c[:, candidates] - c[:, [b]], axis=-1))        # (F, X) > 0: b nearer
+                seen = np.isfinite(gap)
+                n = seen.sum(0)
+                nearer_b = (gap > 0).sum(0) / np.maximum(n, 1)
+                counted = n >= min_frames
+                holds &= ~counted | (np.maximum(nearer_b, 1.0 - nearer_b) >= share)
+                sides.append(np.where(counted, np.sign(nearer_b - 0.5), 0.0))
+            gap = (np.linalg.norm(P[:, candidates] - P[:, [a]], axis=-1)
+                   - np.linalg.norm(P[:, candidates] - P[:, [b]], axis=-1))
+            median = np.nanmedian(gap, axis=0)
+            spread = 1.4826 * np.nanmedian(np.abs(gap - median), axis=0)
+        sides = np.array(sides)
+        agree = ((sides == np.sign(median)) | (sides == 0)).all(0) & (np.abs(sides).sum(0) > 0)
+        ok = holds & agree & (np.abs(np.nan_to_num(median)) >= margin)
+        clear = np.abs(median) / (np.nan_to_num(spread, nan=np.inf) + 0.005)
+        for k in np.flatnonzero(ok)[np.argsort(-clear[ok], kind="stable")][:per_bar]:
+            x = candidates[k]
+            rows.append((x, b, a) if median[k] > 0 else (x, a, b))
+    return np.array(rows, dtype=np.int64).reshape(-1, 3)
 
 
 def trunk_twists(labels: Sequence[str], clips: Sequence[np.ndarray] = (), share: float = 0.999) -> np.ndarray:

@@ -21,9 +21,15 @@ lengths replace the generic ones. :func:`calibrate` does that for a model with b
   length) is dropped. A segment not measured (dropped, scattering, or its labels unconfirmed)
   whose mirror was measured takes the mirror's length, with spread ``mirror_sd_m``: the
   body is the person's, and a left/right-symmetric one is closer to it than the generic range.
-  Only pairs that are symmetric in the training (generic lengths within the same tolerance)
-  are compared: marker sets place some markers asymmetrically on purpose (Plug-in Gait's thigh
-  and shank markers sit at different heights left and right), so their clusters' lengths differ;
+  Only pairs that are symmetric in the training (the shortest and the longest length over the
+  training people each within the same tolerance of the mirror's) are compared: marker sets
+  place some markers asymmetrically on purpose (Plug-in Gait's thigh and shank markers sit at
+  different heights left and right), so their clusters' lengths differ. The midpoints of the
+  two ranges alone can agree by chance: CMU 85 + HDM05's shank-to-ankle pairs, left
+  0.242-0.259 m and right 0.207-0.321 m, midpoints 1.4 cm apart, while CMU 85's right shank
+  marker sits 9 cm higher than its left; with the midpoints only, the floor-moves cell's
+  calibration gave the left pair the right pair's 0.333 m and left LSHN out in 340 of 360
+  frames;
 * **each point on its side**: a label of the left or right side whose point lies on the other
   side of the body's midline (the vertical plane through the mean of the trunk's left/right
   pair midpoints, :attr:`TriangulatedModel.heading_pairs`, across their mean right-minus-left
@@ -35,6 +41,10 @@ lengths replace the generic ones. :func:`calibrate` does that for a model with b
   of its first 2 s), so labels from a capture skip both checks (``check_labels=False``);
 * the **reach** limits are scaled by the subject's size: the median ratio of the calibrated
   segment lengths to the generic ones (clipped to [0.75, 1.33]);
+* the marker **bars' order** (:class:`~dtm_labeler.model.body.BarOrder`): the training's rows
+  stay unless the calibration frames show the other order in most frames (another lab's
+  placement), and the handedness quadruples that hold both ends of an ordered bar are left to
+  it (:func:`kept_orders`, :func:`~dtm_labeler.model.body.quads_off_ordered_bars`);
 * the **placement** of the person's markers: each triangle mixture's relative-position means
   shift together by the calibration frames' mean residual, shrunk by the evidence
   (:mod:`.placement`; weights, covariances and the velocity part are kept -- the motion is not
@@ -92,7 +102,7 @@ import numpy as np
 
 from ..labeling.confidence import CONFIRMED
 from ..labeling.stream import LabelerSettings, StreamLabeler
-from ..model.body import SEGMENT, BodyModel
+from ..model.body import SEGMENT, BodyModel, quads_off_ordered_bars
 from ..model.dtm import TriangulatedModel
 from ..motion.clip import MotionClip
 from ..motion.pointsets import model_points
@@ -233,8 +243,9 @@ def symmetric_segments(body: BodyModel, measured: np.ndarray, length: np.ndarray
     measured segment, only fill the unmeasured ones from their mirrors."""
     mr = np.where(mirror >= 0, mirror, 0)
     generic = 0.5 * (body.lo + body.hi)
-    has = (mirror >= 0) & (np.abs(generic - generic[mr])
-                           <= np.maximum(s.mirror_abs_m, s.mirror_rel * 0.5 * (generic + generic[mr])))
+    tol = np.maximum(s.mirror_abs_m, s.mirror_rel * 0.5 * (generic + generic[mr]))
+    has = ((mirror >= 0) & (np.abs(body.lo - body.lo[mr]) <= tol)        # both ends of the training
+           & (np.abs(body.hi - body.hi[mr]) <= tol))                    # ranges agree (module doc)
     both = measured & has & measured[mr]
     with np.errstate(invalid="ignore"):
         gap = np.abs(length - length[mr])
@@ -297,11 +308,36 @@ def calibrated_body(body: BodyModel, positions: np.ndarray, settings: Calibratio
     quads, signs = quad_signs(positions, body.quads)     # the person's clusters as this session placed them
     if check_labels:
         quads, signs, summary["handedness_flips_dropped"] = unflipped_quads(body, quads, signs)
+    orders = kept_orders(body.orders, positions)         # the bars' order, unless the person reverses it
+    summary["bar_orders"] = int(orders.shape[0])
+    summary["bar_orders_dropped"] = int(body.orders.shape[0] - orders.shape[0])
+    quads, signs, summary["handedness_left_to_orders"] = quads_off_ordered_bars(quads, signs, orders)
     summary["handedness_quads"] = int(quads.shape[0])
     rigid = cluster_pairs(body, positions, seg | borrowed)
     summary["rigid_pairs"] = int(rigid["rigid_pairs"].shape[0])
     return replace(body, lo=lo, hi=hi, within_sd=within, between_sd=between, calibration=summary,
-                   quads=quads, quad_sign=signs, **rigid), summary
+                   quads=quads, quad_sign=signs, orders=orders, **rigid), summary
+
+
+def kept_orders(orders: np.ndarray, positions: np.ndarray, min_frames: int = 10) -> np.ndarray:
+    """Of the training's bar ``orders`` (:class:`~dtm_labeler.model.body.BarOrder`, rows
+    ``(x, near, far)``), those the calibration frames (F, M, 3) do not contradict: ``x`` nearer
+    ``near`` in at least half of the frames that show all three, or in fewer than ``min_frames``
+    frames shown. The order is a property of the limb, which the training saw in every clip, and
+    not of a window: self-labelled frames show a bar exchanged in some frames (the floor-moves
+    cell's first 225 frames: the right wrist bar in 28), so a share as strict as the training's
+    would drop the order exactly where it is needed; another lab's placement that reverses it
+    shows the other order in most frames."""
+    rows = np.asarray(orders, dtype=np.int64).reshape(-1, 3)
+    if rows.shape[0] == 0:
+        return rows
+    x, near, far = (positions[:, rows[:, k]] for k in range(3))                    # (F, K, 3) each
+    with np.errstate(invalid="ignore"):
+        gap = np.linalg.norm(x - far, axis=-1) - np.linalg.norm(x - near, axis=-1)   # > 0: as trained
+    seen = np.isfinite(gap)
+    n = seen.sum(0)
+    held = (np.where(seen, gap, -1.0) > 0).sum(0)
+    return rows[(n < min_frames) | (2 * held >= n)]
 
 
 def cluster_pairs(body: BodyModel, positions: np.ndarray, calibrated: np.ndarray) -> dict[str, np.ndarray]:

@@ -50,8 +50,8 @@ from .gaps import (MIN_TRIPLE_FRAMES, coverage_report, fill_yaw, fit_rows, fit_t
                    structure_scores, unattachable, usable_structure)
 from ..model.structure import BODY14_GIVEN, Structure
 from ..search import structure_search as ss
-from .body_fit import (BodySettings, broad_components, edge_prior, fit_body, handedness_quads, pair_statistics,
-                       trunk_twists, validation_rows, person_rigid_pairs)
+from .body_fit import (BodySettings, bar_orders, broad_components, edge_prior, fit_body, handedness_quads,
+                       pair_statistics, trunk_twists, validation_rows, person_rigid_pairs)
 
 STRUCTURE_METHODS = ("auto", "cbga", "greedy", "given", "sga", "body")
 MIXTURE_KINDS = ("mdl", "fixed", "single")
@@ -435,6 +435,9 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
                                      keep=config.structure == "body")
     struct_ll = scores.per_frame(structure) if scores is not None else float("nan")
     step("structure", 1, 1)
+    if body is not None and not joint_centres:      # marker bars: their order (model/body.py BarOrder)
+        body = replace(body, orders=bar_orders(positions, body.segments, structure.array,
+                                               max_frames=config.body.max_frames))
 
     # -- mixtures per triangle ------------------------------------------------------------
     rng = np.random.default_rng(config.seed)

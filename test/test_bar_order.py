@@ -1,0 +1,154 @@
+"""The marker bars' order (model/body.py ``BarOrder``): a labeling that shows a label nearer the
+other end of a bar pays a fixed factor per row, a missing point drops it, the training learns the
+rows from real takes (the wrist bars: the shoulder and upper-arm markers lie nearer the radial
+end), they hold in another lab's takes of other motions, only calibrated bodies apply them, a
+calibration keeps the rows the person's frames do not reverse, and model files keep them
+(format 6; format 5 files load without)."""
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from dtm_labeler.evaluation.generalisation import CASES, calibration_frames, case_clips, train_case_model, train_config
+from dtm_labeler.evaluation.pipeline import label_clip_run, model_clip
+from dtm_labeler.labeling.config import LabelerSettings
+from dtm_labeler.model.body import ORDER_NATS, BarOrder, BodyModel, quads_off_ordered_bars
+from dtm_labeler.model.features import point_states
+from dtm_labeler.model.io import FORMAT_VERSION, load_model, model_from_arrays, save_model
+from dtm_labeler.search.problem import Background, FrameProblem
+from dtm_labeler.training.body_fit import bar_orders, bars
+from dtm_labeler.training.calibrate import calibrated_body, kept_orders, self_calibrate
+
+# x at the origin; "near" 0.1 m away, "far" 0.2 m away, a fourth point elsewhere
+LINE = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.2, 0.0, 0.0], [0.0, 0.5, 0.0]])
+
+
+def _body(orders, n=4):
+    return BodyModel(n_labels=n, pairs=np.zeros((0, 2)), kind=np.zeros(0), lo=np.zeros(0), hi=np.zeros(0),
+                     within_sd=np.zeros(0), between_sd=np.zeros(0), orders=orders)
+
+
+def test_factor_per_reversed_order_and_missing_points():
+    order = BarOrder(_body([[0, 1, 2]]))
+    swapped = LINE[[0, 2, 1, 3]]                          # the bar's ends exchanged
+    hidden = LINE.copy()
+    hidden[2] = np.nan
+    got = order.labelled(np.stack([LINE, swapped, hidden]))
+    assert got.tolist() == [0.0, -ORDER_NATS, 0.0]
+    xyz = np.vstack([LINE, np.full((1, 3), np.nan)])      # row n: "missing"
+    pop = np.array([[0, 1, 2, 3], [0, 2, 1, 3], [4, 2, 1, 3], [3, 1, 2, 0]])
+    # the last row: x takes the fourth point, 0.51 m from near and 0.54 m from far: still as trained
+    assert order(pop, xyz).tolist() == [0.0, -ORDER_NATS, 0.0, 0.0]
+    with pytest.raises(ValueError, match="distinct"):
+        _body([[0, 1, 1]])
+    with pytest.raises(ValueError, match="distinct"):
+        _body([[0, 1, 7]])
+
+
+def test_kept_orders_drop_only_what_the_person_reverses():
+    rng = np.random.default_rng(0)
+    F = 100
+    P = np.repeat(LINE[None], F, 0) + rng.normal(0, 0.001, (F, 4, 3))
+    rows = np.array([[0, 1, 2], [3, 1, 2]])
+    P[:20, [1, 2]] = P[:20, [2, 1]]                     # a fifth of the frames show the bar exchanged: kept
+    assert kept_orders(rows[:1], P).tolist() == [[0, 1, 2]]
+    P[:70, [1, 2]] = LINE[[2, 1]]                        # most frames the other way: dropped
+    assert kept_orders(rows[:1], P).shape == (0, 3)
+    P[:, 3] = np.nan                                     # never seen: kept
+    assert kept_orders(rows[1:], P).tolist() == [[3, 1, 2]]
+    # handedness quadruples holding both ends of an ordered bar are left to the order
+    quads = np.array([[0, 1, 2, 3], [0, 1, 3, 5], [2, 3, 4, 5]])
+    q, s, n = quads_off_ordered_bars(quads, np.array([1.0, -1.0, 1.0]), rows[:1])
+    assert q.tolist() == [[0, 1, 3, 5], [2, 3, 4, 5]] and s.tolist() == [-1.0, 1.0] and n == 1
+
+
+@pytest.fixture(scope="module")
+def hdm_case(data_dir):
+    """``dtm-eval``'s HDM05 -> CMU 85 cell: a body of HDM05's standing take (41 markers), and
+    CMU 85's jump + twist (another lab, another person, another motion)."""
+    case = next(c for c in CASES if c.key == "m_hdm05_to_85_02")
+    train, test = case_clips(data_dir, case)
+    model, _ = train_case_model(train, train_config(case, "body", 0))
+    return model, train, test
+
+
+def test_wrist_bars_learnt_from_a_real_take_hold_in_another_labs_motion(hdm_case):
+    model, train, test = hdm_case
+    L = list(model.labels)
+    P = [model_clip(model, c).positions for c in train]
+    found = {tuple(sorted((L[a], L[b]))) for a, b in bars(P[0], model.body.segments)}
+    assert {("LWRA", "LWRB"), ("RWRA", "RWRB")} <= found
+    rows = {tuple(L[i] for i in r) for r in model.body.orders}
+    assert ("LSHO", "LWRA", "LWRB") in rows and ("RSHO", "RWRA", "RWRB") in rows      # nearer the radial end
+    assert np.array_equal(bar_orders(P, model.body.segments, model.structure.array), model.body.orders)
+    # CMU 85's true labels, every frame of the jump + twist: each row holds in at least 99 % of them
+    X = model_clip(model, test).positions
+    x, near, far = (X[:, model.body.orders[:, k]] for k in range(3))
+    gap = np.linalg.norm(x - far, axis=-1) - np.linalg.norm(x - near, axis=-1)
+    seen = np.isfinite(gap)
+    assert seen.sum(0).min() >= 800 and ((gap > 0) | ~seen).mean(0).min() >= 0.99
+    # a generic body keeps the rows without applying them
+    assert model.body_order is None
+
+
+def test_calibrated_body_applies_the_order_to_a_real_exchange(hdm_case, tmp_path):
+    model, _, test = hdm_case
+    L = list(model.labels)
+    window = model_clip(model, test.slice(0, 270)).positions
+    body, summary = calibrated_body(model.body, window, mirror_pairs=model.mirror_pairs,
+                                    heading_pairs=model.heading_pairs)
+    cal = model.replace(body=body)
+    assert summary["bar_orders"] == model.body.orders.shape[0] and summary["bar_orders_dropped"] == 0
+    assert cal.body_order is not None
+    a, b = L.index("RWRA"), L.index("RWRB")
+    assert not any({a, b} <= set(q) for q in cal.body.quads.tolist())
+    X = model_clip(model, test.slice(400, 402)).positions
+    states = point_states(X, test.rate)[1]
+    truth = np.arange(len(L))
+    swap = truth.copy()
+    swap[[a, b]] = swap[[b, a]]
+    pop = np.stack([truth, swap])
+    with_order = FrameProblem(cal, states, Background()).fitness(pop)
+    reversed_rows = -cal.body_order.labelled(X[1][pop]) / ORDER_NATS
+    assert reversed_rows.tolist()[0] == 0 and reversed_rows[1] >= 1
+    cal.body_order, saved = None, cal.body_order
+    try:
+        without = FrameProblem(cal, states, Background()).fitness(pop)
+    finally:
+        cal.body_order = saved
+    assert np.allclose(with_order - without, -ORDER_NATS * reversed_rows)
+    # the labelled frame's likelihood has the same factor
+    swapped = point_states(X[:, swap], test.rate)[1:]
+    no_orders = cal.replace(body=replace(body, orders=np.zeros((0, 3))))
+    assert np.isclose(cal.frame_log_likelihood(swapped)[0] - no_orders.frame_log_likelihood(swapped)[0],
+                      -ORDER_NATS * reversed_rows[1])
+
+    # format 6 keeps the rows; a format-5 file (no order array) loads as a body without them
+    path = save_model(cal, tmp_path / "m.npz")
+    back = load_model(path)
+    assert FORMAT_VERSION == 6 and np.array_equal(back.body.orders, cal.body.orders)
+    assert np.array_equal(FrameProblem(back, states, Background()).fitness(pop), with_order)
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files if k != "body_orders"}
+    header = json.loads(bytes(arrays["header"]).decode())
+    header["format_version"] = 5
+    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    v5 = model_from_arrays(arrays, "v5")
+    assert v5.provenance["format_version_read"] == 5 and v5.body.orders.shape == (0, 3) and v5.body_order is None
+    assert np.allclose(FrameProblem(v5, states, Background()).fitness(pop), without)
+
+
+def test_floor_moves_self_calibrated_keep_the_wrist_bars(data_dir):
+    """``dtm-eval``'s floor-moves cell, self-calibrated on the first 225 frames: the labels of
+    the next 120 frames (the wrist bars exchanged in 65 of 360 frames before the order)."""
+    case = next(c for c in CASES if c.key == "m_floor")
+    train, test = case_clips(data_dir, case)
+    model, _ = train_case_model(train, train_config(case, "body", 0))
+    n_cal = calibration_frames(test, 5.0)
+    window = model_clip(model, test.slice(0, n_cal))
+    cal, _ = self_calibrate(model, window.positions, window.rate)
+    assert cal.body_order is not None and cal.body.calibration["bar_orders"] >= 4
+    run = label_clip_run(cal, test.slice(n_cal, n_cal + 120), LabelerSettings(seed=0), seed=0)
+    assert run.accumulator.metrics().as_dict()["accuracy"] >= 0.99
+    assert not [p for p in run.metrics.confused_pairs(8) if {p[0], p[1]} == {"RWRA", "RWRB"} and p[2] > 5]
