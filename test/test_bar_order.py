@@ -4,7 +4,6 @@ rows from real takes (the wrist bars: the shoulder and upper-arm markers lie nea
 end), they hold in another lab's takes of other motions, only calibrated bodies apply them, a
 calibration keeps the rows the person's frames do not reverse, and model files keep them
 (format 6; format 5 files load without)."""
-import json
 from dataclasses import replace
 
 import numpy as np
@@ -15,10 +14,11 @@ from dtm_labeler.evaluation.pipeline import label_clip_run, model_clip
 from dtm_labeler.labeling.config import LabelerSettings
 from dtm_labeler.model.body import ORDER_NATS, BarOrder, BodyModel, quads_off_ordered_bars
 from dtm_labeler.model.features import point_states
-from dtm_labeler.model.io import FORMAT_VERSION, load_model, model_from_arrays, save_model
+from dtm_labeler.model.io import FORMAT_VERSION, load_model, save_model
 from dtm_labeler.search.problem import Background, FrameProblem
 from dtm_labeler.training.body_fit import bar_orders, bars
 from dtm_labeler.training.calibrate import calibrated_body, kept_orders, self_calibrate
+from model_files import as_older_format
 
 # x at the origin; "near" 0.1 m away, "far" 0.2 m away, a fourth point elsewhere
 LINE = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.2, 0.0, 0.0], [0.0, 0.5, 0.0]])
@@ -129,12 +129,7 @@ def test_calibrated_body_applies_the_order_to_a_real_exchange(hdm_case, tmp_path
     back = load_model(path)
     assert FORMAT_VERSION == 6 and np.array_equal(back.body.orders, cal.body.orders)
     assert np.array_equal(FrameProblem(back, states, Background()).fitness(pop), with_order)
-    with np.load(path, allow_pickle=False) as z:
-        arrays = {k: z[k] for k in z.files if k != "body_orders"}
-    header = json.loads(bytes(arrays["header"]).decode())
-    header["format_version"] = 5
-    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
-    v5 = model_from_arrays(arrays, "v5")
+    v5 = as_older_format(path, 5, lambda k: k == "body_orders")
     assert v5.provenance["format_version_read"] == 5 and v5.body.orders.shape == (0, 3) and v5.body_order is None
     assert np.allclose(FrameProblem(v5, states, Background()).fitness(pop), without)
 

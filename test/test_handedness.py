@@ -1,7 +1,6 @@
 """The marker clusters' handedness (model/body.py ``Handedness``): a labeling that shows a cluster
 mirrored pays a fixed factor per quadruple, a missing point drops it, only calibrated bodies
 apply it (measured again on the person's frames), and model files keep it (format 3)."""
-import json
 
 import numpy as np
 import pytest
@@ -10,12 +9,13 @@ from dtm_labeler.model.body import HANDEDNESS_NATS, BodyModel, Handedness
 from dtm_labeler.labeling.rigid_tracks import body_pairs
 from dtm_labeler.labeling.take_pass import person_handedness
 from dtm_labeler.model.features import point_states
-from dtm_labeler.model.io import FORMAT_VERSION, load_model, model_from_arrays, save_model
+from dtm_labeler.model.io import FORMAT_VERSION, load_model, save_model
 from dtm_labeler.motion.load import load_clip
 from dtm_labeler.search.problem import Background, FrameProblem
 from dtm_labeler.training.body_fit import handedness_quads, quad_signs, rigid_quads, segment_clusters
 from dtm_labeler.training.calibrate import calibrate_on_takes, calibrated_body, labelled_positions
 from dtm_labeler.training.train import TrainConfig, train_model
+from model_files import as_older_format
 
 HDM = "markers_c3d/hdm05_bd_05-01_01_120.c3d"
 ARM = ["LFHD", "RFHD", "C7", "CLAV", "STRN", "LSHO", "RSHO", "LELB", "LFRM", "LWRA", "LWRB", "LFIN",
@@ -117,12 +117,7 @@ def test_real_wrist_cluster_learnt_and_applied_once_calibrated(models, hdm, tmp_
     assert np.array_equal(back.body.quads, calibrated.body.quads)
     assert np.array_equal(back.body.quad_sign, calibrated.body.quad_sign)
     assert np.array_equal(FrameProblem(back, states, Background()).fitness(pop), with_hand)
-    with np.load(path, allow_pickle=False) as z:
-        arrays = {k: z[k] for k in z.files if k not in ("body_quads", "body_quad_sign")}
-    header = json.loads(bytes(arrays["header"]).decode())
-    header["format_version"] = 2
-    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
-    v2 = model_from_arrays(arrays, "v2")
+    v2 = as_older_format(path, 2, lambda k: k in ("body_quads", "body_quad_sign"))
     assert v2.provenance["format_version_read"] == 2 and v2.body.quads.shape == (0, 4)
     assert v2.body_handedness is None
     assert np.allclose(FrameProblem(v2, states, Background()).fitness(pop), without)
@@ -215,12 +210,7 @@ def test_a_model_of_one_person_keeps_all_its_rigid_pairs(models, hdm, tmp_path):
     assert FORMAT_VERSION >= 5 and np.array_equal(back.body.rigid_pairs, body.rigid_pairs)
     assert np.allclose(back.body.rigid_length, body.rigid_length) and np.allclose(back.body.rigid_spread,
                                                                                   body.rigid_spread)
-    with np.load(path, allow_pickle=False) as z:
-        arrays = {k: z[k] for k in z.files if not k.startswith("body_rigid_")}
-    header = json.loads(bytes(arrays["header"]).decode())
-    header["format_version"] = 4
-    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
-    v4 = model_from_arrays(arrays, "v4")
+    v4 = as_older_format(path, 4, lambda k: k.startswith("body_rigid_"))
     assert v4.provenance["format_version_read"] == 4 and v4.body.rigid_pairs.shape == (0, 2)
     with pytest.raises(ValueError, match="rigid pairs"):
         BodyModel(n_labels=3, pairs=np.zeros((0, 2)), kind=np.zeros(0), lo=np.zeros(0), hi=np.zeros(0),

@@ -3,18 +3,18 @@ shoulders that are not exchanged pays a dead-zone quadratic in the cosine of the
 twist a spine makes costs nothing, a missing shoulder falls back to the midline point (so leaving
 a shoulder out does not escape it), the axes come from the point set's names, a generic body
 applies it, and model files keep it (format 4; format-3 files load without it)."""
-import json
 
 import numpy as np
 import pytest
 
 from dtm_labeler.model.body import TWIST_COS_MIN, TWIST_COS_SD, BodyModel, TrunkTwist
-from dtm_labeler.model.io import FORMAT_VERSION, load_model, model_from_arrays, save_model
+from dtm_labeler.model.io import FORMAT_VERSION, load_model, save_model
 from dtm_labeler.motion.pointsets import BODY14
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search.problem import Background, FrameProblem
 from dtm_labeler.training.body_fit import trunk_twists
 from dtm_labeler.training.train import TrainConfig, canonical_states, train_model
+from model_files import as_older_format
 
 I = {n: i for i, n in enumerate(BODY14)}
 CMU41 = ("LFHD RFHD LBHD RBHD C7 T10 CLAV STRN RBAC LSHO LUPA LELB LFRM LWRA LWRB LFIN RSHO RUPA RELB RFRM "
@@ -109,10 +109,5 @@ def test_model_files_keep_it_and_format_3_files_load_without(trained, tmp_path):
     path = save_model(model, tmp_path / "m.npz")
     back = load_model(path)
     assert FORMAT_VERSION >= 4 and np.array_equal(back.body.twists, model.body.twists)
-    with np.load(path, allow_pickle=False) as z:
-        arrays = {k: z[k] for k in z.files if k != "body_twists"}
-    header = json.loads(bytes(arrays["header"]).decode())
-    header["format_version"] = 3
-    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
-    v3 = model_from_arrays(arrays, "v3")
+    v3 = as_older_format(path, 3, lambda k: k == "body_twists")
     assert v3.provenance["format_version_read"] == 3 and v3.body.twists.shape == (0, 5) and v3.body_twist is None

@@ -327,7 +327,29 @@ class CrossSegments:
         return -0.5 * np.where(np.isfinite(d), x * x, 0.0).sum(axis=1)
 
 
-class Handedness:
+class PointFactor:
+    """A body factor read from the labelled points themselves rather than from the edges'
+    distances (:class:`Handedness`, :class:`BarOrder`, :class:`TrunkTwist`): one more factor of
+    the product of experts, scored for a search's candidate assignments and for labelled frames
+    alike. Subclasses give ``_factors(idx, pts)``: (P,) summed factors of the rows of ``idx``
+    (P, M), label -> row of ``pts`` (N, 3), a NaN row being a missing point."""
+
+    def __call__(self, pop: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+        """(P,) summed factors of (P, M) assignments given the frame's (n+1, 3) positions
+        (row ``n``, "missing", NaN: the factor drops)."""
+        return self._factors(np.ascontiguousarray(pop, dtype=np.int64), np.ascontiguousarray(xyz, dtype=np.float64))
+
+    def labelled(self, positions: np.ndarray) -> np.ndarray:
+        """(F,) summed factors of labelled frames (F, M, 3) (NaN = unseen: the factor drops)."""
+        F, M = positions.shape[:2]
+        return self._factors(np.arange(F * M, dtype=np.int64).reshape(F, M),
+                             np.ascontiguousarray(positions, dtype=np.float64).reshape(F * M, 3))
+
+    def _factors(self, idx: np.ndarray, pts: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+
+class Handedness(PointFactor):
     """Body factors of the marker clusters' handedness: a labeling that mirrors a cluster.
 
     Two neighbouring markers of one cluster (the two ends of a wrist bar, two toe markers)
@@ -393,17 +415,6 @@ class Handedness:
         a = x[..., 0, :]
         return np.einsum("...i,...i->...", np.cross(x[..., 1, :] - a, x[..., 2, :] - a), x[..., 3, :] - a)
 
-    def __call__(self, pop: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-        """(P,) summed factors of (P, M) assignments given the frame's (n+1, 3) positions
-        (row ``n``, "missing", NaN: the factor drops)."""
-        return self._factors(np.ascontiguousarray(pop, dtype=np.int64), np.ascontiguousarray(xyz, dtype=np.float64))
-
-    def labelled(self, positions: np.ndarray) -> np.ndarray:
-        """(F,) summed factors of labelled frames (F, M, 3) (NaN = unseen: the factor drops)."""
-        F, M = positions.shape[:2]
-        return self._factors(np.arange(F * M, dtype=np.int64).reshape(F, M),
-                             np.ascontiguousarray(positions, dtype=np.float64).reshape(F * M, 3))
-
     def _factors(self, idx: np.ndarray, pts: np.ndarray) -> np.ndarray:
         """(P,) summed factors of the rows of ``idx`` (P, M), label -> row of ``pts`` (N, 3)."""
         return -HANDEDNESS_NATS * mirrored_quads(idx, pts, self.quads, self.sign)
@@ -420,7 +431,7 @@ HANDEDNESS_NATS = 3.0
 RIGID_SPREAD = 0.3
 
 
-class BarOrder:
+class BarOrder(PointFactor):
     """Body factors of the marker bars' order: which end of a bar lies nearer the rest of the limb.
 
     Some clusters hold two markers that are each other's mirror image on their segment: the two
@@ -456,17 +467,6 @@ class BarOrder:
     def __init__(self, body: BodyModel):
         self.orders = np.ascontiguousarray(body.orders, dtype=np.int64).reshape(-1, 3)
         self.active = bool(self.orders.shape[0])
-
-    def __call__(self, pop: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-        """(P,) summed factors of (P, M) assignments given the frame's (n+1, 3) positions
-        (row ``n``, "missing", NaN: the factor drops)."""
-        return self._factors(np.ascontiguousarray(pop, dtype=np.int64), np.ascontiguousarray(xyz, dtype=np.float64))
-
-    def labelled(self, positions: np.ndarray) -> np.ndarray:
-        """(F,) summed factors of labelled frames (F, M, 3) (NaN = unseen: the factor drops)."""
-        F, M = positions.shape[:2]
-        return self._factors(np.arange(F * M, dtype=np.int64).reshape(F, M),
-                             np.ascontiguousarray(positions, dtype=np.float64).reshape(F * M, 3))
 
     def _factors(self, idx: np.ndarray, pts: np.ndarray) -> np.ndarray:
         """(P,) summed factors (compiled: :func:`~dtm_labeler.model.body_kernel.reversed_orders`)."""
@@ -506,7 +506,7 @@ ORDERS_PER_BAR = 3
 ORDER_NATS = 3.0
 
 
-class TrunkTwist:
+class TrunkTwist(PointFactor):
     """Body factors of the trunk's twist limit: hips exchanged under shoulders that are not.
 
     The spine turns the shoulder girdle against the pelvis by some 30-50 degrees each way; no
@@ -563,17 +563,6 @@ class TrunkTwist:
     def _factors(self, idx: np.ndarray, pts: np.ndarray) -> np.ndarray:
         """(P,) summed factors (compiled: :func:`~dtm_labeler.model.body_kernel.twist_factors`)."""
         return twist_factors(idx, pts, self.twists, TWIST_COS_MIN, TWIST_COS_SD)
-
-    def __call__(self, pop: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-        """(P,) summed factors of (P, M) assignments given the frame's (n+1, 3) positions
-        (row ``n``, "missing", NaN)."""
-        return self._factors(np.ascontiguousarray(pop, dtype=np.int64), np.ascontiguousarray(xyz, dtype=np.float64))
-
-    def labelled(self, positions: np.ndarray) -> np.ndarray:
-        """(F,) summed factors of labelled frames (F, M, 3) (NaN = unseen)."""
-        F, M = positions.shape[:2]
-        return self._factors(np.arange(F * M, dtype=np.int64).reshape(F, M),
-                             np.ascontiguousarray(positions, dtype=np.float64).reshape(F * M, 3))
 
 
 #: cosine of the shoulder and hip axes below which the trunk's twist costs (0: 90 degrees)
@@ -649,6 +638,6 @@ class BroadMotion:
         return cls(w, gs)
 
 
-__all__ = ["BarOrder", "BodyModel", "BroadMotion", "EdgeTerms", "Handedness", "HANDEDNESS_SHARE", "HANDEDNESS_NATS",
+__all__ = ["BarOrder", "BodyModel", "PointFactor", "BroadMotion", "EdgeTerms", "Handedness", "HANDEDNESS_SHARE", "HANDEDNESS_NATS",
            "ORDER_NATS", "SEGMENT", "quads_off_ordered_bars",
            "REACH", "KIND_NAMES", "slot_distances", "broad_covariance"]
