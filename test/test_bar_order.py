@@ -147,3 +147,21 @@ def test_floor_moves_self_calibrated_keep_the_wrist_bars(data_dir):
     run = label_clip_run(cal, test.slice(n_cal, n_cal + 120), LabelerSettings(seed=0), seed=0)
     assert run.accumulator.metrics().as_dict()["accuracy"] >= 0.99
     assert not [p for p in run.metrics.confused_pairs(8) if {p[0], p[1]} == {"RWRA", "RWRB"} and p[2] > 5]
+
+
+def test_dtm_train_says_which_bars_it_ordered(data_dir, tmp_path, capsys):
+    """dtm-train on HDM05's first 30 % (41 markers) names the rows it learnt, and says that a
+    calibration applies them; --calibrate applies them."""
+    from dtm_labeler.cli.train import main as train_main
+    take = str(data_dir / "markers_c3d/hdm05_bd_05-01_01_120.c3d")
+    out = tmp_path / "m.npz"
+    assert train_main([take, "--points", "all", "--frames", "0:30%", "--k-max", "2", "--out", str(out),
+                       "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    model = load_model(out)
+    line = next(s for s in printed.splitlines() if s.startswith("bars "))
+    assert "LSHO" in line and "nearer LWRA than LWRB" in line and line.endswith("(applied once calibrated)")
+    assert len(model.body.orders) == line.count(",") + line.count(" nearer ") and model.body_order is None
+    assert train_main([take, "--points", "all", "--frames", "0:30%", "--k-max", "2", "--out", str(out),
+                       "--quiet", "--calibrate"]) == 0
+    assert "(applied: calibrated)" in capsys.readouterr().out and load_model(out).body_order is not None

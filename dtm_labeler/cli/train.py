@@ -162,7 +162,8 @@ def _main(argv=None) -> int:
     save_model(model, args.out)
     s = summary.as_dict() | {"out": str(args.out)} | ({"calibration": calibration} if calibration else {})
     if model.body is not None:
-        s["body"] = {"segments": int(len(model.body.segments)), "rigid_pairs": int(model.body.rigid_pairs.shape[0])}
+        s["body"] = {"segments": int(len(model.body.segments)), "rigid_pairs": int(model.body.rigid_pairs.shape[0]),
+                     "bar_orders": [[model.labels[i] for i in row] for row in model.body.orders.tolist()]}
     if args.json:
         print(json.dumps(s, indent=1))
         return 0
@@ -191,6 +192,12 @@ def _main(argv=None) -> int:
     if "body" in s and s["body"]["rigid_pairs"]:
         print(f"body      {s['body']['segments']} segments; {s['body']['rigid_pairs']} rigid marker pairs of the "
               "person in their clusters (what dtm-label's pass over a take measures it by)")
+    if "body" in s and s["body"]["bar_orders"]:
+        nearer: dict = {}
+        for x, near, far in s["body"]["bar_orders"]:
+            nearer.setdefault((near, far), []).append(x)
+        print("bars      " + "; ".join(f"{', '.join(xs)} nearer {near} than {far}" for (near, far), xs in nearer.items())
+              + (" (applied: calibrated)" if model.body.calibration else " (applied once calibrated)"))
     if calibration:
         print(f"calibrated to the takes' person: {calibration['segments']} of {calibration['segments_total']} "
               f"segment lengths from {calibration['frames']} frames (scale {calibration['scale']:.3f})")
