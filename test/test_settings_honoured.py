@@ -59,6 +59,7 @@ CHANGES = {
     "mirror_switch_nats": 1000.0,
     "hold_nats": 1000.0,
     "hold_s": 0.0,
+    "cluster_turns": False,
     "turn_check": False,
     "upright_deg": 1.0,
     "region_checks": 0,
@@ -127,6 +128,10 @@ MIRRORED_CARRY = {"mirror_switch_nats"}
 #: point no label holds and the move gains by it (which this stream may never offer): compared on
 #: what the fast path's hill-climb would pay for every such move (:meth:`TrackedLabeler._hold_cost`)
 HELD_CARRY = {"hold_nats", "hold_s"}
+#: fields that act only where the model has small rigid clusters (marker sets; the 14 body points'
+#: bones form one) and the carried labeling reads one turned: compared on the fast path's climb from
+#: a frame's labeling with three of its labels each one along, the model given them as a cluster
+TURNED_CLUSTER = {"cluster_turns"}
 
 
 def make(kind, models, settings, background=False):
@@ -149,6 +154,25 @@ def mirrored_climb(kind, models, settings, stream) -> tuple:
         problems, _, found = lab.last_frame
         p = problems[found.best_model]
         ind, f, _ = lab._hill_climb(p, mirror(found.best.assignment[None], p.mirror_pairs)[0])
+    return ind.tolist(), round(float(f), 6)
+
+
+def turned_climb(kind, models, settings, stream) -> tuple:
+    """The fast path's hill-climb of frame 10 (:meth:`TrackedLabeler._hill_climb`) started from
+    that frame's labeling with the right arm's three labels each one along, the frame's model given
+    those three as its one small rigid cluster (:attr:`TriangulatedModel.rigid_clusters`)."""
+    lab = make(kind, models, settings)
+    with lab:
+        for xyz, t in stream[:10]:
+            lab.process(xyz, t)
+        problems, _, found = lab.last_frame
+        p = problems[found.best_model]
+        arm = np.array([p.model.labels.index(n) for n in ("rshoulder", "relbow", "rwrist")])
+        p.model._rigid_clusters = (arm,)
+        start = found.best.assignment.copy()
+        start[arm] = start[np.roll(arm, 1)]
+        lab._since_search = 0                              # a region-check frame
+        ind, f, _ = lab._hill_climb(p, start)
     return ind.tolist(), round(float(f), 6)
 
 
@@ -181,7 +205,7 @@ def test_every_setting_changes_both_labelers(kind, models, stream):
     base = trace(make(kind, models, BASE), stream)
     assert trace(make(kind, models, BASE), stream) == base          # deterministic
     ignored = [name for name, value in CHANGES.items()
-               if name not in BACKGROUND_ONLY | WHOLE_BODY_REGIONS | MIRRORED_CARRY | HELD_CARRY and
+               if name not in BACKGROUND_ONLY | WHOLE_BODY_REGIONS | MIRRORED_CARRY | HELD_CARRY | TURNED_CLUSTER and
                trace(make(kind, models, dataclasses.replace(BASE, **{name: value})), stream, base) == base]
     bg = dataclasses.replace(BASE, recovery="background")
     for name in BACKGROUND_ONLY:
@@ -202,5 +226,10 @@ def test_every_setting_changes_both_labelers(kind, models, stream):
     base_held = held_prices(kind, models, short_hold, stream)
     for name in HELD_CARRY:
         if held_prices(kind, models, dataclasses.replace(short_hold, **{name: CHANGES[name]}), stream) == base_held:
+            ignored.append(name)
+    no_regions_chains = dataclasses.replace(BASE, region_checks=0, fast_rounds=0)
+    base_turned = turned_climb(kind, models, no_regions_chains, stream)
+    for name in TURNED_CLUSTER:
+        if turned_climb(kind, models, dataclasses.replace(no_regions_chains, **{name: CHANGES[name]}), stream) == base_turned:
             ignored.append(name)
     assert not ignored, f"{kind} labeler ignores {ignored}"

@@ -43,7 +43,8 @@ from ..model.features import FULL, POSITION_ONLY
 from ..search import dp_kernels, frame_kernels, label_ops, move_kernels
 from ..search.dtm_dp import chains_of, regions_of, relabel_regions, turned_labels, turned_round
 from ..search.upright import upright_problems
-from ..search.label_search import GASearch, LabelSearch, SearchOutcome, make_search, polish, targeted_moves
+from ..search.label_search import (GASearch, LabelSearch, SearchOutcome, cluster_turns, make_search, polish,
+                                   targeted_moves)
 from ..search.move_kernels import close_label_pairs, free_points
 from ..search.problem import FrameProblem
 from .config import LabelerSettings
@@ -1252,6 +1253,9 @@ class TrackedLabeler:
         if self.settings.chain_moves > 1:
             ind, f, e = self._chain_shifts(problem, ind, f, moves, last)
             evals += e
+        if self.settings.cluster_turns and self._region_checks_due(problem.M):
+            ind, f, e = self._cluster_turns(problem, ind, f, moves, cost)
+            evals += e
         if self.settings.region_checks > 0 and problem.M > 3:
             centres = self._event_centres(problem, ind) + self._misfit_centres(problem, ind)
             if self._region_checks_due(problem.M):
@@ -1266,6 +1270,24 @@ class TrackedLabeler:
                     if f - price[1] <= f0 - price[0]:
                         ind, f = ind0, f0
         return ind, f, evals
+
+    def _cluster_turns(self, problem: FrameProblem, ind: np.ndarray, f: float, moves, cost
+                       ) -> tuple[np.ndarray, float, int]:
+        """The best block arrangement of a rigid cluster's labels (:func:`cluster_turns`) when it
+        gains more than it pays (``cost``, the moves' prior), hill-climbed."""
+        cand = cluster_turns(ind, problem.n, problem.model.rigid_clusters)
+        if not len(cand):
+            return ind, f, 0
+        fc = problem.fitness(cand)
+        gain = fc - f
+        if cost is not None:
+            price = cost(np.vstack([ind[None], cand]))
+            gain = gain - (price[1:] - price[0])
+        k = int(np.argmax(gain))
+        if gain[k] <= 0:
+            return ind, f, len(cand)
+        ind2, f2, e = polish(problem, cand[k], float(fc[k]), self.settings.fast_rounds, neighbours=moves)
+        return ind2, f2, len(cand) + e
 
     def _chain_shifts(self, problem: FrameProblem, ind: np.ndarray, f: float, moves,
                       last: dict | None) -> tuple[np.ndarray, float, int]:

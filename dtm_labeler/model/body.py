@@ -73,6 +73,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from .body_kernel import mirrored_quads, reversed_orders, twist_cosines, twist_factors
 from .mixture import GaussianMixture
@@ -494,6 +496,17 @@ def quads_off_ordered_bars(quads: np.ndarray, signs: np.ndarray, orders: np.ndar
     return q[~both], np.asarray(signs)[~both], int(both.sum())
 
 
+def segment_clusters(M: int, segments: np.ndarray) -> np.ndarray:
+    """(M,) the rigid cluster of each label: the connected components of the body's segments
+    (``segments`` (S, 2) label pairs); -1 for a label on no segment."""
+    seg = np.asarray(segments, dtype=np.int64).reshape(-1, 2)
+    _, comp = connected_components(coo_matrix((np.ones(len(seg)), (seg[:, 0], seg[:, 1])), shape=(M, M)),
+                                   directed=False)
+    on = np.zeros(M, dtype=bool)
+    on[seg.reshape(-1)] = True
+    return np.where(on, comp, -1)
+
+
 #: two labels of a cluster are a bar when their distances to each other label of it differ less
 BAR_TOLERANCE_M = 0.015
 #: a label's nearer end of a bar is learnt when it is the same in this share of every clip's frames
@@ -639,5 +652,5 @@ class BroadMotion:
 
 
 __all__ = ["BarOrder", "BodyModel", "PointFactor", "BroadMotion", "EdgeTerms", "Handedness", "HANDEDNESS_SHARE", "HANDEDNESS_NATS",
-           "ORDER_NATS", "SEGMENT", "quads_off_ordered_bars",
+           "ORDER_NATS", "SEGMENT", "quads_off_ordered_bars", "segment_clusters",
            "REACH", "KIND_NAMES", "slot_distances", "broad_covariance"]

@@ -33,7 +33,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .body import (SEGMENT, BarOrder, BodyModel, BroadMotion, CrossSegments, EdgeTerms, Handedness, TrunkTwist,
-                   slot_distances)
+                   segment_clusters, slot_distances)
+
+#: rigid clusters of at most this many labels are turned as a block (4! = 24 arrangements)
+MAX_TURNED_CLUSTER = 4
 from .features import (FEATURE_DIM, MISSING, N_PATTERNS, STATE_DIM, TRIPLE_DIM, feature_map_for, observation_state,
                        observed_map, pattern_codes, pattern_id)
 from .mixture import GaussianMixture
@@ -392,6 +395,24 @@ class TriangulatedModel:
     @property
     def heading_bins(self) -> int:
         return int(self.settings.get("heading_bins", 720))
+
+    @property
+    def rigid_clusters(self) -> tuple[np.ndarray, ...]:
+        """The label sets of the body's small rigid clusters: the connected components of its
+        segments (:func:`~.body.segment_clusters`) of 3 to ``MAX_TURNED_CLUSTER`` labels (a head's
+        four markers, a wrist bar with its forearm marker); none without body terms. What the
+        fast path turns as a block (:func:`~dtm_labeler.search.label_search.cluster_turns`).
+        Built once."""
+        if getattr(self, "_rigid_clusters", None) is None:
+            out = []
+            if self.body is not None:
+                comp = segment_clusters(self.n_labels, self.body.segments)
+                for c in np.unique(comp[comp >= 0]):
+                    members = np.flatnonzero(comp == c)
+                    if 3 <= members.size <= MAX_TURNED_CLUSTER:
+                        out.append(members)
+            self._rigid_clusters = tuple(out)
+        return self._rigid_clusters
 
     @property
     def pair_triangles(self) -> tuple[tuple[int, int, int], ...]:

@@ -195,6 +195,26 @@ def targeted_moves(ind: np.ndarray, n: int, mirror_pairs: np.ndarray, free_point
                      _int64(release if release is not None else ()))
 
 
+def cluster_turns(ind: np.ndarray, n: int, clusters) -> np.ndarray:
+    """(K, M) every other arrangement of each rigid cluster's labels over the points they hold
+    in ``ind`` (clusters with every label seen): the block moves of a cluster read turned or
+    mirrored as a whole -- a head's four markers each one along (the head read turned by 90
+    degrees). No single swap reaches that from the truth without passing labelings that fit
+    worse, so the hill-climb's moves (:func:`targeted_moves`) keep it once a frame has taken it."""
+    rows = []
+    for members in clusters:
+        pts = ind[members]
+        if (pts >= n).any():
+            continue
+        for perm in itertools.permutations(range(members.size)):
+            if perm == tuple(range(members.size)):
+                continue
+            cand = ind.copy()
+            cand[members] = pts[list(perm)]
+            rows.append(cand)
+    return np.array(rows, dtype=np.int64).reshape(-1, ind.size)
+
+
 def _int64(a) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.int64)
 

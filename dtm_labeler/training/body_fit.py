@@ -63,9 +63,9 @@ from typing import Callable, Sequence
 
 import numpy as np
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components, shortest_path
+from scipy.sparse.csgraph import shortest_path
 
-from ..model.body import (BAR_TOLERANCE_M, HANDEDNESS_SHARE, ORDER_MARGIN_M, ORDER_SHARE, ORDERS_PER_BAR, REACH,
+from ..model.body import (BAR_TOLERANCE_M, segment_clusters, HANDEDNESS_SHARE, ORDER_MARGIN_M, ORDER_SHARE, ORDERS_PER_BAR, REACH,
                           RIGID_SPREAD, SEGMENT, TWIST_COS_MIN, TWIST_COS_SD, BodyModel, BroadMotion, Handedness,
                           broad_covariance)
 from ..model.body_kernel import twist_cosines
@@ -364,17 +364,6 @@ def person_rigid_pairs(clips: Sequence[np.ndarray], segments: np.ndarray, max_fr
     u, v = np.nonzero(np.triu(measured.rigid & (cluster[:, None] == cluster[None, :]) & (cluster[:, None] >= 0), 1))
     return {"rigid_pairs": np.stack([u, v], 1), "rigid_length": measured.length[u, v],
             "rigid_spread": measured.spread[u, v]}
-
-
-def segment_clusters(M: int, segments: np.ndarray) -> np.ndarray:
-    """(M,) the rigid cluster of each label: the connected components of the body's segments
-    (``segments`` (S, 2) label pairs); -1 for a label on no segment."""
-    seg = np.asarray(segments, dtype=np.int64).reshape(-1, 2)
-    _, comp = connected_components(coo_matrix((np.ones(len(seg)), (seg[:, 0], seg[:, 1])), shape=(M, M)),
-                                   directed=False)
-    on = np.zeros(M, dtype=bool)
-    on[seg.reshape(-1)] = True
-    return np.where(on, comp, -1)
 
 
 def clip_spread(sd: np.ndarray) -> np.ndarray:
