@@ -143,37 +143,37 @@ def make(kind, models, settings, background=False):
     return lab
 
 
-def mirrored_climb(kind, models, settings, stream) -> tuple:
+def climb_from(kind, models, settings, stream, start_of) -> tuple:
     """The fast path's hill-climb (:meth:`TrackedLabeler._hill_climb`) of frame 10, started from
-    the mirror image of that frame's published labeling."""
-    from dtm_labeler.search.label_ops import mirror
+    ``start_of(problem, labeler, published assignment)``."""
     lab = make(kind, models, settings)
     with lab:
         for xyz, t in stream[:10]:
             lab.process(xyz, t)
         problems, _, found = lab.last_frame
         p = problems[found.best_model]
-        ind, f, _ = lab._hill_climb(p, mirror(found.best.assignment[None], p.mirror_pairs)[0])
+        ind, f, _ = lab._hill_climb(p, start_of(p, lab, found.best.assignment))
     return ind.tolist(), round(float(f), 6)
+
+
+def mirrored_climb(kind, models, settings, stream) -> tuple:
+    """The climb from the mirror image of frame 10's published labeling."""
+    from dtm_labeler.search.label_ops import mirror
+    return climb_from(kind, models, settings, stream, lambda p, lab, a: mirror(a[None], p.mirror_pairs)[0])
 
 
 def turned_climb(kind, models, settings, stream) -> tuple:
-    """The fast path's hill-climb of frame 10 (:meth:`TrackedLabeler._hill_climb`) started from
-    that frame's labeling with the right arm's three labels each one along, the frame's model given
-    those three as its one small rigid cluster (:attr:`TriangulatedModel.rigid_clusters`)."""
-    lab = make(kind, models, settings)
-    with lab:
-        for xyz, t in stream[:10]:
-            lab.process(xyz, t)
-        problems, _, found = lab.last_frame
-        p = problems[found.best_model]
+    """The climb, on a region-check frame, from frame 10's labeling with the right arm's three
+    labels each one along, the frame's model given those three as its one small rigid cluster
+    (:attr:`TriangulatedModel.rigid_clusters`)."""
+    def start_of(p, lab, a):
         arm = np.array([p.model.labels.index(n) for n in ("rshoulder", "relbow", "rwrist")])
         p.model._rigid_clusters = (arm,)
-        start = found.best.assignment.copy()
-        start[arm] = start[np.roll(arm, 1)]
         lab._since_search = 0                              # a region-check frame
-        ind, f, _ = lab._hill_climb(p, start)
-    return ind.tolist(), round(float(f), 6)
+        start = a.copy()
+        start[arm] = a[np.roll(arm, 1)]
+        return start
+    return climb_from(kind, models, settings, stream, start_of)
 
 
 def held_prices(kind, models, settings, stream) -> list:
