@@ -9,7 +9,10 @@ from dtm_labeler.evaluation.generalisation import CASES, case_clips, train_case_
 from dtm_labeler.evaluation.pipeline import model_clip
 from dtm_labeler.labeling.config import LabelerSettings
 from dtm_labeler.labeling.stream import StreamLabeler
+from dtm_labeler.model.body import segment_clusters
+from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search.label_search import cluster_turns
+from dtm_labeler.training.train import TrainConfig, train_model
 
 HEAD = ["LFHD", "LBHD", "RBHD", "RFHD"]           # each one along: the head turned by 90 degrees
 
@@ -63,3 +66,13 @@ def test_a_head_turned_by_one_marker_is_turned_back(floor):
         [["LFHD", "RFHD", "LBHD", "RBHD"]]
     on, off = _head_recovered(model, clip, True), _head_recovered(model, clip, False)
     assert sum(on) >= 9 and sum(off) <= 4, (on, off)
+
+
+def test_joint_centres_have_no_rigid_cluster():
+    """The 14 body points' segments are bones joined at joints: a synthetic walker's limbs
+    (shoulder-elbow-wrist, hip-knee-ankle) are components of three, and are not turned."""
+    model, _ = train_model([synthesize(duration=2.0, seed=0)], TrainConfig(mixture="fixed", k_fixed=1,
+                                                                          structure="given", augment_copies=0))
+    comp = segment_clusters(model.n_labels, model.body.segments)
+    sizes = np.bincount(comp[comp >= 0])
+    assert (sizes == 3).any() and model.rigid_clusters == ()
