@@ -34,14 +34,14 @@ import numpy as np
 
 from .body import (SEGMENT, BarOrder, BodyModel, BroadMotion, CrossSegments, EdgeTerms, Handedness, TrunkTwist,
                    segment_clusters, slot_distances)
-
-#: rigid clusters of at most this many labels are turned as a block (4! = 24 arrangements)
-MAX_TURNED_CLUSTER = 4
 from .features import (FEATURE_DIM, MISSING, N_PATTERNS, STATE_DIM, TRIPLE_DIM, feature_map_for, observation_state,
                        observed_map, pattern_codes, pattern_id)
 from .mixture import GaussianMixture
 from .structure import Structure
 from .term_kernel import mixture_terms
+
+#: rigid clusters of at most this many labels are turned as a block (4! = 24 arrangements)
+MAX_TURNED_CLUSTER = 4
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 

@@ -15,6 +15,7 @@
 """
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import time
@@ -201,19 +202,22 @@ def cluster_turns(ind: np.ndarray, n: int, clusters) -> np.ndarray:
     mirrored as a whole -- a head's four markers each one along (the head read turned by 90
     degrees). No single swap reaches that from the truth without passing labelings that fit
     worse, so the hill-climb's moves (:func:`targeted_moves`) keep it once a frame has taken it."""
-    rows = []
+    blocks = []
     for members in clusters:
         pts = ind[members]
         if (pts >= n).any():
             continue
-        for perm in itertools.permutations(range(members.size)):
-            if perm == tuple(range(members.size)):
-                continue
-            cand = ind.copy()
-            cand[members] = pts[list(perm)]
-            rows.append(cand)
-    return np.array(rows, dtype=np.int64).reshape(-1, ind.size)
+        perms = _arrangements(members.size)
+        block = np.repeat(ind[None], len(perms), axis=0)
+        block[:, members] = pts[perms]
+        blocks.append(block)
+    return np.concatenate(blocks) if blocks else np.zeros((0, ind.size), dtype=np.int64)
 
+
+@functools.lru_cache(maxsize=None)
+def _arrangements(k: int) -> np.ndarray:
+    """(k! - 1, k) every order of ``range(k)`` but the identity (built once per size)."""
+    return np.array(list(itertools.permutations(range(k)))[1:], dtype=np.int64).reshape(-1, k)
 
 def _int64(a) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.int64)

@@ -65,9 +65,9 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import shortest_path
 
-from ..model.body import (BAR_TOLERANCE_M, segment_clusters, HANDEDNESS_SHARE, ORDER_MARGIN_M, ORDER_SHARE, ORDERS_PER_BAR, REACH,
+from ..model.body import (BAR_TOLERANCE_M, HANDEDNESS_SHARE, ORDER_MARGIN_M, ORDER_SHARE, ORDERS_PER_BAR, REACH,
                           RIGID_SPREAD, SEGMENT, TWIST_COS_MIN, TWIST_COS_SD, BodyModel, BroadMotion, Handedness,
-                          broad_covariance)
+                          broad_covariance, segment_clusters)
 from ..model.body_kernel import twist_cosines
 from ..model.features import FULL, MISSING, feature_map_for, observed_map, triangle_features
 from ..model.mixture import GaussianMixture, logsumexp_rows
