@@ -65,6 +65,7 @@ CHANGES = {
     "region_checks": 0,
     "region_size": 2,
     "region_every": 1,
+    "young_checks": 0,
     "region_branches": 6,
     "max_gap_s": 0.02,
     "noise_mm": 30.0,

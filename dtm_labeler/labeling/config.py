@@ -209,6 +209,12 @@ PARAMS: Tuple[Param, ...] = (
           "given the rest of the body) per frame while checks are due (one pass over the "
           "regions after a GA search, then every region_every frames); repairs a wrong "
           "labeling that tracking carries on. 0 = off.", range=(0, 64)),
+    Param("young_checks", 1, "Regions relabelled exactly per frame, besides region_checks, around "
+          "labels that moved to their track less than half a second ago -- a marker back from a gap, or "
+          "a ghost that took a hidden marker's label -- one such label after another; only labels at "
+          "least 14 cm from their nearest neighbour on the model's mean body (the 14 body points; a "
+          "marker set's waist, thighs and knees, not its hands, feet or head, where the exact "
+          "relabelling follows the model's own errors). 0 = off.", range=(0, 16)),
     Param("region_every", 240, "Background region check every this many frames "
           "in steady state (0 = only after GA searches).", range=(0, 1000000)),
     Param("region_size", 6, "Labels per region of the region checks and of the "
@@ -406,6 +412,7 @@ class LabelerSettings:
     region_checks: int = DEFAULTS["region_checks"]
     region_size: int = DEFAULTS["region_size"]
     region_every: int = DEFAULTS["region_every"]
+    young_checks: int = DEFAULTS["young_checks"]
     region_branches: int = DEFAULTS["region_branches"]
     max_gap_s: float = DEFAULTS["max_gap_s"]
     noise_mm: float = DEFAULTS["noise_mm"]

@@ -418,6 +418,38 @@ class TriangulatedModel:
         return self._rigid_clusters
 
     @property
+    def mean_body(self) -> np.ndarray:
+        """(M, 3) the labels' positions on the model's mean body, in the canonical heading frame
+        (:mod:`.features`), the first triangle's first vertex at the origin: built triangle by
+        triangle in the DTM's order, each new vertex ``A_t`` at the mean of ``p_B - mean(pB - pA)``
+        and ``p_C - mean(pC - pA)`` (eq. 12 rows, weighted over the triangle's mixture components).
+        Built once."""
+        if getattr(self, "_mean_body", None) is None:
+            out = np.full((self.n_labels, 3), np.nan)
+            for t, (a, b, c) in enumerate(np.asarray(self.triangles, dtype=np.int64)):
+                mix = self.mixtures[t]
+                mu = np.asarray(mix.weights) @ np.asarray(mix.means)
+                ba, ca = mu[[9, 11, 13]], mu[[10, 12, 14]]
+                if t == 0:
+                    out[a], out[b], out[c] = 0.0, ba, ca
+                else:
+                    out[a] = 0.5 * ((out[b] - ba) + (out[c] - ca))
+            self._mean_body = out
+        return self._mean_body
+
+    @property
+    def label_spacing(self) -> np.ndarray:
+        """(M,) the distance (m) from each label to its nearest other label on the model's mean
+        body (:attr:`mean_body`). The 14 body points lie 18-43 cm apart; a marker set's clusters
+        closer (HDM05's wrist bars 12 cm, its feet 9-11 cm), its trunk and thighs 15-30 cm."""
+        if getattr(self, "_spacing", None) is None:
+            P = self.mean_body
+            d = np.linalg.norm(P[:, None] - P[None], axis=-1)
+            np.fill_diagonal(d, np.inf)
+            self._spacing = d.min(1)
+        return self._spacing
+
+    @property
     def pair_triangles(self) -> tuple[tuple[int, int, int], ...]:
         """(left, right, triangle) for every heading pair that shares a triangle, the first
         such triangle: where the GA's guided sampling anchors a candidate's facing
