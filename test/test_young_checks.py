@@ -45,34 +45,36 @@ def test_label_spacing_is_the_nearest_neighbour_on_the_mean_body(data_dir):
         assert got[labels.index(name)] >= ISOLATED_M, name
 
 
-def test_young_labels_of_isolated_markers_are_checked_in_turn(walker):
-    """After a settled stretch no label is young; labels put on other points' tracks are, each
-    isolated one comes up in turn, and one closer than ``ISOLATED_M`` to its nearest neighbour
-    (the synthetic walker's head, 12 cm above its neck), or any with the setting at 0, never does."""
-    spacing = walker.label_spacing
+def test_labels_on_new_tracks_of_isolated_markers_are_checked(walker):
+    """A knee and the head hidden for 20 frames come back on new tracks: the knee's label is
+    checked while its track is younger than ``YOUNG_S``, then not; the head, 12 cm above the
+    synthetic walker's neck (closer than ``ISOLATED_M``), never; nothing in the stream's first
+    ``YOUNG_S`` (every track is new there), nor with the setting at 0."""
     labels = list(walker.labels)
-    assert spacing[labels.index("head")] < ISOLATED_M <= spacing[labels.index("lknee")]
-    a, b, close = labels.index("lknee"), labels.index("rankle"), labels.index("head")
-    clip = synthesize(duration=1.0, seed=5, heading=0.3)
-    lab = StreamLabeler(walker, LabelerSettings(young_checks=1, recovery="inline"))
-    with lab:
-        for k in range(int(1.5 * YOUNG_S * clip.rate)):
-            lab.process(clip.positions[k], k / clip.rate)
-        problems, _, found = lab.last_frame
-        p = problems[found.best_model]
-        ind = found.best.assignment.copy()
-        assert lab._young_centres(p, ind) == []            # every label has held its track > YOUNG_S
-        ind[[a, b, close]] = ind[[b, close, a]]             # three labels on other labels' tracks
-        assert {c for _ in range(4) for c in lab._young_centres(p, ind)} == {a, b}
-        lab.settings.young_checks = 0
-        assert lab._young_centres(p, ind) == []
+    knee, head = labels.index("lknee"), labels.index("head")
+    assert walker.label_spacing[head] < ISOLATED_M <= walker.label_spacing[knee]
+    clip = synthesize(duration=2.0, seed=5, heading=0.3)
+    back = 100                                              # hidden in frames 80-99
+    for young_checks, expect in ((1, {knee}), (0, set())):
+        seen = {}
+        with StreamLabeler(walker, LabelerSettings(young_checks=young_checks, recovery="inline")) as lab:
+            for k in range(back + int(1.5 * YOUNG_S * clip.rate)):
+                xyz = clip.positions[k].copy()
+                if 80 <= k < back:
+                    xyz[[knee, head]] = np.nan
+                lab.process(xyz, k / clip.rate)
+                problems, _, found = lab.last_frame
+                seen[k] = set(lab._young_centres(problems[found.best_model], found.best.assignment))
+        assert not set().union(*(seen[k] for k in range(back)))
+        assert all(seen[k] == expect for k in range(back + 1, back + int(0.9 * YOUNG_S * clip.rate)))
+        assert all(seen[k] == set() for k in range(back + int(1.1 * YOUNG_S * clip.rate), len(seen)))
 
 
 def test_fewer_search_errors_on_a_real_dance_with_gaps_and_ghosts(data_dir):
     """``bench_stream_latency``'s 14-point case: the model of the first halves of walk 07_01, run
     09_11 and dance 55_01 labels 360 frames of the dance's second half, 3 markers in gaps of ~24
-    frames, 2 ghosts, 1 mm noise, four corruption seeds pooled: search errors 89 -> 43 and
-    accuracy 98.74 -> 98.90 % with young checks (measured)."""
+    frames, 2 ghosts, 1 mm noise, four corruption seeds pooled: search errors 89 -> 54 and
+    accuracy 98.74 -> 98.94 % with young checks (measured)."""
     clips = [to_point_set(load_clip(data_dir / "cmu_skeletal/bvh_from_fbx" / f), "body14") for f in BVH]
     model, _ = train_model([c.slice(0, c.n_frames // 2) for c in clips], TrainConfig(seed=0))
     dance = clips[2]
@@ -91,5 +93,5 @@ def test_fewer_search_errors_on_a_real_dance_with_gaps_and_ghosts(data_dir):
             correct, points, errors = correct + m.correct, points + m.points, errors + m.search_errors
         pooled[young] = (correct / points, errors)
     print(pooled)
-    assert pooled[1][1] <= 0.7 * pooled[0][1]
+    assert pooled[1][1] <= 0.8 * pooled[0][1]
     assert pooled[1][0] >= pooled[0][0] - 0.001

@@ -356,6 +356,7 @@ class TrackedLabeler:
         self._coast_track = np.full(self.n_labels, -1, dtype=np.int64)   # ... and those tracks
         self._region_cursor = -1
         self._young_cursor = -1
+        self._stream_start = None                  # stamp of the first frame since the reset
         self._provisional = False
         self._epoch = getattr(self, "_epoch", 0) + 1   # results of searches asked before are dropped
         self._last_search_stamp = None
@@ -1003,6 +1004,8 @@ class TrackedLabeler:
                 reason = "repeated stamp"
         if reason:
             self.reset()
+        if self._stream_start is None:
+            self._stream_start = stamp
         self.last_stamp = stamp
         keep = np.flatnonzero(finite)
         max_pts = s.max_points or 2 * self.n_labels + 8
@@ -1406,13 +1409,14 @@ class TrackedLabeler:
         93.79 %."""
         k = self.settings.young_checks
         n = problem.n
-        if k <= 0 or self._frame_tracks.size != n or not len(self.tenure):
+        now = self.last_stamp
+        if k <= 0 or self._frame_tracks.size != n or now - self._stream_start < YOUNG_S:
             return []
         lab = np.flatnonzero(ind < n)
         lab = lab[problem.model.label_spacing[lab] >= ISOLATED_M]
         if lab.size == 0:
             return []
-        young = lab[self.tenure.held_for(self._frame_tracks[ind[lab]], lab, self.last_stamp) < YOUNG_S]
+        young = lab[now - self.tracker.began(self._frame_tracks[ind[lab]]) < YOUNG_S]
         if young.size == 0:
             return []
         self._young_cursor += 1
