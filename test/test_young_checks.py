@@ -1,5 +1,5 @@
 """Young checks (``TrackedLabeler._young_centres``, setting ``young_checks``): the regions of
-labels that moved to their track less than half a second ago are relabelled exactly, one label
+labels on points whose track began less than half a second ago are relabelled exactly, one label
 per frame in turn, for labels well apart from their neighbours on the model's mean body
 (``TriangulatedModel.label_spacing``); on a real dance with gaps and ghosts the published
 labeling falls below the truth in fewer frames."""

@@ -210,8 +210,8 @@ PARAMS: Tuple[Param, ...] = (
           "regions after a GA search, then every region_every frames); repairs a wrong "
           "labeling that tracking carries on. 0 = off.", range=(0, 64)),
     Param("young_checks", 1, "Regions relabelled exactly per frame, besides region_checks, around "
-          "labels that moved to their track less than half a second ago -- a marker back from a gap, or "
-          "a ghost that took a hidden marker's label -- one such label after another; only labels at "
+          "labels on points whose track began less than half a second ago -- a marker back from a gap, "
+          "or a ghost that took a hidden marker's label -- one such label after another; only labels at "
           "least 14 cm from their nearest neighbour on the model's mean body (the 14 body points; a "
           "marker set's waist, thighs and knees, not its hands, feet or head, where the exact "
           "relabelling follows the model's own errors). 0 = off.", range=(0, 16)),
