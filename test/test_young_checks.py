@@ -1,73 +1,75 @@
 """Young checks (``TrackedLabeler._young_centres``, setting ``young_checks``): the regions of
 labels on points whose track began less than half a second ago are relabelled exactly, one label
-per frame in turn, for labels well apart from their neighbours on the model's mean body
-(``TriangulatedModel.label_spacing``); on a real dance with gaps and ghosts the published
-labeling falls below the truth in fewer frames."""
+per frame in turn, for joint centres (not marker sets: ``TriangulatedModel.marker_set``); on a
+real dance with gaps and ghosts the published labeling falls below the truth in fewer frames."""
+import dataclasses
+
 import numpy as np
-import pytest
 
 from dtm_labeler.evaluation.corruption import corrupt_clip
 from dtm_labeler.evaluation.metrics import MetricsAccumulator
 from dtm_labeler.labeling.config import LabelerSettings
 from dtm_labeler.labeling.stream import StreamLabeler
-from dtm_labeler.labeling.tracked import ISOLATED_M, YOUNG_S
+from dtm_labeler.labeling.tracked import YOUNG_S
 from dtm_labeler.motion import load_clip, to_point_set
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.training.train import TrainConfig, train_model
 
 BVH = ["cmu_07_01_walk_s07.bvh", "cmu_09_11_run_s09.bvh", "cmu_55_01_dance-whirl_s55.bvh"]
+HIDDEN = (80, 100)                                          # frames in which two points are hidden
 
 
-@pytest.fixture(scope="module")
-def walker():
-    return train_model([synthesize(duration=2.0, seed=s, heading=h) for s, h in [(0, 0.0), (1, 1.5)]],
-                       TrainConfig(mixture="fixed", k_fixed=2, structure="given"))[0]
+def young_centres_per_frame(model, clip, hidden, settings, frames):
+    """The labels :meth:`_young_centres` names after each frame of ``clip`` with the points
+    ``hidden`` gone in ``HIDDEN``, drawn twice per frame (the labels come up in turn)."""
+    seen = []
+    with StreamLabeler(model, settings) as lab:
+        for k in range(frames):
+            xyz = clip.positions[k].copy()
+            if HIDDEN[0] <= k < HIDDEN[1]:
+                xyz[hidden] = np.nan
+            lab.process(xyz, k / clip.rate)
+            problems, _, found = lab.last_frame
+            p, a = problems[found.best_model], found.best.assignment
+            seen.append(set(lab._young_centres(p, a)) | set(lab._young_centres(p, a)))
+    return seen
 
 
-def test_label_spacing_is_the_nearest_neighbour_on_the_mean_body(data_dir):
-    """On HDM05's 41 markers the spacing is each marker's median distance to its nearest other
-    marker within 2.5 cm; the wrist bars and the feet lie closer than ``ISOLATED_M``, the thigh
-    markers farther."""
+def test_labels_on_new_tracks_are_checked_while_the_tracks_are_young():
+    """A knee and a wrist hidden for 20 frames come back on new tracks: their labels come up in
+    turn while the tracks are younger than ``YOUNG_S``, then not; nothing in the stream's first
+    ``YOUNG_S`` (every track is new there), nor with the setting at 0."""
+    walker = train_model([synthesize(duration=2.0, seed=s, heading=h) for s, h in [(0, 0.0), (1, 1.5)]],
+                         TrainConfig(mixture="fixed", k_fixed=2, structure="given"))[0]
+    assert not walker.marker_set
+    labels = list(walker.labels)
+    hidden = [labels.index("lknee"), labels.index("rwrist")]
+    clip = synthesize(duration=2.0, seed=5, heading=0.3)
+    frames = HIDDEN[1] + int(1.5 * YOUNG_S * clip.rate)
+    on = young_centres_per_frame(walker, clip, hidden, LabelerSettings(young_checks=1, recovery="inline"), frames)
+    assert not set().union(*on[:HIDDEN[1]])
+    assert all(s == set(hidden) for s in on[HIDDEN[1] + 1:HIDDEN[1] + int(0.9 * YOUNG_S * clip.rate)])
+    assert not set().union(*on[HIDDEN[1] + int(1.1 * YOUNG_S * clip.rate):])
+    off = young_centres_per_frame(walker, clip, hidden, LabelerSettings(young_checks=0, recovery="inline"), frames)
+    assert not set().union(*off)
+
+
+def test_no_young_checks_on_a_marker_set(data_dir):
+    """HDM05's 41 markers (a body with handedness quadruples): a thigh and a knee marker back
+    from a gap are not checked; they are once the body loses its quadruples."""
     clip = to_point_set(load_clip(data_dir / "markers_c3d/hdm05_bd_05-01_01_120.c3d"), "all")
     model = train_model([clip.slice(0, 600)], TrainConfig(mixture="fixed", k_fixed=1, seed=0))[0]
-    P = clip.slice(0, 600).positions
-    d = np.linalg.norm(P[:, :, None] - P[:, None], axis=-1)
-    d[:, np.arange(d.shape[1]), np.arange(d.shape[1])] = np.inf
-    nearest = np.median(d.min(2), axis=0)
+    assert model.marker_set
+    test = clip.slice(600, 800)
     labels = list(model.labels)
-    order = [list(clip.names).index(n) for n in labels]
-    got = model.label_spacing
-    assert got.shape == (len(labels),)
-    assert np.abs(got - nearest[order]).max() < 0.025
-    for name in ("LWRA", "LWRB", "RWRA", "RWRB", "LANK", "LHEE", "RTOE", "RMT5"):
-        assert got[labels.index(name)] < ISOLATED_M, name
-    for name in ("LTHI", "RTHI"):
-        assert got[labels.index(name)] >= ISOLATED_M, name
-
-
-def test_labels_on_new_tracks_of_isolated_markers_are_checked(walker):
-    """A knee and the head hidden for 20 frames come back on new tracks: the knee's label is
-    checked while its track is younger than ``YOUNG_S``, then not; the head, 12 cm above the
-    synthetic walker's neck (closer than ``ISOLATED_M``), never; nothing in the stream's first
-    ``YOUNG_S`` (every track is new there), nor with the setting at 0."""
-    labels = list(walker.labels)
-    knee, head = labels.index("lknee"), labels.index("head")
-    assert walker.label_spacing[head] < ISOLATED_M <= walker.label_spacing[knee]
-    clip = synthesize(duration=2.0, seed=5, heading=0.3)
-    back = 100                                              # hidden in frames 80-99
-    for young_checks, expect in ((1, {knee}), (0, set())):
-        seen = {}
-        with StreamLabeler(walker, LabelerSettings(young_checks=young_checks, recovery="inline")) as lab:
-            for k in range(back + int(1.5 * YOUNG_S * clip.rate)):
-                xyz = clip.positions[k].copy()
-                if 80 <= k < back:
-                    xyz[[knee, head]] = np.nan
-                lab.process(xyz, k / clip.rate)
-                problems, _, found = lab.last_frame
-                seen[k] = set(lab._young_centres(problems[found.best_model], found.best.assignment))
-        assert not set().union(*(seen[k] for k in range(back)))
-        assert all(seen[k] == expect for k in range(back + 1, back + int(0.9 * YOUNG_S * clip.rate)))
-        assert all(seen[k] == set() for k in range(back + int(1.1 * YOUNG_S * clip.rate), len(seen)))
+    hidden = [list(test.names).index(n) for n in ("LTHI", "RKNE")]
+    assert [labels[i] for i in hidden] == ["LTHI", "RKNE"]
+    settings = LabelerSettings(young_checks=1, recovery="inline")
+    assert not set().union(*young_centres_per_frame(model, test, hidden, settings, HIDDEN[1] + 30))
+    unsided = model.replace(body=dataclasses.replace(model.body, quads=np.zeros((0, 4), dtype=np.int64),
+                                                     quad_sign=np.zeros(0)))
+    assert not unsided.marker_set                            # the same body without its clusters' handedness
+    assert set().union(*young_centres_per_frame(unsided, test, hidden, settings, HIDDEN[1] + 30)) == set(hidden)
 
 
 def test_fewer_search_errors_on_a_real_dance_with_gaps_and_ghosts(data_dir):

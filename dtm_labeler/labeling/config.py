@@ -210,11 +210,10 @@ PARAMS: Tuple[Param, ...] = (
           "regions after a GA search, then every region_every frames); repairs a wrong "
           "labeling that tracking carries on. 0 = off.", range=(0, 64)),
     Param("young_checks", 1, "Regions relabelled exactly per frame, besides region_checks, around "
-          "labels on points whose track began less than half a second ago -- a marker back from a gap, "
-          "or a ghost that took a hidden marker's label -- one such label after another; only labels at "
-          "least 14 cm from their nearest neighbour on the model's mean body (the 14 body points; a "
-          "marker set's waist, thighs and knees, not its hands, feet or head, where the exact "
-          "relabelling follows the model's own errors). 0 = off.", range=(0, 16)),
+          "labels on points whose track began less than half a second ago -- a point back from a gap, "
+          "or a ghost that took a hidden point's label -- one such label after another. Joint centres "
+          "only (the 14 body points): on a marker set the exact relabelling of a hand's or a foot's "
+          "region follows the model's own errors. 0 = off.", range=(0, 16)),
     Param("region_every", 240, "Background region check every this many frames "
           "in steady state (0 = only after GA searches).", range=(0, 1000000)),
     Param("region_size", 6, "Labels per region of the region checks and of the "

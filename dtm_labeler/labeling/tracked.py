@@ -95,8 +95,8 @@ AUDIT_BACKOFF_MAX = 8
 #: the tracker (a knee of subject 7's walk, 3.6 cm off its predicted path, then 5.6 cm)
 TRACK_BREAK_FRAMES, TRACK_BREAK_M = 2.5, 0.06
 #: young checks (:meth:`TrackedLabeler._young_centres`): labels on points whose track began less
-#: than this (s) ago, of labels at least ``ISOLATED_M`` (m) from their nearest neighbour
-YOUNG_S, ISOLATED_M = 0.5, 0.14
+#: than this (s) ago
+YOUNG_S = 0.5
 #: chain moves (:meth:`TrackedLabeler._chain_shifts`): consecutive labels of a chain are
 #: neighbours on the model's mean body -- one among the other's this many nearest
 CHAIN_NEIGHBOURS = 4
@@ -1393,20 +1393,26 @@ class TrackedLabeler:
     def _young_centres(self, problem: FrameProblem, ind: np.ndarray) -> list[int]:
         """Up to ``young_checks`` labels whose point's track began less than ``YOUNG_S`` ago, in
         turn from frame to frame: where a carried labeling goes wrong after the event check of
-        :meth:`_event_centres` has passed -- a ghost that took a hidden marker's label while it
-        fitted and keeps it after it stops fitting, a marker back from a gap given its
-        neighbour's label. Only labels at least ``ISOLATED_M`` from their nearest neighbour on
-        the model's mean body (:attr:`TriangulatedModel.label_spacing`), and none in the
-        stream's first ``YOUNG_S``, where every track is new.
+        :meth:`_event_centres` has passed -- a ghost that took a hidden point's label while it
+        fitted and keeps it after it stops fitting, a point back from a gap given its
+        neighbour's label. None in the stream's first ``YOUNG_S``, where every track is new, and
+        none for a marker set (:attr:`TriangulatedModel.marker_set`).
 
         Measured (``bench_stream_latency`` streams, inline, corruption seeds 1-3): 14 body points
         with 3 gaps + 2 ghosts, accuracy 98.55 / 98.95 / 97.67 -> 98.82 / 99.02 / 98.58 %, search
-        errors 54 / 63 / 90 -> 40 / 21 / 28 of 890, p50 0.65 -> 1.0 ms, p99 1.4-1.9 -> 1.6-1.7 ms;
-        with 2 flickering + 2 ghosts unchanged (99.98 / 99.99 %). Not kept:
-        * every label checked: on HDM05's 41 markers (seeds 1-2) up to 1.6 points lower (94.55 ->
-          93.88 %: the exact relabelling of a hand's, a foot's or the head's region follows the
-          model's own errors there -- wrist bar ends exchanged, a finger marker left out); the
-          isolated ones alone (waist, thighs, knees, shins, T10) 94.55 / 93.97 -> 94.60 / 93.79 %;
+        errors 54 / 63 / 90 -> 40 / 21 / 28 of 890, p50 0.65 -> 1.0 ms, p99 1.2-1.4 -> 1.6-2.0 ms;
+        with 2 flickering + 2 ghosts unchanged (99.98 / 99.99 %); ``dtm-demo --occlude 3
+        --gap-frames 24 --clutter 2 --duration 10`` (the node, 14 points) 96.06 / 97.05 -> 97.52 /
+        97.47 %. Not kept:
+
+        * marker sets: on HDM05's 41 markers (seeds 1-2) every young label checked cost up to 1.6
+          points (94.55 -> 93.88 %: the exact relabelling of a hand's, a foot's or the head's region
+          follows the model's own errors there -- wrist bar ends exchanged, a finger marker left
+          out). The labels at least 14 cm from their nearest neighbour on the model's mean body
+          alone (waist, thighs, knees, shins, T10) gave 94.55 / 93.97 -> 94.60 / 93.79 % inline,
+          and the 41-marker flicker demo (``dtm-demo ... --occlude 3 --gap-frames 1 --clutter 2``)
+          a slow start in 2 of 6 runs (90.5 and 96.3 %; 98.4-98.6 % otherwise, and in 5 of 5 runs
+          without);
         * labels their track has carried for less than ``YOUNG_S`` (:mod:`.label_tenure`) rather
           than labels on young tracks: every label in the stream's first half second, and every
           label the fast path moves between two old tracks; ``dtm-eval``'s clean generalisation
@@ -1418,12 +1424,9 @@ class TrackedLabeler:
         k = self.settings.young_checks
         n = problem.n
         now = self.last_stamp
-        if k <= 0 or self._frame_tracks.size != n or now - self._stream_start < YOUNG_S:
+        if k <= 0 or problem.model.marker_set or self._frame_tracks.size != n or now - self._stream_start < YOUNG_S:
             return []
         lab = np.flatnonzero(ind < n)
-        lab = lab[problem.model.label_spacing[lab] >= ISOLATED_M]
-        if lab.size == 0:
-            return []
         young = lab[now - self.tracker.began(self._frame_tracks[ind[lab]]) < YOUNG_S]
         if young.size == 0:
             return []

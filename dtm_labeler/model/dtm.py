@@ -397,6 +397,13 @@ class TriangulatedModel:
         return int(self.settings.get("heading_bins", 720))
 
     @property
+    def marker_set(self) -> bool:
+        """True when the body holds marker clusters: handedness quadruples
+        (:class:`~.body.Handedness`), which joint centres and models without body terms have none
+        of. The fast path's block turns are for marker sets, its young checks for the others."""
+        return self.body is not None and bool(self.body.quads.shape[0])
+
+    @property
     def rigid_clusters(self) -> tuple[np.ndarray, ...]:
         """The label sets of the body's small rigid clusters: the connected components of its
         segments (:func:`~.body.segment_clusters`) of 3 to ``MAX_TURNED_CLUSTER`` labels (a head's
@@ -408,7 +415,7 @@ class TriangulatedModel:
         Built once."""
         if getattr(self, "_rigid_clusters", None) is None:
             out = []
-            if self.body is not None and self.body.quads.shape[0]:
+            if self.marker_set:
                 comp = segment_clusters(self.n_labels, self.body.segments)
                 for c in np.unique(comp[comp >= 0]):
                     members = np.flatnonzero(comp == c)
@@ -416,38 +423,6 @@ class TriangulatedModel:
                         out.append(members)
             self._rigid_clusters = tuple(out)
         return self._rigid_clusters
-
-    @property
-    def mean_body(self) -> np.ndarray:
-        """(M, 3) the labels' positions on the model's mean body, in the canonical heading frame
-        (:mod:`.features`), the first triangle's first vertex at the origin: built triangle by
-        triangle in the DTM's order, each new vertex ``A_t`` at the mean of ``p_B - mean(pB - pA)``
-        and ``p_C - mean(pC - pA)`` (eq. 12 rows, weighted over the triangle's mixture components).
-        Built once."""
-        if getattr(self, "_mean_body", None) is None:
-            out = np.full((self.n_labels, 3), np.nan)
-            for t, (a, b, c) in enumerate(np.asarray(self.triangles, dtype=np.int64)):
-                mix = self.mixtures[t]
-                mu = np.asarray(mix.weights) @ np.asarray(mix.means)
-                ba, ca = mu[[9, 11, 13]], mu[[10, 12, 14]]
-                if t == 0:
-                    out[a], out[b], out[c] = 0.0, ba, ca
-                else:
-                    out[a] = 0.5 * ((out[b] - ba) + (out[c] - ca))
-            self._mean_body = out
-        return self._mean_body
-
-    @property
-    def label_spacing(self) -> np.ndarray:
-        """(M,) the distance (m) from each label to its nearest other label on the model's mean
-        body (:attr:`mean_body`). The 14 body points lie 18-43 cm apart; a marker set's clusters
-        closer (HDM05's wrist bars 12 cm, its feet 9-11 cm), its trunk and thighs 15-30 cm."""
-        if getattr(self, "_spacing", None) is None:
-            P = self.mean_body
-            d = np.linalg.norm(P[:, None] - P[None], axis=-1)
-            np.fill_diagonal(d, np.inf)
-            self._spacing = d.min(1)
-        return self._spacing
 
     @property
     def pair_triangles(self) -> tuple[tuple[int, int, int], ...]:
