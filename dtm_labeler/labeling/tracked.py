@@ -1405,8 +1405,8 @@ class TrackedLabeler:
         --gap-frames 24 --clutter 2 --duration 10`` (the node, 14 points) 96.06 / 97.05 -> 97.52 /
         97.47 %. Not kept:
 
-        * marker sets: on HDM05's 41 markers (seeds 1-2) every young label checked cost up to 1.6
-          points (94.55 -> 93.88 %: the exact relabelling of a hand's, a foot's or the head's region
+        * marker sets: on HDM05's 41 markers (seed 1) every young label checked cost 0.7 points
+          (94.55 -> 93.88 %: the exact relabelling of a hand's, a foot's or the head's region
           follows the model's own errors there -- wrist bar ends exchanged, a finger marker left
           out). The labels at least 14 cm from their nearest neighbour on the model's mean body
           alone (waist, thighs, knees, shins, T10) gave 94.55 / 93.97 -> 94.60 / 93.79 % inline,
