@@ -1424,10 +1424,11 @@ class TrackedLabeler:
         k = self.settings.young_checks
         n = problem.n
         now = self.last_stamp
-        if k <= 0 or problem.model.marker_set or self._frame_tracks.size != n or now - self._stream_start < YOUNG_S:
+        if k <= 0 or problem.model.marker_set or self._frame_tracks.size != n:
             return []
         lab = np.flatnonzero(ind < n)
-        young = lab[now - self.tracker.began(self._frame_tracks[ind[lab]]) < YOUNG_S]
+        began = self.tracker.began(self._frame_tracks[ind[lab]])
+        young = lab[(began > self._stream_start) & (now - began < YOUNG_S)]
         if young.size == 0:
             return []
         self._young_cursor += 1
