@@ -135,9 +135,10 @@ HELD_CARRY = {"hold_nats", "hold_s"}
 #: bones form one) and the carried labeling reads one turned: compared on the fast path's climb from
 #: a frame's labeling with three of its labels each one along, the model given them as a cluster
 TURNED_CLUSTER = {"cluster_turns"}
-#: fields that act only on labels of young tracks after a stream's first ``YOUNG_S`` (this stream is
-#: shorter): compared on the fast path's climb with the stream made older, every track young, from
-#: a frame's labeling with three labels of the first label's region each one along
+#: fields that act only on labels of tracks begun after the stream's first frame, less than
+#: ``YOUNG_S`` ago (this stream's labelled points keep the tracks they began with): compared on the
+#: fast path's climb with the stream made older, every track young, from a frame's labeling with
+#: three labels of the first label's region each one along
 YOUNG_TRACKS = {"young_checks"}
 
 
@@ -186,7 +187,7 @@ def turned_climb(kind, models, settings, stream) -> tuple:
 def young_climb(kind, models, settings, stream) -> tuple:
     """The climb from frame 10's labeling with three labels of the first labelled label's region
     each one along, the stream's start moved ``2 YOUNG_S`` back (its tracks, begun in its first
-    frames, are then young ones of an older stream)."""
+    frame, are then young tracks of an older stream)."""
     def start_of(p, lab, a):
         lab._stream_start -= 2 * YOUNG_S
         first = int(np.flatnonzero(a < p.n)[0])

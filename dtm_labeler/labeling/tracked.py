@@ -95,7 +95,7 @@ AUDIT_BACKOFF_MAX = 8
 #: the tracker (a knee of subject 7's walk, 3.6 cm off its predicted path, then 5.6 cm)
 TRACK_BREAK_FRAMES, TRACK_BREAK_M = 2.5, 0.06
 #: young checks (:meth:`TrackedLabeler._young_centres`): labels on points whose track began less
-#: than this (s) ago
+#: than this (s) ago, after the stream's first frame
 YOUNG_S = 0.5
 #: chain moves (:meth:`TrackedLabeler._chain_shifts`): consecutive labels of a chain are
 #: neighbours on the model's mean body -- one among the other's this many nearest
@@ -356,7 +356,7 @@ class TrackedLabeler:
         self._coast_track = np.full(self.n_labels, -1, dtype=np.int64)   # ... and those tracks
         self._region_cursor = -1
         self._young_cursor = -1
-        self._stream_start = None                  # stamp of the first frame since the reset
+        self._stream_start = None                  # stamp of the first frame since the reset (its tracks are not young)
         self._provisional = False
         self._epoch = getattr(self, "_epoch", 0) + 1   # results of searches asked before are dropped
         self._last_search_stamp = None
@@ -1395,16 +1395,19 @@ class TrackedLabeler:
         turn from frame to frame: where a carried labeling goes wrong after the event check of
         :meth:`_event_centres` has passed -- a ghost that took a hidden point's label while it
         fitted and keeps it after it stops fitting, a point back from a gap given its
-        neighbour's label. None in the stream's first ``YOUNG_S``, where every track is new, and
-        none for a marker set (:attr:`TriangulatedModel.marker_set`).
+        neighbour's label. Not the tracks the stream (or a reset) began with, and none for a
+        marker set (:attr:`TriangulatedModel.marker_set`).
 
         Measured (``bench_stream_latency`` streams, inline, corruption seeds 1-3): 14 body points
-        with 3 gaps + 2 ghosts, accuracy 98.55 / 98.95 / 97.67 -> 98.82 / 99.02 / 98.58 %, search
-        errors 54 / 63 / 90 -> 40 / 21 / 28 of 890, p50 0.65 -> 1.0 ms, p99 1.2-1.4 -> 1.6-2.0 ms;
+        with 3 gaps + 2 ghosts, accuracy 98.55 / 98.95 / 97.67 -> 98.97 / 99.08 / 98.61 %, search
+        errors 54 / 63 / 90 -> 26 / 27 / 24 of 890, p50 0.65 -> 1.1 ms, p99 1.2-1.4 -> 1.7-2.1 ms;
         with 2 flickering + 2 ghosts unchanged (99.98 / 99.99 %); ``dtm-demo --occlude 3
         --gap-frames 24 --clutter 2 --duration 10`` (the node, 14 points) 96.06 / 97.05 -> 97.52 /
         97.47 %. Not kept:
 
+        * no checks at all in the stream's first ``YOUNG_S`` (rather than none of its first
+          tracks): 98.82 / 99.02 / 98.58 %, 40 / 21 / 28 search errors -- a ghost holds the head
+          in 16 frames of the first half second of seed 1;
         * marker sets: on HDM05's 41 markers (seed 1) every young label checked cost 0.7 points
           (94.55 -> 93.88 %: the exact relabelling of a hand's, a foot's or the head's region
           follows the model's own errors there -- wrist bar ends exchanged, a finger marker left
