@@ -407,8 +407,8 @@ class TriangulatedModel:
     def rigid_clusters(self) -> tuple[np.ndarray, ...]:
         """The label sets of the body's small rigid clusters: the connected components of its
         segments (:func:`~.body.segment_clusters`) of 3 to ``MAX_TURNED_CLUSTER`` labels (a head's
-        four markers, a wrist bar with its forearm marker) of a marker set -- a body with
-        handedness quadruples; none for joint centres, whose segments are bones joined at joints
+        four markers, a wrist bar with its forearm marker) of a marker set (:attr:`marker_set`); none
+        for joint centres, whose segments are bones joined at joints
         (a synthetic walker's limbs, shoulder-elbow-wrist, are such components, and turning them
         cost the flicker demo up to 1.2 points and 20 ms of p99) -- and none without body terms.
         What the fast path turns as a block (:func:`~dtm_labeler.search.label_search.cluster_turns`).
