@@ -52,7 +52,7 @@ CHANGES = {
     "accept_drop": 1e6,
     "fast_rounds": 0,
     "swap_radius_m": 2.0,
-    "release_moves": True,
+    "release_moves": False,
     "recovery": "background",
     "audit_period_s": 0.05,
     "misfit_nats": 0.01,

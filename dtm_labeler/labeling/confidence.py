@@ -79,8 +79,9 @@ local posterior is 0.002-0.03 (the heels, toes, LMT5, RSHN, the ankles, CLAV: ri
 because one alternative outweighs the rest: leaving the label missing, which that model scores
 11-102 nats above the published labeling (median 21.6; the best alternative for all 1543 labels
 with ``p_l`` < 0.05). The model fits these true markers worse than clutter, and the fast path
-does not release labels (``release_moves`` off: at 41 markers releasing made search errors
-113 -> 207 of 1000), so the published labeling keeps them, rightly -- and its confidence should
+does not release them (``release_moves`` releases only labels on young tracks, and none of a
+marker set: at 41 markers releasing made search errors 113 -> 207 of 1000), so the published
+labeling keeps them, rightly -- and its confidence should
 not be judged by an alternative the search never weighs. So the *published* posterior caps each
 release at the published labeling's fitness (it may tie, never outweigh), while the **strict**
 posterior counts it in full: that one gives ``FrameResult.confirmation``, what the subject

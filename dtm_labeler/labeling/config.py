@@ -160,8 +160,8 @@ PARAMS: Tuple[Param, ...] = (
           "when within this many nats of the running level.", range=(0.001, 1e9)),
     Param("fast_rounds", 4, "Hill-climbing rounds of the fast path (moves of the carried labeling "
           "per frame).", range=(0, 1000)),
-    Param("release_moves", False, "The fast path also tries leaving each label missing (a ghost that "
-          "took over a hidden marker's track); helps when the model fits every true marker well."),
+    Param("release_moves", True, "The fast path also tries leaving missing each label on a track begun "
+          "in the last 2 s (a ghost that took over a hidden marker's label); not for marker sets."),
     Param("swap_radius_m", 0.15, "The fast path also tries swapping the labels of points closer "
           "than this (m): where the tracker may have swapped two markers.", range=(0.0, 10.0)),
     Param("mirror_switch_nats", 0.5, "Nats per label the fast path's whole mirror image of the "

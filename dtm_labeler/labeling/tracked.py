@@ -97,6 +97,9 @@ TRACK_BREAK_FRAMES, TRACK_BREAK_M = 2.5, 0.06
 #: young checks (:meth:`TrackedLabeler._young_centres`): labels on points whose track began less
 #: than this (s) ago, after the stream's first frame
 YOUNG_S = 0.5
+#: release moves (:meth:`TrackedLabeler._releasable`): labels on points whose track began less than
+#: this (s) ago, after the stream's first frame
+RELEASE_S = 2.0
 #: chain moves (:meth:`TrackedLabeler._chain_shifts`): consecutive labels of a chain are
 #: neighbours on the model's mean body -- one among the other's this many nearest
 CHAIN_NEIGHBOURS = 4
@@ -1341,13 +1344,44 @@ class TrackedLabeler:
         return ind, f, evals
 
     def _releasable(self, problem: FrameProblem, ind: np.ndarray) -> np.ndarray:
-        """Labels the hill-climb may also try to leave missing (``release_moves``): what a ghost
-        that took over a hidden marker's track needs (measured at 14 points with gaps and ghosts:
-        search errors 59 -> 7 of 900 frames; at 41 markers with a model that fits some true
-        markers worse than clutter it makes things worse, 113 -> 207 of 1000)."""
-        if not self.settings.release_moves:
+        """Labels the hill-climb may also try to leave missing (``release_moves``): those on a
+        point whose track began less than ``RELEASE_S`` ago, after the stream's (or a reset's)
+        first frame, and none for a marker set (:attr:`TriangulatedModel.marker_set`). What a
+        ghost that took over a hidden marker's label needs: the move that gives the label back
+        to nobody. A ghost comes and goes on tracks of its own; the tracks a stream begins with
+        and the ones that have lasted are the body's.
+
+        Measured (``bench_stream_latency``'s 14 points, 3 gaps + 2 ghosts, inline, corruption
+        seeds 1-3): search errors 26 / 27 / 24 -> 10 / 2 / 8 of 890 frames, accuracy 98.97 /
+        99.08 / 98.61 -> 99.00 / 99.06 / 98.63 %, ghosts rejected 86.2 / 82.6 / 86.7 -> 87.1 /
+        84.5 / 87.1 %; with 2 flickering + 2 ghosts and clean as before; every cell of ``dtm-eval
+        --only markers,generalisation,table3,voting,cross`` the same. The same within 1 s; within
+        0.5 s 11 / 6 / 10 search errors. What it trades: labels published on the wrong point (a
+        true point under another label, or a ghost under any) 293 / 326 / 306 -> 275 / 294 / 296;
+        true points left out 54 / 74 / 66 -> 52 / 74 / 68. Where the model fits the person less
+        well -- ``dtm-demo``'s walker, a model of another synthetic walker, 3 gaps + 2 ghosts,
+        corruption seeds 0-2, inline -- more true points are left out (148 / 186 / 53 -> 164 /
+        213 / 59: an ankle back from a gap that the model scores 30-90 nats below clutter) and
+        fewer wrong labels published (324 / 372 / 360 -> 288 / 305 / 311), accuracy 98.50 /
+        97.88 / 99.30 -> 98.37 / 97.59 / 99.26 %: a gap a consumer fills rather than a joint
+        placed on a reflection. Not kept:
+
+        * every label releasable (the setting's meaning until 2026-11-29, off by default): 6 / 5 /
+          8 search errors, 99.00 / 98.91 / 98.63 % (seed 2: a wrist whose elbow is hidden labelled
+          elbow, the wrist left out -- the model's error, reached through the release), and on
+          ``dtm-eval``'s uncalibrated generalisation streams, whose models fit some true points
+          worse than clutter, up to 20 points lost (subject 55's lambada under a model of subjects
+          5, 7 and 9, ``dtm-label``'s default: 100 -> 79.55 %; the generic model on subject 5's
+          pirouette 98.40 -> 86.24 %);
+        * marker sets: at 41 HDM05 markers (gaps + ghosts, seed 1) every label releasable took the
+          search errors 106 -> 50 of 990 and accuracy 94.55 -> 93.66 % -- the model of the
+          take's first 70 % fits some true markers worse than clutter there too."""
+        n = problem.n
+        if not self.settings.release_moves or problem.model.marker_set or self._frame_tracks.size != n:
             return np.zeros(0, dtype=np.int64)
-        return np.flatnonzero(ind < problem.n)
+        lab = np.flatnonzero(ind < n)
+        began = self.tracker.began(self._frame_tracks[ind[lab]])
+        return lab[(began > self._stream_start) & (self.last_stamp - began < RELEASE_S)]
 
     def _misfit_centres(self, problem: FrameProblem, ind: np.ndarray) -> list[int]:
         """The label that fits worst against what the model expects of a right labeling
