@@ -411,7 +411,9 @@ def calibrate(model: TriangulatedModel, source: MotionClip | np.ndarray,
     """``model`` with the body terms of the person in ``source``: a labelled clip (the
     model's labels or points derivable from it) or (F, M, 3) positions in the model's label
     order (NaN = unseen). The model's structure is kept, its mixtures' position means adapted
-    to the frames (``settings.placement_relevance``, :mod:`.placement`); the confidence's fit
+    to the frames (``settings.placement_relevance``, :mod:`.placement`) and, when the frames'
+    rate is known, each triangle's broad weight fitted again on them (``settings.broad_min_frames``,
+    :func:`.body_fit.window_broad_weights`); the confidence's fit
     reference (``settings["fit_reference_per_label"]``) is measured on the frames too (module
     doc) when their rate is known (a clip's, or ``rate``). ``check_labels``: check left against right and each
     point's side (labels from a model); False trusts them (an operator-labelled capture)."""
