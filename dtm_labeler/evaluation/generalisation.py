@@ -15,11 +15,14 @@ does (labels stripped, points shuffled, stream and single mode), in four variant
   and kept only when the calibrated model keeps >= 90 % of the labels it was measured on
   (:func:`~dtm_labeler.training.calibrate.auto_calibrate`; else the generic model labels);
 * **body + calibration** -- that model calibrated on the first seconds of the test recording
-  (at most ``calibration_s``, at most a third of it), the frames labelled by the model itself
-  and confirmed by their vote confidence (:func:`~dtm_labeler.training.calibrate.self_calibrate`;
-  no true label is used; segments whose confirmed length disagrees with their mirror's, or
-  whose labels lie on the wrong side of the trunk, are not taken from those labels), then the
-  rest labelled.
+  (at most ``calibration_s``, at most a third of it), the frames -- their points shuffled as
+  the labeler gets them -- labelled by the model itself and confirmed by their vote confidence
+  (:func:`~dtm_labeler.training.calibrate.self_calibrate`; no true label is used; segments whose
+  confirmed length disagrees with their mirror's, or whose labels lie on the wrong side of the
+  trunk, are not taken from those labels), then the rest labelled. Until 2026-11-29 the window's
+  points came in label order: the order is a label too, and the searches read it (CMU 85 ->
+  HDM05 calibrated 93.62 %, the right shank marker never taken and the left finger and wrist
+  markers exchanged; 100 % shuffled).
 
 The *generic model* group labels each person of the shared data with a model of every other
 person in it: the other CMU subjects' skeletal clips and the 14 points derived from the markers of
@@ -245,10 +248,10 @@ def run_variant(model: TriangulatedModel, test: MotionClip, variant: str, plan: 
     if variant == "dtm-label default":         # auto_calibrate on the window as the labeler gets it
         stream = corrupt_clip(model_clip(model, test.slice(0, n_cal)), seed=plan.seed)
         model, out["calibration"] = auto_calibrate(model, [f.xyz for f in stream], stream.rate)
-    if variant == "body + calibration":
-        cal = model_clip(model, test.slice(0, n_cal))
+    if variant == "body + calibration":         # the window as the labeler gets it (module doc)
+        cal = corrupt_clip(model_clip(model, test.slice(0, n_cal)), seed=plan.seed)
         try:
-            model, confirmed = self_calibrate(model, cal.positions, cal.rate)
+            model, confirmed = self_calibrate(model, [f.xyz for f in cal], cal.rate)
         except CalibrationError as e:
             out["subject_calibration_error"] = str(e)
             return out
