@@ -8,29 +8,18 @@ import dataclasses
 import numpy as np
 
 from dtm_labeler.labeling.config import LabelerSettings
-from dtm_labeler.labeling.stream import StreamLabeler
 from dtm_labeler.labeling.tracked import RELEASE_S
 from dtm_labeler.motion import load_clip, to_point_set
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.training.train import TrainConfig, train_model
 from dance_streams import dance_case, pooled
-
-HIDDEN = (80, 100)                                          # frames in which two points are hidden
+from gap_probe import HIDDEN, probe_per_frame
 
 
 def releasable_per_frame(model, clip, hidden, settings, frames):
-    """The labels :meth:`_releasable` offers after each frame of ``clip`` with the points
-    ``hidden`` gone in ``HIDDEN``."""
-    seen = []
-    with StreamLabeler(model, settings) as lab:
-        for k in range(frames):
-            xyz = clip.positions[k].copy()
-            if HIDDEN[0] <= k < HIDDEN[1]:
-                xyz[hidden] = np.nan
-            lab.process(xyz, k / clip.rate)
-            problems, _, found = lab.last_frame
-            seen.append(set(lab._releasable(problems[found.best_model], found.best.assignment).tolist()))
-    return seen
+    """The labels :meth:`_releasable` offers after each frame."""
+    return probe_per_frame(model, clip, hidden, settings, frames,
+                           lambda lab, p, a: set(lab._releasable(p, a).tolist()))
 
 
 def test_only_labels_on_new_tracks_may_be_released():

@@ -7,30 +7,19 @@ import dataclasses
 import numpy as np
 
 from dtm_labeler.labeling.config import LabelerSettings
-from dtm_labeler.labeling.stream import StreamLabeler
 from dtm_labeler.labeling.tracked import YOUNG_S
 from dtm_labeler.motion import load_clip, to_point_set
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.training.train import TrainConfig, train_model
 from dance_streams import dance_case, pooled
-
-HIDDEN = (80, 100)                                          # frames in which two points are hidden
+from gap_probe import HIDDEN, probe_per_frame
 
 
 def young_centres_per_frame(model, clip, hidden, settings, frames):
-    """The labels :meth:`_young_centres` names after each frame of ``clip`` with the points
-    ``hidden`` gone in ``HIDDEN``, drawn twice per frame (the labels come up in turn)."""
-    seen = []
-    with StreamLabeler(model, settings) as lab:
-        for k in range(frames):
-            xyz = clip.positions[k].copy()
-            if HIDDEN[0] <= k < HIDDEN[1]:
-                xyz[hidden] = np.nan
-            lab.process(xyz, k / clip.rate)
-            problems, _, found = lab.last_frame
-            p, a = problems[found.best_model], found.best.assignment
-            seen.append(set(lab._young_centres(p, a)) | set(lab._young_centres(p, a)))
-    return seen
+    """The labels :meth:`_young_centres` names after each frame, drawn twice per frame (the
+    labels come up in turn)."""
+    return probe_per_frame(model, clip, hidden, settings, frames,
+                           lambda lab, p, a: set(lab._young_centres(p, a)) | set(lab._young_centres(p, a)))
 
 
 def test_labels_on_new_tracks_are_checked_while_the_tracks_are_young():
