@@ -346,6 +346,7 @@ class TrackedLabeler:
         self.tenure.reset()
         self.track_label: dict[int, int] = {}      # label each track carries (also while coasting)
         self._frame_tracks = np.zeros(0, dtype=np.int64)   # this frame's points' track ids
+        self._track_began = None                   # ... and when each began (:meth:`_on_young_tracks`)
         self._carried = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))  # last published, by track
         self._label_confidence = np.zeros(self.n_labels)     # last published confidence of each label
         self.last_stamp = None
@@ -1024,6 +1025,7 @@ class TrackedLabeler:
         self._event_points = np.flatnonzero((upd.track_ids[:, None] == self._new_tracks[None]).any(1))
         self._new_tracks = upd.track_ids[upd.new]
         self._frame_tracks = upd.track_ids
+        self._track_began = None
         out_ids = upd.track_ids if ids is None else np.asarray(ids, dtype=np.int64)[keep]
         return FrameInput(xyz.shape[0], finite, keep, pts, upd, reason, n_ignored, dt, out_ids)
 
@@ -1376,12 +1378,22 @@ class TrackedLabeler:
         * marker sets: at 41 HDM05 markers (gaps + ghosts, seed 1) every label releasable took the
           search errors 106 -> 50 of 990 and accuracy 94.55 -> 93.66 % -- the model of the
           take's first 70 % fits some true markers worse than clutter there too."""
-        n = problem.n
-        if not self.settings.release_moves or problem.model.marker_set or self._frame_tracks.size != n:
+        if not self.settings.release_moves:
             return np.zeros(0, dtype=np.int64)
+        return self._on_young_tracks(problem, ind, RELEASE_S)
+
+    def _on_young_tracks(self, problem: FrameProblem, ind: np.ndarray, age_s: float) -> np.ndarray:
+        """Labels of ``ind`` on a point whose track began less than ``age_s`` ago, after the
+        stream's (or a reset's) first frame -- the tracks it began with are the body's; none for a
+        marker set (:attr:`TriangulatedModel.marker_set`). The tracks' beginnings are read once a frame."""
+        n = problem.n
+        if problem.model.marker_set or self._frame_tracks.size != n:
+            return np.zeros(0, dtype=np.int64)
+        if self._track_began is None:
+            self._track_began = self.tracker.began(self._frame_tracks)
         lab = np.flatnonzero(ind < n)
-        began = self.tracker.began(self._frame_tracks[ind[lab]])
-        return lab[(began > self._stream_start) & (self.last_stamp - began < RELEASE_S)]
+        began = self._track_began[ind[lab]]
+        return lab[(began > self._stream_start) & (self.last_stamp - began < age_s)]
 
     def _misfit_centres(self, problem: FrameProblem, ind: np.ndarray) -> list[int]:
         """The label that fits worst against what the model expects of a right labeling
@@ -1463,14 +1475,8 @@ class TrackedLabeler:
           (98.98 / 99.07 / 98.71 %) at 0.15 ms less p50, but four seeds of 360 frames pooled
           98.83 % and 53 search errors against 98.88 % and 39."""
         k = self.settings.young_checks
-        n = problem.n
-        now = self.last_stamp
-        if k <= 0 or problem.model.marker_set or self._frame_tracks.size != n:
-            return []
-        lab = np.flatnonzero(ind < n)
-        began = self.tracker.began(self._frame_tracks[ind[lab]])
-        young = lab[(began > self._stream_start) & (now - began < YOUNG_S)]
-        if young.size == 0:
+        young = self._on_young_tracks(problem, ind, YOUNG_S) if k > 0 else ()
+        if not len(young):
             return []
         self._young_cursor += 1
         return np.roll(young, -(self._young_cursor % young.size))[:k].tolist()

@@ -427,7 +427,7 @@ def calibrate(model: TriangulatedModel, source: MotionClip | np.ndarray,
     if s.placement_relevance > 0:
         mixtures, summary["placement"] = adapted_mixtures(model, P, s.placement_relevance, s.min_frames)
     rate = source.rate if isinstance(source, MotionClip) and rate is None else rate
-    broad = model.broad
+    broad, trained = model.broad, None
     if broad is not None and rate and s.broad_min_frames > 0:     # velocities need the rate
         trained = np.asarray(model.settings.get("broad_weights_training", broad.weights), dtype=np.float64)
         w, summary["broad"] = window_broad_weights(broad, mixtures, model.triangles,
@@ -436,7 +436,7 @@ def calibrate(model: TriangulatedModel, source: MotionClip | np.ndarray,
         broad = BroadMotion(w, broad.gaussians)
     out = model.replace(body=body, mixtures=mixtures, broad=broad)
     out.settings.pop("fit_reference_per_label", None)     # calibrations do not compound
-    if broad is not model.broad:
+    if trained is not None:
         out.settings["broad_weights_training"] = trained.tolist()
     ref = fit_per_label(out, P, rate) if rate else None
     training = out.settings.get("loglik_per_label")
