@@ -205,6 +205,10 @@ PARAMS: Tuple[Param, ...] = (
           "what it finds there when it fits the frame as it is better (a body on the floor under a model of "
           "standing motions: CMU 85 breakdance, 27 -> 97 % right). One more search per leaning frame. "
           "0 = off.", range=(0.0, 90.0)),
+    Param("bend_starts", 4, "A search from scratch that still fits poorly after its other starts also "
+          "runs on the frame pitched back 60 deg about this many horizontal axes, spread round the "
+          "vertical, and keeps what it finds there when it fits the frame as it is better (a body bent "
+          "at the hips under a model that never saw it: trunk read upside down). 0 = off.", range=(0, 12)),
     Param("region_checks", 1, "Body regions relabelled exactly (max-product DP "
           "given the rest of the body) per frame while checks are due (one pass over the "
           "regions after a GA search, then every region_every frames); repairs a wrong "
@@ -408,6 +412,7 @@ class LabelerSettings:
     hold_s: float = DEFAULTS["hold_s"]
     turn_check: bool = DEFAULTS["turn_check"]
     upright_deg: float = DEFAULTS["upright_deg"]
+    bend_starts: int = DEFAULTS["bend_starts"]
     region_checks: int = DEFAULTS["region_checks"]
     region_size: int = DEFAULTS["region_size"]
     region_every: int = DEFAULTS["region_every"]
