@@ -892,12 +892,12 @@ class TrackedLabeler:
         stream / single 4.36 / 11.28 -> 15.16 / 12.80 %, calibrated 99.09 / 56.71 -> 99.13 /
         59.15 %; the floor moves' generic body single frames 82.32 -> 82.93 %. The markers
         section: the MoCap Toolbox walk with gaps 71.76 -> 97.93 % (search errors 34 -> 1 of 35
-        frames), with clutter 100 -> 98.77 % (one search error in 35 frames, where there was none);
-        no other cell moved. Why marker sets only: a marker set's small rigid clusters (a head's four markers,
-        the pelvis's) each show which way is up, the 14 body points' bones do not, and a
-        pitched reading of a runner leaning forward fitted better than the upright truth (subject
-        9's run left out, calibrated stream 100 -> 71.43 %, ``dtm-label``'s default 100 ->
-        20.06 %). Why below a share of the level: a frame of another motion fits at 65-80 % of
+        frames), with clutter 100 -> 98.77 % (one search error in 35 frames, where there was
+        none); no other cell moved. Why marker sets only: a marker set's small rigid clusters (a
+        head's four markers, the pelvis's) each show which way is up, the 14 body points' bones
+        do not, and a pitched reading of a runner leaning forward fitted better than the upright
+        truth (subject 9's run left out, calibrated stream 100 -> 71.43 %, ``dtm-label``'s
+        default 100 -> 20.06 %). Why below a share of the level: a frame of another motion fits at 65-80 % of
         the level of the model's own take, a misread bent trunk at 49-57 %; checking every frame
         below the level doubled the cold searches' time on such a take. Why with at least half
         the labels' points in the frame: 4 points of 12 upper-body markers do not show a pose, and
