@@ -255,3 +255,30 @@ def test_when_tracks_began_were_last_seen_and_where_coasting_ones_are_predicted(
     np.testing.assert_allclose(pred[1], [2.0, 0.0, 1.0], atol=1e-9)
     assert np.isnan(pred[2]).all()
     assert np.isnan(Tracker().began([0])).all()
+
+
+def test_member_is_isin_for_the_hot_paths_arrays():
+    """``member`` (a broadcast comparison) answers as ``np.isin`` does: small and large arrays
+    (the sorted path beyond ``MEMBER_PAIRS``), empty ones, 2-d values."""
+    from dtm_labeler.labeling.tracker import MEMBER_PAIRS, member
+    rng = np.random.default_rng(0)
+    for a_n, b_n in [(0, 5), (5, 0), (1, 1), (17, 4096), (300, 300), (4, 3)]:
+        a, b = rng.integers(0, 400, a_n), rng.integers(0, 400, b_n)
+        assert np.array_equal(member(a, b), np.isin(a, b))
+    assert 300 * 300 > MEMBER_PAIRS
+    a2 = rng.integers(0, 20, (6, 5))
+    assert np.array_equal(member(a2, np.arange(10)), np.isin(a2, np.arange(10)))
+
+
+def test_position_of_is_the_predicted_row():
+    """``position_of`` predicts one track (also through an input id that continues it) exactly
+    as ``predicted`` does for every track."""
+    tr = Tracker()
+    tr.update(np.array([[0.0, 0, 1], [1, 0, 1], [2, 0, 1]]), 0.0, ids=np.array([5, 6, 7]))
+    tr.update(np.array([[0.01, 0.02, 1], [1.03, 0, 1]]), DT, ids=np.array([5, 6]))
+    tr.update(np.array([[0.021, 0.04, 1]]), 2 * DT, ids=np.array([5]))
+    t = 4.5 * DT
+    pred = tr.predicted(t)
+    for k, tid in enumerate(tr.ids):
+        assert np.array_equal(tr.position_of(int(tid), t), pred[k])
+    assert np.isnan(tr.position_of(99, t)).all()

@@ -166,3 +166,34 @@ def test_sliding_window_equals_a_recount():
             assert votes[i].tolist() == exp_votes
             assert seen[i] == sum(int((t == tr).sum()) for t, _, _ in frames)
             assert none[i] == sum(int(((t == tr) & (labs < 0)).sum()) for t, labs, a in frames if not a)
+
+
+def test_the_assignment_without_the_hungarian_algorithm_publishes_what_it_would(monkeypatch):
+    """``_max_assignment`` takes each row's strict maximum when no two positive rows share it
+    and falls back to the Hungarian algorithm otherwise: on random vote tables (counts and the
+    current frame's half vote, ties, shared maxima, more tracks than labels and fewer) the
+    labels a positive vote publishes are the Hungarian algorithm's."""
+    from scipy.optimize import linear_sum_assignment
+
+    from dtm_labeler.labeling import voting
+    calls = []
+    monkeypatch.setattr(voting, "linear_sum_assignment", lambda c: calls.append(1) or linear_sum_assignment(c))
+    rng = np.random.default_rng(3)
+    tables = 0
+    for trial in range(600):
+        n, M = int(rng.integers(1, 9)), int(rng.integers(1, 7))
+        votes = rng.integers(0, 4, size=(n, M)).astype(float)
+        votes[rng.random((n, M)) < 0.6] = 0.0
+        cur = rng.integers(-1, M, size=n)
+        votes[np.flatnonzero(cur >= 0), cur[cur >= 0]] += 0.5 * (trial % 2)
+        if not votes.any():
+            continue
+        tables += 1
+        got, want = np.full(n, -1), np.full(n, -1)
+        r, c = voting._max_assignment(votes)
+        got[r[votes[r, c] > 0]] = c[votes[r, c] > 0]
+        r2, c2 = linear_sum_assignment(-votes)
+        want[r2[votes[r2, c2] > 0]] = c2[votes[r2, c2] > 0]
+        assert votes[r, c].sum() == votes[r2, c2].sum()               # an optimal assignment
+        assert got.tolist() == want.tolist(), votes
+    assert 100 < len(calls) < tables - 100                              # both ways were tried

@@ -435,7 +435,7 @@ class TrackedLabeler:
             keys, vals = self._track_labels()
             pos, hit = _find(keys, tracks)
             coast = np.where(hit & ~seen, vals[pos], -1)
-            coast[np.isin(coast, lab[lab >= 0])] = -1
+            coast[tracker.member(coast, lab[lab >= 0])] = -1
             lab = np.where(coast >= 0, coast, lab)
             cf = np.where(coast >= 0, self._label_confidence[np.maximum(coast, 0)], cf)
         keep, n_in = inp.keep, inp.n_in
@@ -743,7 +743,7 @@ class TrackedLabeler:
         out[hit] = order[pos[hit]]
         carried = self._seeds(now, n)
         if carried is not None:
-            free = ~np.isin(carried[0], out) & (out == n)
+            free = ~tracker.member(carried[0], out) & (out == n)
             out[free] = carried[0][free]
         if res.full:
             self._since_search = 0
@@ -1096,7 +1096,7 @@ class TrackedLabeler:
             return None
         tids, labs = self._track_labels()
         seed = self._carried_labels(track_ids, n, (tids, labs))
-        unseen = ~np.isin(tids, track_ids)               # labels of tracks not seen this frame
+        unseen = ~tracker.member(tids, track_ids)               # labels of tracks not seen this frame
         self._coasting[labs[unseen]] = True
         self._coast_track[labs[unseen]] = tids[unseen]
         if 2 * int((seed < n).sum()) < min(M, n):

@@ -104,9 +104,26 @@ class VoteBook:
         conf = np.zeros(len(track_ids))
         if votes.size == 0 or not votes.any():
             return labels, conf
-        r, c = linear_sum_assignment(-votes)
+        r, c = _max_assignment(votes)
         ok = (votes[r, c] > 0) & (votes[r, c] > none[r])
         labels[r[ok]] = c[ok]
         conf[r[ok]] = np.minimum((votes[r[ok], c[ok]] - 0.5 * (cur[r[ok]] == c[ok])) / np.maximum(seen[r[ok]], 1.0),
                                  1.0)
         return labels, conf
+
+
+def _max_assignment(votes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns of a one-to-one assignment maximising the total ``votes``, the same
+    labels as ``linear_sum_assignment(-votes)`` gives where they count (a positive vote): when
+    every row with a positive vote has one strict maximum and no two such rows share its column
+    -- nearly every frame of a stream on track -- each such row takes its maximum (nothing beats
+    every row at its maximum, and that is the only way to reach it), without the Hungarian
+    algorithm's cost; otherwise the Hungarian algorithm. Rows without a positive vote are
+    left out (no label is published for them either way)."""
+    best = votes.argmax(1)
+    top = votes[np.arange(votes.shape[0]), best]
+    rows = np.flatnonzero(top > 0)
+    cols = best[rows]
+    if (votes[rows] == top[rows, None]).sum() == rows.size and np.unique(cols).size == cols.size:
+        return rows, cols
+    return linear_sum_assignment(-votes)
