@@ -1096,7 +1096,7 @@ class TrackedLabeler:
             return None
         tids, labs = self._track_labels()
         seed = self._carried_labels(track_ids, n, (tids, labs))
-        unseen = ~tracker.member(tids, track_ids)               # labels of tracks not seen this frame
+        unseen = ~tracker.member(tids, track_ids)         # labels of tracks not seen this frame
         self._coasting[labs[unseen]] = True
         self._coast_track[labs[unseen]] = tids[unseen]
         if 2 * int((seed < n).sum()) < min(M, n):

@@ -68,11 +68,15 @@ def long_axis(xyz: np.ndarray) -> np.ndarray | None:
     return vecs[:, -1] * (1.0 if vecs[2, -1] >= 0 else -1.0)
 
 
+def _cross_matrix(k: np.ndarray) -> np.ndarray:
+    """(3, 3) ``K`` with ``K @ v = k x v`` (the Rodrigues formula's matrix)."""
+    return np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+
+
 def rotation_to_up(axis: np.ndarray) -> np.ndarray:
     """(3, 3) the smallest rotation taking the unit ``axis`` (its z >= 0) onto +z (Rodrigues)."""
     cos = float(np.clip(axis[2], -1.0, 1.0))
-    k = np.array([axis[1], -axis[0], 0.0])                 # axis x z: the rotation's axis, |k| = sin
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    K = _cross_matrix(np.array([axis[1], -axis[0], 0.0]))  # axis x z: the rotation's axis, |k| = sin
     return np.eye(3) + K + K @ K / (1.0 + cos)
 
 
@@ -135,8 +139,7 @@ def pitch_back(azimuth: float, pitch_deg: float) -> np.ndarray:
     """(3, 3) the rotation about the horizontal axis square to the azimuth ``azimuth`` (radians
     from +x) that lifts a direction leaning that way by ``pitch_deg`` (Rodrigues)."""
     d = np.array([np.cos(azimuth), np.sin(azimuth), 0.0])
-    k = np.cross(d, [0.0, 0.0, 1.0])                    # turning about it by +angle lifts d
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    K = _cross_matrix(np.cross(d, [0.0, 0.0, 1.0]))     # turning about it by +angle lifts d
     a = np.radians(pitch_deg)
     return np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * K @ K
 
