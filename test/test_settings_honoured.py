@@ -19,7 +19,7 @@ from dtm_labeler.labeling.config import LabelerSettings
 from dtm_labeler.labeling.recovery import DeferredRecovery
 from dtm_labeler.labeling.stream import StreamLabeler
 from dtm_labeler.labeling import tracked
-from dtm_labeler.labeling.tracked import YOUNG_S
+from dtm_labeler.labeling.fast_path import YOUNG_S
 from dtm_labeler.labeling.tracker import TrackerSettings
 from dtm_labeler.model.bank import ModelBank
 from dtm_labeler.model.dtm import TriangulatedModel

@@ -325,7 +325,7 @@ def test_inline_audit_when_frames_fit_far_below_the_models_reference(model):
 
 
 def test_a_ghost_beside_a_hidden_marker_does_not_take_its_label(model):
-    """labeling/tracked.py _hold_cost: a hidden marker's track holds its label while it coasts,
+    """labeling/fast_path.py _hold_cost: a hidden marker's track holds its label while it coasts,
     so a point the tracker did not put on that track's path (a ghost riding 8 cm beside the
     marker) pays hold_nats to take it. For each of three markers hidden for 10 frames: without
     the prior the ghost takes the label (the model fits it better than a missing marker) and
@@ -355,18 +355,18 @@ def test_a_ghost_beside_a_hidden_marker_does_not_take_its_label(model):
 
 
 def test_a_marker_whose_track_broke_keeps_its_label(model, monkeypatch):
-    """labeling/tracked.py _hold_cost: the coasting track's prior spares the same marker on a new
+    """labeling/fast_path.py _hold_cost: the coasting track's prior spares the same marker on a new
     track -- one that began in the frames right after the coasting track was last seen, near
     where it is predicted (TRACK_BREAK_FRAMES, TRACK_BREAK_M). A marker that slips 5.5 cm in one
     frame (beyond the tracker's gate for a track with a known velocity) gets a new track, and
     its label follows in that frame; without the exemption the new track is a newcomer and the
     label waits for its velocity (a frame or more: subject 7's walk lost a knee for 8 frames)."""
-    import dtm_labeler.labeling.tracked as tracked
+    import dtm_labeler.labeling.fast_path as fast_path
     clip = synthesize(duration=1.6, seed=7, heading=-2.0, noise_mm=2, start_xy=(1.0, 2.0))
-    slip, exempt = 150, tracked.TRACK_BREAK_M
+    slip, exempt = 150, fast_path.TRACK_BREAK_M
     back = {}
     for radius in (exempt, 0.0):
-        monkeypatch.setattr(tracked, "TRACK_BREAK_M", radius)
+        monkeypatch.setattr(fast_path, "TRACK_BREAK_M", radius)
         for name in ("head", "neck"):
             target = model.labels.index(name)
             lab = StreamLabeler(model, LabelerSettings())

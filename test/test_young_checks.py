@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 
 from dtm_labeler.labeling.config import LabelerSettings
-from dtm_labeler.labeling.tracked import YOUNG_S
+from dtm_labeler.labeling.fast_path import YOUNG_S
 from dtm_labeler.motion import load_clip, to_point_set
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.training.train import TrainConfig, train_model
