@@ -24,6 +24,11 @@ Sections (``--only``):
   "unknown" ones; the unknown ones are written as ``*`` channels of a C3D of the second
   half (real trajectories next to the body), which ``dtm-label`` feeds to the labeler as
   unlabelled points. Accuracy and ghost rejection.
+* ``reflections`` -- fixed reflections of the capture volume (:func:`static_ghosts`: floor tape,
+  a prop; 3 of them) as ``*`` channels of the gapped second half, the gapped first half's model;
+  the HDM05 take, a draw of 22 of its markers (fewer markers: a hand's are more often all hidden)
+  and the Qualisys walk, with and without the fast path's isolated checks (``isolated_checks``)
+  in the same run. Not in the default ``--only``.
 * ``unnamed`` -- the HDM05 take's second half with its names stripped (only ``*`` channels,
   trajectories cut into pieces of ~1.5 s spread over channels, as an unlabelled export looks)
   through ``dtm-label MODEL unnamed.c3d --out labelled.c3d`` (the console script, a
@@ -58,7 +63,7 @@ RESULTS = REPO / "results"
 BIN = Path(sys.executable).parent
 
 from dtm_labeler.evaluation.archive import LabelJob, label_take  # noqa: E402
-from dtm_labeler.evaluation.corruption import realistic_gaps  # noqa: E402
+from dtm_labeler.evaluation.corruption import realistic_gaps, static_ghosts  # noqa: E402
 from dtm_labeler.labeling.stream import LabelerSettings  # noqa: E402
 from dtm_labeler.model.io import model_to_bytes, save_model  # noqa: E402
 from dtm_labeler.motion.c3d_write import write_c3d  # noqa: E402
@@ -79,6 +84,9 @@ TRAIN_FRAMES, LABEL_FRAMES = 1500, 600
 TAKE_VOTES_S = 1.0            # dtm-label's default --take-votes
 SWEEP = (0.1, 0.25, 0.5)
 CONFIG = dict(seed=0, k_max=3)
+#: reflections: (take, markers drawn or None for all, missing shares); the draw of 22 markers is seed 5's
+REFLECTION_CASES = (("hdm05", None, (0.5,)), ("hdm05", 22, (0.25, 0.5)), ("qualisys", None, (0.5,)))
+REFLECTIONS = 3
 # markers the model does not know, written as '*' channels (real trajectories next to the body)
 UNKNOWN = {"hdm05": ["LFIN", "RFIN", "LTOE", "RTOE", "RBAC", "T10"],
            "qualisys": ["L_WAND1", "L_WAND2", "L_WAND3", "L_WAND4", "R_WAND1", "R_WAND2", "R_WAND3", "R_WAND4"]}
@@ -247,6 +255,37 @@ def run_ghosts(tmp: Path, keys, quick: bool) -> dict:
         log(f"ghosts {key}: accuracy {100 * r['accuracy']:.2f} %, ghosts rejected {100 * r['ghost_rejection']:.2f} % "
             f"of {r['ghosts']} (without them: {100 * r['without_ghosts']['accuracy']:.2f} %)")
         out[key] = r
+    return out
+
+
+def run_reflections(tmp: Path, quick: bool) -> dict:
+    """Fixed reflections beside the gapped second half (module doc), isolated checks off / on."""
+    out = {}
+    for key, drawn, shares in REFLECTION_CASES:
+        clip = load_clip(DATA / TAKES[key][0])
+        if drawn is not None:
+            rng = np.random.default_rng(5)
+            clip = clip.select([clip.names[i] for i in sorted(rng.choice(clip.n_points, drawn, replace=False))])
+        tr, la = halves(clip.n_frames, 600 if quick else TRAIN_FRAMES, 120 if quick else LABEL_FRAMES)
+        for miss in shares:
+            name = f"{key}{'' if drawn is None else f' ({drawn} markers)'}, {100 * miss:.0f} % hidden"
+            gap = gapped(clip, **(GAPS | {"missing": miss, "mean_gap_s": GAP_S.get(key, GAPS["mean_gap_s"])}))
+            row = {"labels": clip.n_points}
+            try:
+                model, _, row["train_s"] = train(gap.slice(tr.start, tr.stop))
+            except RarelySeen as e:
+                row["left_out"] = list(e.names)
+                model, _, row["train_s"] = train(to_point_set(gap.slice(tr.start, tr.stop), AllBut(e.names)))
+            test = gap.slice(la.start, la.stop)
+            refl = static_ghosts(clip.slice(la.start, la.stop).positions, REFLECTIONS, seed=1)
+            path = write_c3d(tmp / "reflections.c3d", np.concatenate([test.positions, refl], 1),
+                             list(test.names) + [f"*{i}" for i in range(REFLECTIONS)], test.rate)
+            for checks in (0, 1):
+                row[checks] = label_tracked(model, path, take_votes_s=TAKE_VOTES_S,
+                                            settings=LabelerSettings(isolated_checks=checks))
+                log(f"reflections {name}, isolated checks {checks}: " + ", ".join(
+                    f"{t} {100 * r['live_accuracy']:.2f} -> {100 * r['accuracy']:.2f} %" for t, r in row[checks].items()))
+            out[name] = row
     return out
 
 
@@ -431,6 +470,24 @@ def write_md(res: dict, meta: dict) -> str:
                 L.append(f"| {key} | {seed} | {pct(r['capture ids']['accuracy'])} | "
                          f"{pct(r['own tracker']['accuracy'])} |")
         L.append("")
+    if "reflections" in res:
+        L += ["## Fixed reflections beside gapped takes", "",
+              f"{REFLECTIONS} fixed points (floor tape, a prop: half on the floor, the rest up to 2 m, within 1.5 m of "
+              "the body's path) as `*` channels of the gapped second half (gap seed 1), the gapped first half's "
+              "model, `dtm-label`'s default (`--calibrate off`). Each cell: as published live -> after the pass "
+              "over the take (accuracy %), ghosts rejected; isolated checks (`isolated_checks`, the fast path's "
+              "exact relabelling around a label none of whose triangle neighbours is labelled) off -> on, same run.", "",
+              "| take | capture ids, off | capture ids, on | own tracker, off | own tracker, on |", "|---|---|---|---|---|"]
+        for name, row in res["reflections"].items():
+            cells = []
+            for tag in ("capture ids", "own tracker"):
+                for checks in ("0", "1"):
+                    r = row[checks][tag] if checks in row else row[int(checks)][tag]
+                    cells.append(f"{pct(r['live_accuracy'])} -> {pct(r['accuracy'])}, "
+                                 f"{pct(r['ghost_rejection'])} rejected")
+            note = f" (without {', '.join(row['left_out'])}: seen too rarely)" if row.get("left_out") else ""
+            L.append(f"| {name}{note} | " + " | ".join(cells) + " |")
+        L.append("")
     if "ghosts" in res:
         L += ["## Real ghosts from `*` channels", "",
               "Markers the model does not know, written as `*` channels of the second half's C3D (real "
@@ -505,6 +562,8 @@ def main(argv=None) -> int:
                                                 [int(x) for x in args.label_seeds.split(",")], args.quick)
         if "ghosts" in only:
             res["ghosts"] = run_ghosts(tmp, args.ghost_takes.split(","), args.quick)
+        if "reflections" in only:
+            res["reflections"] = run_reflections(tmp, args.quick)
         if "unnamed" in only:
             res["unnamed"] = run_unnamed(tmp, args.quick)
             log(f"unnamed: {100 * res['unnamed']['named_right']:.2f} % of true samples named right")

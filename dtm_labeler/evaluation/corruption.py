@@ -20,7 +20,8 @@ Per frame, in this order:
 * **unlabelled points** -- ``extra`` (F, K, 3) real points of the take that are not the
   model's (a C3D's ``*`` channels, markers the model does not know; see
   :mod:`dtm_labeler.motion.unlabelled`) are delivered where finite, never hidden, truth ``-1``
-  like ghosts; each keeps its id while it stays visible.
+  like ghosts; each keeps its id while it stays visible. Fixed reflections of the capture
+  volume (:func:`static_ghosts`) come the same way.
 * **noise** -- i.i.d. Gaussian noise of ``noise_mm`` (std per coordinate, mm) on every point.
 * **shuffle** -- the points are permuted randomly, so their order carries no label; the
   truth moves with them.
@@ -158,6 +159,27 @@ def realistic_gaps(n_frames: int, n_points: int, rate: float, missing: float = 0
             t += n
             state = not state
     return hidden
+
+
+def static_ghosts(positions: np.ndarray, count: int, seed: int = 0, floor_share: float = 0.5,
+                  reach_m: float = 1.5) -> np.ndarray:
+    """(F, count, 3) fixed points, the reflections a capture volume keeps whatever the subject
+    does: floor tape, a force plate's edge, a prop. Each sits at one place for the whole take
+    (NaN nowhere): horizontally within ``reach_m`` of the body's path (the median of each
+    frame's visible points, Z up), on the floor (0-2 cm up) for a ``floor_share`` of them, at
+    0-2 m otherwise. Pass as ``corrupt_clip(..., extra=...)``: they are delivered every frame,
+    never hidden, truth ``-1``."""
+    if count < 0:
+        raise ValueError("count must be >= 0")
+    P = np.asarray(positions, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    path = np.nanmedian(P, axis=1)                                        # (F, 3) the body's path
+    lo, hi = np.nanmin(path, axis=0), np.nanmax(path, axis=0)
+    xy = rng.uniform(lo[:2] - reach_m, hi[:2] + reach_m, size=(count, 2))
+    on_floor = rng.random(count) < floor_share
+    z = np.where(on_floor, rng.uniform(0.0, 0.02, count), rng.uniform(0.0, 2.0, count))
+    pts = np.column_stack([xy, z]) if count else np.zeros((0, 3))
+    return np.broadcast_to(pts, (P.shape[0], count, 3)).copy()
 
 
 def _ghost_tracks(positions: np.ndarray, visible: np.ndarray, k: int, rate: float, rng: np.random.Generator,
