@@ -284,7 +284,8 @@ def run_reflections(tmp: Path, quick: bool) -> dict:
                 row[checks] = label_tracked(model, path, take_votes_s=TAKE_VOTES_S,
                                             settings=LabelerSettings(isolated_checks=checks))
                 log(f"reflections {name}, isolated checks {checks}: " + ", ".join(
-                    f"{t} {100 * r['live_accuracy']:.2f} -> {100 * r['accuracy']:.2f} %" for t, r in row[checks].items()))
+                    f"{t} {100 * r['live_accuracy']:.2f} -> {100 * r['accuracy']:.2f} %"
+                    for t, r in row[checks].items()))
             out[name] = row
     return out
 

@@ -20,8 +20,9 @@ In ``stream`` mode most frames are labelled here and nowhere else (:meth:`FastPa
 stream state the labeler keeps (``settings``, ``tracker``, ``tenure``, ``engine``, the frame's
 track ids ``_frame_tracks``, the coasting labels ``_coasting`` / ``_coast_track``, ``last_stamp``,
 ``_stream_start``, ``_since_search``, ``_frame_no``, ``_event_points``) and keeps its own cursors
-(``_region_cursor``, ``_young_cursor``, ``_isolated_cursor``, ``_misfit_run``, ``_track_began``), which the labeler's
-``reset`` restarts. Whether the result is accepted is the labeler's (its fitness level).
+(``_region_cursor``, ``_young_cursor``, ``_isolated_cursor``, ``_isolated_since``, ``_misfit_run``,
+``_track_began``), which the labeler's ``reset`` restarts. Whether the result is accepted is the
+labeler's (its fitness level).
 """
 from __future__ import annotations
 
@@ -457,24 +458,23 @@ class FastPath:
         Measured (HDM05, 22 of its markers, model of the take's first half, 4 ghosts of which
         three fixed floor points, the first 10 % of the second half, inline): 25 % of the samples
         hidden 86.92 -> 95.67 %, search errors 436 -> 75 of 592; half hidden 54.44 -> 59.58 %.
-        Without the wait (every isolated label at once) 96.70 / 65.81 %, but ``bench_stream_latency``'s
-        41 markers with 3 gaps and 2 ghosts moving with the body lost up to 1.6 points (corruption
-        seeds 1-5: 94.55 / 93.97 / 94.68 / 94.94 / 93.94 -> 94.55 / 93.28 / 94.68 / 94.94 / 92.31 %):
-        a label isolated for a frame or two by a gap is where the model's own errors are reached."""
+        ``bench_stream_latency``'s 41 markers with 3 gaps and 2 ghosts moving with the body, corruption
+        seeds 1-5: 94.55 / 93.97 / 94.68 / 94.94 / 93.94 -> 94.55 / 93.97 / 94.68 / 94.94 / 94.01 %.
+        Without the wait (every isolated label at once) 96.70 / 65.81 % on the first stream, but
+        94.59 / 93.28 / 94.68 / 94.94 / 92.31 % on the bench's: a label isolated for a frame or
+        two by a gap is where the model's own errors are reached."""
         k = self.settings.isolated_checks
         n = problem.n
         if k <= 0 or not problem.model.marker_set:
             return []
         have = ind < n
-        if int(have.sum()) >= n:                        # every point labelled: nowhere to go
-            return []
         lonely = have & ~(problem.model.triangle_neighbours & have[None, :]).any(1)
         since = self._isolated_since
         if since is None or since.size != lonely.size:
             since = np.full(lonely.size, np.nan)
         self._isolated_since = since = np.where(lonely, np.fmin(since, self.last_stamp), np.nan)
         lonely = np.flatnonzero(self.last_stamp - since >= ISOLATED_S)
-        if not lonely.size:
+        if not lonely.size or int(have.sum()) >= n:     # none, or every point labelled: nowhere to go
             return []
         self._isolated_cursor += 1
         return np.roll(lonely, -(self._isolated_cursor % lonely.size))[:k].tolist()
