@@ -27,8 +27,7 @@ Sections (``--only``):
 * ``reflections`` -- fixed reflections of the capture volume (:func:`static_ghosts`: floor tape,
   a prop; 3 of them) as ``*`` channels of the gapped second half, the gapped first half's model;
   the HDM05 take, a draw of 22 of its markers (fewer markers: a hand's are more often all hidden)
-  and the Qualisys walk, with and without the fast path's isolated checks (``isolated_checks``)
-  in the same run. Not in the default ``--only``.
+  and the Qualisys walk; the same second half without them beside. Not in the default ``--only``.
 * ``unnamed`` -- the HDM05 take's second half with its names stripped (only ``*`` channels,
   trajectories cut into pieces of ~1.5 s spread over channels, as an unlabelled export looks)
   through ``dtm-label MODEL unnamed.c3d --out labelled.c3d`` (the console script, a
@@ -259,7 +258,7 @@ def run_ghosts(tmp: Path, keys, quick: bool) -> dict:
 
 
 def run_reflections(tmp: Path, quick: bool) -> dict:
-    """Fixed reflections beside the gapped second half (module doc), isolated checks off / on."""
+    """Fixed reflections beside the gapped second half (module doc), and the same half without them."""
     out = {}
     for key, drawn, shares in REFLECTION_CASES:
         clip = load_clip(DATA / TAKES[key][0])
@@ -280,12 +279,13 @@ def run_reflections(tmp: Path, quick: bool) -> dict:
             refl = static_ghosts(clip.slice(la.start, la.stop).positions, REFLECTIONS, seed=1)
             path = write_c3d(tmp / "reflections.c3d", np.concatenate([test.positions, refl], 1),
                              list(test.names) + [f"*{i}" for i in range(REFLECTIONS)], test.rate)
-            for checks in (0, 1):
-                row[checks] = label_tracked(model, path, take_votes_s=TAKE_VOTES_S,
-                                            settings=LabelerSettings(isolated_checks=checks))
-                log(f"reflections {name}, isolated checks {checks}: " + ", ".join(
+            row["with"] = label_tracked(model, path, take_votes_s=TAKE_VOTES_S)
+            row["without"] = label_tracked(model, write_take(tmp / "no_reflections.c3d", test),
+                                           take_votes_s=TAKE_VOTES_S)
+            for w in ("with", "without"):
+                log(f"reflections {name}, {w}: " + ", ".join(
                     f"{t} {100 * r['live_accuracy']:.2f} -> {100 * r['accuracy']:.2f} %"
-                    for t, r in row[checks].items()))
+                    for t, r in row[w].items()))
             out[name] = row
     return out
 
@@ -475,17 +475,16 @@ def write_md(res: dict, meta: dict) -> str:
         L += ["## Fixed reflections beside gapped takes", "",
               f"{REFLECTIONS} fixed points (floor tape, a prop: half on the floor, the rest up to 2 m, within 1.5 m of "
               "the body's path) as `*` channels of the gapped second half (gap seed 1), the gapped first half's "
-              "model, `dtm-label`'s default (`--calibrate off`). Each cell: as published live -> after the pass "
-              "over the take (accuracy %), ghosts rejected; isolated checks (`isolated_checks`, the fast path's "
-              "exact relabelling around a label none of whose triangle neighbours is labelled) off -> on, same run.", "",
-              "| take | capture ids, off | capture ids, on | own tracker, off | own tracker, on |", "|---|---|---|---|---|"]
+              "model, `dtm-label`'s default (`--calibrate off`); the same half without them beside. Each cell: as "
+              "published live -> after the pass over the take (accuracy %), and the reflections' samples left "
+              "unlabelled.", "",
+              "| take | capture ids | own tracker | without reflections: capture ids / own tracker |",
+              "|---|---|---|---|"]
         for name, row in res["reflections"].items():
-            cells = []
-            for tag in ("capture ids", "own tracker"):
-                for checks in ("0", "1"):
-                    r = row[checks][tag] if checks in row else row[int(checks)][tag]
-                    cells.append(f"{pct(r['live_accuracy'])} -> {pct(r['accuracy'])}, "
-                                 f"{pct(r['ghost_rejection'])} rejected")
+            cells = [f"{pct(row['with'][t]['live_accuracy'])} -> {pct(row['with'][t]['accuracy'])}, "
+                     f"{pct(row['with'][t]['ghost_rejection'])} rejected" for t in ("capture ids", "own tracker")]
+            cells.append(" / ".join(f"{pct(row['without'][t]['live_accuracy'])} -> {pct(row['without'][t]['accuracy'])}"
+                                    for t in ("capture ids", "own tracker")))
             note = f" (without {', '.join(row['left_out'])}: seen too rarely)" if row.get("left_out") else ""
             L.append(f"| {name}{note} | " + " | ".join(cells) + " |")
         L.append("")

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from dtm_labeler.evaluation.corruption import corrupt_clip, occlusion_mask, score_frame
+from dtm_labeler.evaluation.corruption import corrupt_clip, occlusion_mask, score_frame, static_ghosts
 from dtm_labeler.motion import synthesize
 
 
@@ -92,6 +92,32 @@ def test_ghost_tracks_persist_and_move_with_the_body(clip):
     steps = np.concatenate([np.linalg.norm(np.diff(np.array(v), axis=0), axis=1) for v in pos.values()
                             if len(v) > 1])
     assert np.median(steps) < 0.03          # smooth track, not re-drawn each frame
+
+
+def test_static_ghosts_stay_put_within_reach_of_the_body(clip):
+    """Fixed reflections: one place for the whole take, on the floor or up to 2 m, horizontally
+    within reach of the body's path; fed as extra points they are never labelled truth and
+    keep one id."""
+    g = static_ghosts(clip.positions, 6, seed=1, floor_share=0.5)
+    assert g.shape == (clip.n_frames, 6, 3) and np.isfinite(g).all()
+    assert (g == g[:1]).all()
+    path = np.nanmedian(clip.positions, axis=1)
+    lo, hi = path.min(0), path.max(0)
+    assert ((g[0, :, :2] >= lo[:2] - 1.5) & (g[0, :, :2] <= hi[:2] + 1.5)).all()
+    assert ((g[0, :, 2] >= 0) & (g[0, :, 2] <= 2.0)).all()
+    assert (static_ghosts(clip.positions, 40, seed=2, floor_share=1.0)[0, :, 2] <= 0.02).all()
+    assert static_ghosts(clip.positions, 0).shape == (clip.n_frames, 0, 3)
+    with pytest.raises(ValueError):
+        static_ghosts(clip.positions, -1)
+    s = corrupt_clip(clip, extra=g, seed=4)
+    ids = {i: set() for i in range(6)}
+    for f in s:
+        fake = np.flatnonzero(f.truth < 0)
+        assert fake.size == 6
+        for i in fake:
+            k = int(np.flatnonzero((np.abs(g[0] - f.xyz[i]) < 1e-9).all(1))[0])
+            ids[k].add(int(f.ids[i]))
+    assert all(len(v) == 1 for v in ids.values())
 
 
 def test_ids_persist_while_visible_and_change_after_gaps(clip):

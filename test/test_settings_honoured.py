@@ -71,7 +71,6 @@ CHANGES = {
     "region_size": 2,
     "region_every": 1,
     "young_checks": 0,
-    "isolated_checks": 0,
     "region_branches": 6,
     "max_gap_s": 0.02,
     "noise_mm": 30.0,
@@ -144,11 +143,6 @@ TURNED_CLUSTER = {"cluster_turns"}
 #: fast path's climb with the stream made older, every track young, from a frame's labeling with
 #: three labels of the first label's region each one along
 YOUNG_TRACKS = {"young_checks"}
-#: fields that act only on a marker set's labels none of whose triangle neighbours has been labelled
-#: for ``ISOLATED_S`` (this walker is 14 body points, whole in most frames): compared on the fast
-#: path's climb from a frame's labeling with the first labelled label's triangle neighbours left
-#: out, the label isolated since a second before, the walker's models taken as a marker set
-ISOLATED_LABEL = {"isolated_checks"}
 #: fields that act only on a marker set's searches from scratch that fit below ``BEND_SHARE`` of
 #: the level (this walker is 14 body points and fits well): compared with the walker's models
 #: taken as a marker set and every search from scratch due for the check
@@ -211,19 +205,6 @@ def young_climb(kind, models, settings, stream) -> tuple:
     return climb_from(kind, models, settings, stream, start_of)
 
 
-def isolated_climb(kind, models, settings, stream) -> tuple:
-    """The climb from frame 10's labeling with the first labelled label's triangle neighbours
-    left out, that label isolated since a second before."""
-    def start_of(p, lab, a):
-        first = int(np.flatnonzero(a < p.n)[0])
-        start = a.copy()
-        start[p.model.triangle_neighbours[first]] = p.n
-        lab._isolated_since = np.full(p.M, np.nan)
-        lab._isolated_since[first] = lab.last_stamp - 1.0
-        return start
-    return climb_from(kind, models, settings, stream, start_of)
-
-
 def held_prices(kind, models, settings, stream) -> list:
     """What the fast path's hill-climb would pay for moving each labelled point's label onto each
     unlabelled point, after 10 and after 30 frames of the stream (None: nothing to pay)."""
@@ -254,7 +235,7 @@ def test_every_setting_changes_both_labelers(kind, models, stream, monkeypatch):
     assert trace(make(kind, models, BASE), stream) == base          # deterministic
     ignored = [name for name, value in CHANGES.items()
                if name not in BACKGROUND_ONLY | WHOLE_BODY_REGIONS | MIRRORED_CARRY | HELD_CARRY | TURNED_CLUSTER |
-               YOUNG_TRACKS | POOR_MARKER_COLD | ISOLATED_LABEL and
+               YOUNG_TRACKS | POOR_MARKER_COLD and
                trace(make(kind, models, dataclasses.replace(BASE, **{name: value})), stream, base) == base]
     bg = dataclasses.replace(BASE, recovery="background")
     for name in BACKGROUND_ONLY:
@@ -288,11 +269,6 @@ def test_every_setting_changes_both_labelers(kind, models, stream, monkeypatch):
     with monkeypatch.context() as patch:
         patch.setattr(TriangulatedModel, "marker_set", property(lambda self: True))
         patch.setattr(tracked, "BEND_SHARE", 10.0)
-        base_isolated = isolated_climb(kind, models, no_regions_chains, stream)
-        for name in ISOLATED_LABEL:
-            if isolated_climb(kind, models, dataclasses.replace(no_regions_chains, **{name: CHANGES[name]}),
-                              stream) == base_isolated:
-                ignored.append(name)
         base_cold = trace(make(kind, models, BASE), stream)
         for name in POOR_MARKER_COLD:
             if trace(make(kind, models, dataclasses.replace(BASE, **{name: CHANGES[name]})), stream, base_cold) == base_cold:

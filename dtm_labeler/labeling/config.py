@@ -220,11 +220,6 @@ PARAMS: Tuple[Param, ...] = (
           "or a ghost that took a hidden point's label -- one such label after another. Joint centres "
           "only (the 14 body points): on a marker set the exact relabelling of a hand's or a foot's "
           "region follows the model's own errors. 0 = off.", range=(0, 16)),
-    Param("isolated_checks", 1, "Regions relabelled exactly per frame, besides region_checks, around "
-          "a label on a point while none of its triangle neighbours is labelled and some point of the "
-          "frame has no label -- one such label after another. Such a label rests on nothing but its "
-          "own point: a ghost that took it while its neighbours were hidden keeps it, and the "
-          "neighbours back in view stay unlabelled. 0 = off.", range=(0, 16)),
     Param("region_every", 240, "Background region check every this many frames "
           "in steady state (0 = only after GA searches).", range=(0, 1000000)),
     Param("region_size", 6, "Labels per region of the region checks and of the "
@@ -424,7 +419,6 @@ class LabelerSettings:
     region_size: int = DEFAULTS["region_size"]
     region_every: int = DEFAULTS["region_every"]
     young_checks: int = DEFAULTS["young_checks"]
-    isolated_checks: int = DEFAULTS["isolated_checks"]
     region_branches: int = DEFAULTS["region_branches"]
     max_gap_s: float = DEFAULTS["max_gap_s"]
     noise_mm: float = DEFAULTS["noise_mm"]

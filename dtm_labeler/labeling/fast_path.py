@@ -13,16 +13,14 @@ In ``stream`` mode most frames are labelled here and nowhere else (:meth:`FastPa
    (:func:`~dtm_labeler.search.dtm_dp.relabel_regions`) around the labels where a carried
    labeling goes wrong -- points that just appeared (:meth:`FastPath._event_centres`), the label
    that fits worst against the model's floors (:meth:`FastPath._misfit_centres`), labels on young
-   tracks (:meth:`FastPath._young_centres`), labels none of whose triangle neighbours is labelled
-   (:meth:`FastPath._isolated_centres`), and every region in turn after a search.
+   tracks (:meth:`FastPath._young_centres`), and every region in turn after a search.
 
 :class:`FastPath` is the half of :class:`~.tracked.TrackedLabeler` that does this; it reads the
 stream state the labeler keeps (``settings``, ``tracker``, ``tenure``, ``engine``, the frame's
 track ids ``_frame_tracks``, the coasting labels ``_coasting`` / ``_coast_track``, ``last_stamp``,
 ``_stream_start``, ``_since_search``, ``_frame_no``, ``_event_points``) and keeps its own cursors
-(``_region_cursor``, ``_young_cursor``, ``_isolated_cursor``, ``_isolated_since``, ``_misfit_run``,
-``_track_began``), which the labeler's ``reset`` restarts. Whether the result is accepted is the
-labeler's (its fitness level).
+(``_region_cursor``, ``_young_cursor``, ``_misfit_run``, ``_track_began``), which the labeler's
+``reset`` restarts. Whether the result is accepted is the labeler's (its fitness level).
 """
 from __future__ import annotations
 
@@ -43,8 +41,6 @@ TRACK_BREAK_FRAMES, TRACK_BREAK_M = 2.5, 0.06
 #: young checks (:meth:`FastPath._young_centres`): labels on points whose track began less
 #: than this (s) ago, after the stream's first frame
 YOUNG_S = 0.5
-#: isolated checks (:meth:`FastPath._isolated_centres`): labels isolated for at least this (s)
-ISOLATED_S = 0.1
 #: release moves (:meth:`FastPath._releasable`): labels on points whose track began less than
 #: this (s) ago, after the stream's first frame
 RELEASE_S = 2.0
@@ -227,8 +223,7 @@ class FastPath:
         if self.settings.cluster_turns and self._region_checks_due(problem.M):
             ind, f, e = self._cluster_turns(problem, ind, f, moves, cost)
             evals += e
-        if problem.M > 3 and (self.settings.region_checks > 0 or self.settings.young_checks > 0
-                              or self.settings.isolated_checks > 0):
+        if problem.M > 3 and (self.settings.region_checks > 0 or self.settings.young_checks > 0):
             centres = []
             if self.settings.region_checks > 0:
                 centres = self._event_centres(problem, ind) + self._misfit_centres(problem, ind)
@@ -237,7 +232,6 @@ class FastPath:
                     centres = [self._region_cursor] + [c for c in centres if c != self._region_cursor]
                 centres = centres[:self.settings.region_checks]
             centres += [c for c in self._young_centres(problem, ind) if c not in centres]
-            centres += [c for c in self._isolated_centres(problem, ind) if c not in centres]
             if centres:
                 ind0, f0 = ind, f
                 ind, f, e = self._region_checks(problem, ind, f, moves, centres)
@@ -441,43 +435,6 @@ class FastPath:
             return []
         self._young_cursor += 1
         return np.roll(young, -(self._young_cursor % young.size))[:k].tolist()
-
-    def _isolated_centres(self, problem: FrameProblem, ind: np.ndarray) -> list[int]:
-        """Up to ``isolated_checks`` labels, in turn from frame to frame, that have held a point
-        for ``ISOLATED_S`` while none of their triangle neighbours
-        (:attr:`TriangulatedModel.triangle_neighbours`) was labelled, in a frame with points no
-        label holds; marker sets only (:attr:`TriangulatedModel.marker_set`: joint centres have
-        the release moves and young checks for a ghost on a label). Such a label's terms are all
-        marginalised (eq. 30-31), so its point is scored by the label's gain over clutter alone:
-        while a hand's markers were hidden a fixed floor reflection took LWRA, and when the
-        forearm and elbow came back the carried labeling left them out -- each single move that
-        puts one of them right fits worse, and the hold prior kept LWRA on the reflection's
-        lasting track. The exact relabelling of the label's region given the rest sees the arm
-        whole.
-
-        Measured (HDM05, 22 of its markers, model of the take's first half, 4 ghosts of which
-        three fixed floor points, the first 10 % of the second half, inline): 25 % of the samples
-        hidden 86.92 -> 95.67 %, search errors 436 -> 75 of 592; half hidden 54.44 -> 59.58 %.
-        ``bench_stream_latency``'s 41 markers with 3 gaps and 2 ghosts moving with the body, corruption
-        seeds 1-5: 94.55 / 93.97 / 94.68 / 94.94 / 93.94 -> 94.55 / 93.97 / 94.68 / 94.94 / 94.01 %.
-        Without the wait (every isolated label at once) 96.70 / 65.81 % on the first stream, but
-        94.59 / 93.28 / 94.68 / 94.94 / 92.31 % on the bench's: a label isolated for a frame or
-        two by a gap is where the model's own errors are reached."""
-        k = self.settings.isolated_checks
-        n = problem.n
-        if k <= 0 or not problem.model.marker_set:
-            return []
-        have = ind < n
-        lonely = have & ~(problem.model.triangle_neighbours & have[None, :]).any(1)
-        since = self._isolated_since
-        if since is None or since.size != lonely.size:
-            since = np.full(lonely.size, np.nan)
-        self._isolated_since = since = np.where(lonely, np.fmin(since, self.last_stamp), np.nan)
-        lonely = np.flatnonzero(self.last_stamp - since >= ISOLATED_S)
-        if not lonely.size or int(have.sum()) >= n:     # none, or every point labelled: nowhere to go
-            return []
-        self._isolated_cursor += 1
-        return np.roll(lonely, -(self._isolated_cursor % lonely.size))[:k].tolist()
 
     def _region_checks(self, problem: FrameProblem, ind: np.ndarray, f: float, moves,
                        centres: list[int]) -> tuple[np.ndarray, float, int]:

@@ -341,8 +341,6 @@ class TrackedLabeler(FastPath):
         self._coast_track = np.full(self.n_labels, -1, dtype=np.int64)   # ... and those tracks
         self._region_cursor = -1
         self._young_cursor = -1
-        self._isolated_cursor = -1
-        self._isolated_since = None               # per label: stamp since which it is isolated
         self._stream_start = None                  # stamp of the first frame since the reset (its tracks are not young)
         self._provisional = False
         self._epoch = getattr(self, "_epoch", 0) + 1   # results of searches asked before are dropped

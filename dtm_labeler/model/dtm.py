@@ -425,21 +425,6 @@ class TriangulatedModel:
         return self._rigid_clusters
 
     @property
-    def triangle_neighbours(self) -> np.ndarray:
-        """(M, M) bool: labels ``u != v`` that share a triangle of the structure -- the pairs
-        that have a term of their own (eq. 15); a label none of whose neighbours is labelled
-        is placed by nothing but its own point. Built once."""
-        if getattr(self, "_triangle_neighbours", None) is None:
-            A = np.zeros((self.n_labels, self.n_labels), dtype=bool)
-            tri = np.asarray(self.triangles, dtype=np.int64)
-            for i in range(3):
-                for j in range(3):
-                    if i != j:
-                        A[tri[:, i], tri[:, j]] = True
-            self._triangle_neighbours = A
-        return self._triangle_neighbours
-
-    @property
     def pair_triangles(self) -> tuple[tuple[int, int, int], ...]:
         """(left, right, triangle) for every heading pair that shares a triangle, the first
         such triangle: where the GA's guided sampling anchors a candidate's facing
