@@ -282,6 +282,15 @@ PARAMS: Tuple[Param, ...] = (
           "within +-this (m/s) per axis.", range=(1e-6, 1e6)),
     Param("detection_probability", Background.detection_probability, "Probability that a "
           "body marker is seen in a frame (missing-marker prior); in (0, 1).", range=(0.001, 0.999)),
+    Param("clutter_fixed_share", Background.fixed_share, "Share of the clutter velocity density "
+          "that is fixed reflections (floor tape, a prop): a Gaussian about 0 of clutter_fixed_speed_mps, "
+          "so a still point is not taken for a marker whose neighbours are hidden. For a volume with "
+          "reflections the cameras cannot mask (0.002: a perfectly still point's gain -9 nats); it also "
+          "costs still body markers whose neighbours are hidden. 0 = uniform clutter (the paper's).",
+          range=(0.0, 0.999)),
+    Param("clutter_fixed_speed_mps", Background.fixed_speed_mps, "Measured speed spread (m/s per "
+          "axis) of a fixed reflection; raise it for noisy systems (1 mm at 120 Hz: 0.17).",
+          range=(1e-6, 100.0)),
     # -- input bounds ------------------------------------------------------------------------------
     Param("max_points", 0, "At most this many points (nearest the body) enter the "
           "search; the rest are published unlabelled. 0 = 2 x labels + 8.", range=(0, 1000000)),
@@ -463,7 +472,8 @@ def settings_from_params(values: Mapping[str, Any]) -> LabelerSettings:
     return LabelerSettings(
         full=full, warm=warm,
         background=Background(volume_m3=v["clutter_volume_m3"], max_speed_mps=v["clutter_max_speed_mps"],
-                              detection_probability=v["detection_probability"]),
+                              detection_probability=v["detection_probability"],
+                              fixed_share=v["clutter_fixed_share"], fixed_speed_mps=v["clutter_fixed_speed_mps"]),
         tracker=TrackerSettings(gate_m=v["gate_m"], known_gate_m=v["known_gate_m"],
                                 gate_speed_factor=v["gate_speed_factor"],
                                 max_misses=v["max_misses"], accel_mps2=v["accel_mps2"],
@@ -483,7 +493,8 @@ def params_from_settings(settings: LabelerSettings) -> Dict[str, Any]:
                max_misses=s.tracker.max_misses, accel_mps2=s.tracker.accel_mps2,
                new_track_speed_mps=s.tracker.new_track_speed_mps, clutter_volume_m3=s.background.volume_m3,
                clutter_max_speed_mps=s.background.max_speed_mps,
-               detection_probability=s.background.detection_probability)
+               detection_probability=s.background.detection_probability,
+               clutter_fixed_share=s.background.fixed_share, clutter_fixed_speed_mps=s.background.fixed_speed_mps)
     return out
 
 
