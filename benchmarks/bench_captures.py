@@ -116,6 +116,19 @@ def train(clip, **over):
     return model, summary, time.perf_counter() - t0
 
 
+def train_leaving_out(clip, row: dict, what: str):
+    """:func:`train` on a gapped clip; markers the coverage check finds too rarely seen are left
+    out, as ``dtm-train``'s message says (``--points all,-NAME``), and named in ``row['left_out']``.
+    Sets ``row['train_s']``."""
+    try:
+        model, _, row["train_s"] = train(clip)
+    except RarelySeen as e:
+        row["left_out"] = list(e.names)
+        log(f"{what}: {e}; training without {', '.join(e.names)}")
+        model, _, row["train_s"] = train(to_point_set(clip, AllBut(e.names)))
+    return model
+
+
 def label(model, path: Path, **kw):
     """One take through dtm-label's path (``take_votes_s`` as its ``--take-votes``, default 0 here:
     the labels as published live); ``live_accuracy`` = before the take votes. With
@@ -208,12 +221,7 @@ def run_gap_seeds(tmp: Path, keys, seeds, quick: bool) -> dict:
         for seed in seeds:
             _, tr, la, _, gap = gapped_halves(key, quick, seed)
             row = {"missing_test": float(np.isnan(gap.slice(la.start, la.stop).positions[..., 0]).mean())}
-            try:
-                model, _, row["train_s"] = train(gap.slice(tr.start, tr.stop))
-            except RarelySeen as e:              # the coverage check: what dtm-train says to do, done
-                row["left_out"] = list(e.names)
-                log(f"gap seeds {key} {seed}: {e}; training without {', '.join(e.names)}")
-                model, _, row["train_s"] = train(to_point_set(gap.slice(tr.start, tr.stop), AllBut(e.names)))
+            model = train_leaving_out(gap.slice(tr.start, tr.stop), row, f"gap seeds {key} {seed}")
             test = write_take(tmp / f"{key}_seed{seed}_test.c3d", gap.slice(la.start, la.stop))
             row.update(label_tracked(model, test, take_votes_s=TAKE_VOTES_S))
             out[key][seed] = row
@@ -270,11 +278,7 @@ def run_reflections(tmp: Path, quick: bool) -> dict:
             name = f"{key}{'' if drawn is None else f' ({drawn} markers)'}, {100 * miss:.0f} % hidden"
             gap = gapped(clip, **(GAPS | {"missing": miss, "mean_gap_s": GAP_S.get(key, GAPS["mean_gap_s"])}))
             row = {"labels": clip.n_points}
-            try:
-                model, _, row["train_s"] = train(gap.slice(tr.start, tr.stop))
-            except RarelySeen as e:
-                row["left_out"] = list(e.names)
-                model, _, row["train_s"] = train(to_point_set(gap.slice(tr.start, tr.stop), AllBut(e.names)))
+            model = train_leaving_out(gap.slice(tr.start, tr.stop), row, f"reflections {name}")
             test = gap.slice(la.start, la.stop)
             refl = static_ghosts(clip.slice(la.start, la.stop).positions, REFLECTIONS, seed=1)
             path = write_c3d(tmp / "reflections.c3d", np.concatenate([test.positions, refl], 1),

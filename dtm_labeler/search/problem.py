@@ -131,7 +131,7 @@ class FrameProblem:
         # gain of labelling point p (relative to it being clutter), before model terms
         log_detect, log_pos = np.log(b.detection_probability), b.log_position
         self.label_gain = np.empty(self.n + 1)
-        log_vel = b.log_velocity_of(np.nan_to_num(self.states[:-1, 3:6]))
+        log_vel = b.log_velocity_of(self.states[:-1, 3:6])           # NaN rows: unused below
         self.label_gain[:-1] = np.where(has_v, log_detect - (log_pos + log_vel), log_detect - log_pos)
         self.label_gain[-1] = np.log1p(-b.detection_probability)
         self.cache = TermTable()
