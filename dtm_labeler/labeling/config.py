@@ -291,6 +291,9 @@ PARAMS: Tuple[Param, ...] = (
     Param("clutter_fixed_speed_mps", Background.fixed_speed_mps, "Measured speed spread (m/s per "
           "axis) of a fixed reflection; raise it for noisy systems (1 mm at 120 Hz: 0.17).",
           range=(1e-6, 100.0)),
+    Param("clutter_fixed_after_s", Background.fixed_after_s, "A point is scored as possibly a fixed "
+          "reflection only once it has stayed within 1 cm this long (s): longer than a body marker "
+          "usually rests (a foot in stance: under a second). 0 = every still point.", range=(0.0, 3600.0)),
     # -- input bounds ------------------------------------------------------------------------------
     Param("max_points", 0, "At most this many points (nearest the body) enter the "
           "search; the rest are published unlabelled. 0 = 2 x labels + 8.", range=(0, 1000000)),
@@ -473,7 +476,8 @@ def settings_from_params(values: Mapping[str, Any]) -> LabelerSettings:
         full=full, warm=warm,
         background=Background(volume_m3=v["clutter_volume_m3"], max_speed_mps=v["clutter_max_speed_mps"],
                               detection_probability=v["detection_probability"],
-                              fixed_share=v["clutter_fixed_share"], fixed_speed_mps=v["clutter_fixed_speed_mps"]),
+                              fixed_share=v["clutter_fixed_share"], fixed_speed_mps=v["clutter_fixed_speed_mps"],
+                              fixed_after_s=v["clutter_fixed_after_s"]),
         tracker=TrackerSettings(gate_m=v["gate_m"], known_gate_m=v["known_gate_m"],
                                 gate_speed_factor=v["gate_speed_factor"],
                                 max_misses=v["max_misses"], accel_mps2=v["accel_mps2"],
@@ -494,7 +498,8 @@ def params_from_settings(settings: LabelerSettings) -> Dict[str, Any]:
                new_track_speed_mps=s.tracker.new_track_speed_mps, clutter_volume_m3=s.background.volume_m3,
                clutter_max_speed_mps=s.background.max_speed_mps,
                detection_probability=s.background.detection_probability,
-               clutter_fixed_share=s.background.fixed_share, clutter_fixed_speed_mps=s.background.fixed_speed_mps)
+               clutter_fixed_share=s.background.fixed_share, clutter_fixed_speed_mps=s.background.fixed_speed_mps,
+               clutter_fixed_after_s=s.background.fixed_after_s)
     return out
 
 

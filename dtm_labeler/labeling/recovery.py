@@ -54,6 +54,7 @@ class RecoveryRequest:
     state: dict                     # labeler state the search reads (fitness levels, shares)
     seed: int                       # random seed of the search
     kind: str = "recover"
+    rest_s: np.ndarray | None = None   # (n,) how long each point has stayed put
 
 
 @dataclass

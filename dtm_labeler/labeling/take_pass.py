@@ -71,6 +71,7 @@ from ..model.dtm import TriangulatedModel
 from ..model.features import STATE_DIM, lateral_yaw
 from ..search.label_search import sweep_regions
 from ..search.problem import Background, FrameProblem
+from .rest_clock import take_rests
 from .rigid_tracks import body_pairs, label_positions, relabel_tracks, rigid_pairs, spread_sample
 from .take_votes import take_votes
 
@@ -148,16 +149,17 @@ def take_pass(model: TriangulatedModel, background: Background, xyz: Sequence[np
         labels, _ = relabel_tracks(xyz, track_ids, labels, model.n_labels, prior=prior)
     model = person_handedness(model, xyz, labels, prior)
     states = track_states(xyz, track_ids, rate)
+    rests = take_rests(xyz, track_ids, rate)
     yaw = take_heading(model, xyz, labels)
     total = 2 * F
 
     def counted(k: int, _: int) -> None:
         if progress is not None:
             progress(k, total)
-    own = _searched(model, background, states, labels, region_size, polish_rounds, sweeps, heading_snap_deg,
-                    None, counted)
-    take = _searched(model, background, states, labels, region_size, polish_rounds, sweeps, heading_snap_deg,
-                     yaw, lambda k, _: counted(F + k, total))
+    own = _searched(model, background, states, rests, labels, region_size, polish_rounds, sweeps,
+                    heading_snap_deg, None, counted)
+    take = _searched(model, background, states, rests, labels, region_size, polish_rounds, sweeps,
+                     heading_snap_deg, yaw, lambda k, _: counted(F + k, total))
     # both searches' frames voted together: interleaved as frames 2f and 2f + 1, the window doubled
     # (+1: the last frame of each side keeps both of its results)
     tracks2 = [t for t in track_ids for _ in (0, 1)]
@@ -197,14 +199,14 @@ def person_handedness(model: TriangulatedModel, xyz: Sequence[np.ndarray], label
     return out
 
 
-def _searched(model, background, states, labels, region_size, polish_rounds, sweeps, heading_snap_deg,
+def _searched(model, background, states, rests, labels, region_size, polish_rounds, sweeps, heading_snap_deg,
               yaw: np.ndarray | None, progress) -> list[np.ndarray]:
     """Per frame, the labels (-1 none) of its points after the region sweeps from ``labels``:
     at each candidate's own facing (``yaw`` None), else every candidate at ``yaw[f]``."""
     out = []
     for f, st in enumerate(states):
         lab = np.asarray(labels[f], dtype=np.int64)
-        problem = FrameProblem(model, st, background, heading_snap_deg=heading_snap_deg)
+        problem = FrameProblem(model, st, background, heading_snap_deg=heading_snap_deg, rest_s=rests[f])
         ind = problem.empty_assignment()
         ok = lab >= 0
         ind[lab[ok]] = np.flatnonzero(ok)

@@ -455,7 +455,7 @@ class TrackedLabeler(FastPath):
         t0 = time.perf_counter()
         s = self.settings
         inp = self._begin(xyz, stamp, ids)
-        problems = [FrameProblem(m, inp.upd.states, s.background, self.heading, s.heading_snap_deg)
+        problems = [FrameProblem(m, inp.upd.states, s.background, self.heading, s.heading_snap_deg, inp.upd.rest_s)
                     for m in self.models]
         found = self._search_frame(problems, inp, self._join(inp))
         self.last_frame = (problems, inp, found)             # for diagnostics: what this frame saw
@@ -626,7 +626,7 @@ class TrackedLabeler(FastPath):
         self._last_search_stamp = self.last_stamp
         seed = 0 if self.recovery.inline else int(self.rng.integers(2 ** 31))   # inline: this labeler's stream
         return RecoveryRequest(self._epoch, self._frame_no, inp.upd.states, inp.upd.track_ids, self.heading,
-                               seeds, searched, self._search_state(), seed, kind)
+                               seeds, searched, self._search_state(), seed, kind, inp.upd.rest_s)
 
     def recover(self, request: RecoveryRequest, rng: np.random.Generator | None = None,
                 problems: list[FrameProblem] | None = None, interim=None) -> RecoveryResult:
@@ -648,8 +648,8 @@ class TrackedLabeler(FastPath):
             self._set_search_state(request.state)
         seeds, searched = request.seeds, request.searched
         if problems is None:
-            problems = [FrameProblem(m, request.states, s.background, request.heading, s.heading_snap_deg)
-                        for m in self.models]
+            problems = [FrameProblem(m, request.states, s.background, request.heading, s.heading_snap_deg,
+                                     request.rest_s) for m in self.models]
             if seeds is not None:
                 for p in problems:
                     p.anchor_heading(seeds[0])

@@ -38,6 +38,8 @@ import numpy as np
 from numba import njit
 from scipy.optimize import linear_sum_assignment
 
+from .rest_clock import RestClock
+
 
 #: the longest skip the gates are widened for (a longer pause is a gap: the stream is reset)
 MAX_SKIP_S = 0.25
@@ -88,10 +90,13 @@ def member(values: np.ndarray, among: np.ndarray) -> np.ndarray:
 
 
 def warm_up() -> None:
-    """Load (or compile) :func:`gated_cost` now: lazily, the stream's second frame paid it
+    """Load (or compile) :func:`gated_cost` (and the rest clock's kernel) now: lazily, the stream's second frame paid it
     (20-50 ms, the first frame with tracks to match), a live node's budget several times over."""
     one = np.zeros((1, 3))
     gated_cost(one, one, np.zeros(1), np.ones(1), 0.0, one, np.full(1, -1, dtype=np.int64))
+    clock = RestClock()                      # ... and the rest clock's kernel
+    clock.update(np.zeros(1, dtype=np.int64), one, 0.0)
+    clock.update(np.zeros(1, dtype=np.int64), one, 0.01)
 
 
 @dataclass
@@ -116,6 +121,7 @@ class TrackUpdate:
     states: np.ndarray         # (n, 6) position + velocity (NaN if the track is new)
     new: np.ndarray            # (n,) bool, track started this frame
     lost: np.ndarray           # ids of tracks deleted this frame
+    rest_s: np.ndarray | None = None   # (n,) seconds each point has stayed put (:class:`.rest_clock.RestClock`)
 
 
 class Tracker:
@@ -137,6 +143,7 @@ class Tracker:
         self._next_id = 0
         self.t = None
         self.frame_dt = None                           # running typical interval between updates
+        self.rest = RestClock()                        # how long each track has stayed put
 
     def predicted(self, t: float) -> np.ndarray:
         dt = (t - self.last_t)[:, None]
@@ -226,7 +233,8 @@ class Tracker:
             fdt = self.frame_dt
             self.frame_dt = step if fdt is None else fdt + 0.05 * min(max(step - fdt, -fdt), fdt)
         self.t = t
-        return TrackUpdate(track_ids, states, new, lost)
+        rest, _ = self.rest.update(track_ids, xyz, t)
+        return TrackUpdate(track_ids, states, new, lost, rest)
 
     def _rows(self, track_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rows of the track table holding ``track_ids`` (1-d) and which ids it holds."""

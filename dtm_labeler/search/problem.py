@@ -66,25 +66,40 @@ class Background:
     detection_probability: float = 0.95
     fixed_share: float = 0.0           # share of the clutter velocity density at rest (fixed reflections)
     fixed_speed_mps: float = 0.02      # their measured speed spread per axis
+    fixed_after_s: float = 0.0         # ... counted only for points resting this long (0: every point)
 
     def __post_init__(self) -> None:
         if not self.volume_m3 > 0 or not self.max_speed_mps > 0:
             raise ValueError("clutter volume and speed range must be positive")
         if not 0.0 < self.detection_probability < 1.0:
             raise ValueError("detection probability must be in (0, 1)")
-        if not 0.0 <= self.fixed_share < 1.0 or not self.fixed_speed_mps > 0:
-            raise ValueError("the fixed reflections' share must be in [0, 1) and their speed spread positive")
+        if not 0.0 <= self.fixed_share < 1.0 or not self.fixed_speed_mps > 0 or not self.fixed_after_s >= 0:
+            raise ValueError("the fixed reflections' share must be in [0, 1), their speed spread positive "
+                             "and their rest time >= 0")
 
-    def log_velocity_of(self, v: np.ndarray) -> np.ndarray:
-        """(n,) log clutter density of velocities ``v`` (n, 3): the uniform part plus the fixed
+    def log_velocity_of(self, v: np.ndarray, rest_s: np.ndarray | None = None) -> np.ndarray:
+        """(n,) log clutter density of velocities ``v`` (n, 3) of points that have rested
+        ``rest_s`` (n,) seconds (:mod:`dtm_labeler.labeling.rest_clock`; None: unknown): the
+        uniform part plus, for points resting at least ``fixed_after_s``, the fixed
         reflections' Gaussian (class doc), ``log U + log1p(share N(v) / U)`` -- exactly the
         uniform density wherever the Gaussian underflows."""
         v = np.asarray(v, dtype=np.float64).reshape(-1, 3)
+        out = np.full(v.shape[0], self.log_velocity)
         if self.fixed_share <= 0:
-            return np.full(v.shape[0], self.log_velocity)
+            return out
+        if self.fixed_after_s > 0:
+            if rest_s is None:
+                return out
+            on = np.flatnonzero(np.asarray(rest_s, dtype=np.float64).reshape(-1) >= self.fixed_after_s)
+            if not on.size:
+                return out
+        else:
+            on = np.arange(v.shape[0])
         sd2 = self.fixed_speed_mps ** 2
-        log_n = -0.5 * (v * v).sum(1) / sd2 - 1.5 * np.log(2.0 * np.pi * sd2)
-        return self.log_velocity + np.log1p(self.fixed_share * np.exp(log_n - self.log_velocity))
+        w = v[on]
+        log_n = -0.5 * (w * w).sum(1) / sd2 - 1.5 * np.log(2.0 * np.pi * sd2)
+        out[on] = self.log_velocity + np.log1p(self.fixed_share * np.exp(log_n - self.log_velocity))
+        return out
 
     @property
     def log_position(self) -> float:
@@ -99,8 +114,10 @@ class FrameProblem:
     """Fitness of assignments for one frame; caches triangle terms across the whole search."""
 
     def __init__(self, model: TriangulatedModel, states: np.ndarray, background: Background,
-                 heading_hint: float | None = None, heading_snap_deg: float = 0.0):
+                 heading_hint: float | None = None, heading_snap_deg: float = 0.0,
+                 rest_s: np.ndarray | None = None):
         states = np.asarray(states, dtype=np.float64).reshape(-1, STATE_DIM)
+        self.rest_s = rest_s                       # (n,) how long each point has stayed put, if known
         self.model = model
         self.n = states.shape[0]
         self.M = model.n_labels
@@ -131,7 +148,7 @@ class FrameProblem:
         # gain of labelling point p (relative to it being clutter), before model terms
         log_detect, log_pos = np.log(b.detection_probability), b.log_position
         self.label_gain = np.empty(self.n + 1)
-        log_vel = b.log_velocity_of(self.states[:-1, 3:6])           # NaN rows: unused below
+        log_vel = b.log_velocity_of(self.states[:-1, 3:6], rest_s)   # NaN rows: unused below
         self.label_gain[:-1] = np.where(has_v, log_detect - (log_pos + log_vel), log_detect - log_pos)
         self.label_gain[-1] = np.log1p(-b.detection_probability)
         self.cache = TermTable()

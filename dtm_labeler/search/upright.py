@@ -132,7 +132,8 @@ def turned_problem(problem: FrameProblem, R: np.ndarray, centre: np.ndarray) -> 
     turned = np.empty_like(states)
     turned[:, :3] = (states[:, :3] - centre) @ R.T + centre
     turned[:, 3:STATE_DIM] = states[:, 3:STATE_DIM] @ R.T
-    return FrameProblem(problem.model, turned, problem.background, heading_snap_deg=float(np.degrees(problem.snap)))
+    return FrameProblem(problem.model, turned, problem.background, heading_snap_deg=float(np.degrees(problem.snap)),
+                        rest_s=problem.rest_s)
 
 
 def pitch_back(azimuth: float, pitch_deg: float) -> np.ndarray:
