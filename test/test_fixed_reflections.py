@@ -17,12 +17,13 @@ SHARE = 0.002                 # the share the measurements below used
 def test_a_still_point_is_likelier_clutter_a_moving_one_is_not():
     assert Background().fixed_share == 0.0
     b = Background(fixed_share=SHARE)
-    v = np.array([[0.0, 0.0, 0.0], [0.03, 0.0, 0.0], [0.06, 0.0, 0.0], [0.0, 0.5, 0.0], [1.0, 1.0, 1.0]])
-    gain = b.log_velocity_of(v) - b.log_velocity
-    assert 8.0 < gain[0] < 10.0
-    assert gain[0] > gain[1] > gain[2] > 3.0
-    assert gain[3] == 0.0 and gain[4] == 0.0              # the uniform density exactly
-    assert (Background().log_velocity_of(v) == b.log_velocity).all()
+    v = np.array([[0.0, 0.0, 0.0], [0.03, 0.0, 0.0], [0.06, 0.0, 0.0], [0.0, 0.5, 0.0], [1.0, 1.0, 1.0],
+                  [np.nan] * 3])
+    loss = b.fixed_loss(v)
+    assert 8.0 < loss[0] < 10.0
+    assert loss[0] > loss[1] > loss[2] > 3.0
+    assert loss[3] < 1e-100 and loss[4] == 0.0 and loss[5] == 0.0     # the uniform density
+    assert (Background().fixed_loss(v) == 0.0).all()
     with pytest.raises(ValueError):
         Background(fixed_share=1.0)
     with pytest.raises(ValueError):

@@ -5,7 +5,9 @@ import pytest
 
 from dtm_labeler.labeling.rest_clock import REST_MEMORY_S, REST_RADIUS_M, RestClock, take_rests
 from dtm_labeler.labeling.tracker import Tracker
-from dtm_labeler.search.problem import Background
+from dtm_labeler.motion.synthetic import synthesize
+from dtm_labeler.search.problem import Background, FrameProblem
+from dtm_labeler.training.train import TrainConfig, train_model
 
 RATE = 100.0
 
@@ -66,17 +68,41 @@ def test_the_tracker_reports_rests():
     assert tr.update(np.array([[0.1, 0.1, 0.005]]), 2.0).rest_s[0] == 0.0
 
 
-def test_the_fixed_part_waits_for_a_long_rest():
-    """With ``fixed_after_s`` a still point is scored as possibly a reflection only once it has
-    rested that long; before, and with no rests known, the clutter is the uniform density exactly."""
+def test_a_long_rest_costs_a_label_only_beyond_what_its_training_showed():
+    """The fixed reflections' term (``FrameProblem.rest_term``): a point resting beyond its
+    label's limit -- the floor ``fixed_after_s`` or 1.5 x that label's longest rest in the
+    training take -- pays the fixed part's loss on the one triangle that owns the label; resting
+    less, or labelled as a label that stood as long in training, it pays nothing; no rests
+    known, or the share 0: every term as the paper's."""
+    clip = synthesize(duration=2.0, seed=3)
+    P = clip.positions.copy()
+    P[:, 0] = P[0, 0]                                   # label 0 stands still for the whole take
+    model = train_model([clip._replace(positions=P)], TrainConfig(mixture="fixed", k_fixed=1,
+                                                                    structure="given"))[0]
+    longest = np.asarray(model.settings["longest_rest_s"])
+    assert longest[0] == pytest.approx((clip.n_frames - 1) / clip.rate, abs=1e-3)
+    assert (longest[1:] < 0.5).all()
+    owner = model.label_owner
+    assert (owner.sum(0) >= 0).all() and owner.sum() == model.n_labels    # one owner per label
     b = Background(fixed_share=0.002, fixed_after_s=2.0)
-    v = np.zeros((3, 3))
-    rest = np.array([0.5, 1.99, 2.5])
-    loss = b.log_velocity_of(v, rest) - b.log_velocity
-    assert loss[0] == 0.0 and loss[1] == 0.0 and 8.0 < loss[2] < 10.0
-    assert (b.log_velocity_of(v) == b.log_velocity).all()
-    every = Background(fixed_share=0.002)                   # 0: every still point, rests or not
-    assert np.allclose(every.log_velocity_of(v, rest), every.log_velocity_of(v))
-    assert (every.log_velocity_of(v) - every.log_velocity > 8.0).all()
+    limits = model.rest_limits(b.fixed_after_s)
+    assert limits[0] == pytest.approx(1.5 * longest[0]) and (limits[1:] == 2.0).all()
+
+    still = np.zeros((3, 6))
+    still[:, :3] = [[0.0, 0.0, 1.0], [0.3, 0.0, 1.0], [0.0, 0.3, 1.0]]
+    rest = np.array([3.0, 3.0, 1.0])                    # two points resting 3 s, one 1 s
+    problem = FrameProblem(model, still, b, rest_s=rest)
+    plain = FrameProblem(model, still, Background(), rest_s=rest)
+    loss = b.fixed_loss(still[:, 3:])
+    n, M = 3, model.n_labels
+    for label in range(M):
+        for p in range(3):
+            ind = np.full(M, n, dtype=np.int64)
+            ind[label] = p
+            cost = float(plain.fitness(ind)[0] - problem.fitness(ind)[0])
+            pays = rest[p] >= limits[label]
+            assert cost == pytest.approx(loss[p] if pays else 0.0, abs=1e-9), (label, p)
+    assert FrameProblem(model, still, b)._rest is None               # rests unknown
+    assert FrameProblem(model, still, Background(fixed_after_s=2.0), rest_s=rest)._rest is None
     with pytest.raises(ValueError):
         Background(fixed_after_s=-1.0)

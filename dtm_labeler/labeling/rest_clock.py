@@ -157,3 +157,25 @@ def take_rests(xyz, track_ids, rate: float, radius_m: float = REST_RADIUS_M) -> 
     np.maximum.at(longest, ep, rest)
     longest[-1] = 0.0
     return np.split(longest[ep], np.cumsum(sizes)[:-1])
+
+
+def longest_rests(clips, progress=None) -> np.ndarray:
+    """(M,) each point's longest rest (seconds) over the clips (sharing their point order): what a
+    model keeps of its training takes (``settings["longest_rest_s"]``) so that a label is allowed
+    the rests its body point took (:meth:`~dtm_labeler.model.dtm.TriangulatedModel.rest_limits`).
+    A point's rest goes on across its gaps (up to :data:`REST_MEMORY_S`) when it comes back within
+    :data:`REST_RADIUS_M` -- a gappy take's stance foot rests as long as a clean one's."""
+    longest = None
+    for clip in clips:
+        P = np.asarray(clip.positions, dtype=np.float64)
+        if longest is None:
+            longest = np.zeros(P.shape[1])
+        seen = np.isfinite(P).all(-1)
+        clock = RestClock()
+        labels = np.arange(P.shape[1], dtype=np.int64)
+        rate = float(clip.rate)
+        for f in range(P.shape[0]):
+            ok = seen[f]
+            rest, _ = clock.update(labels[ok], P[f, ok], f / rate)
+            longest[ok] = np.maximum(longest[ok], rest)
+    return np.zeros(0) if longest is None else longest

@@ -40,6 +40,10 @@ from .mixture import GaussianMixture
 from .structure import Structure
 from .term_kernel import mixture_terms
 
+#: a label may rest this many times its longest rest in training before the rest tells
+#: (:meth:`TriangulatedModel.rest_limits`)
+REST_MARGIN = 1.5
+
 #: rigid clusters of at most this many labels are turned as a block (4! = 24 arrangements)
 MAX_TURNED_CLUSTER = 4
 
@@ -527,6 +531,31 @@ class TriangulatedModel:
                 if self.broad_applied else StackedTerms.empty()
             self._stacked = (motion, broad)
         return self._stacked
+
+    @property
+    def label_owner(self) -> np.ndarray:
+        """(T, 3) bool: the triangle whose term carries each label's own terms (the first
+        triangle holding it), per corner -- where a term of one label, not of a triple, is added
+        once (:meth:`~dtm_labeler.search.problem.FrameProblem.rest_term`). Built once."""
+        if getattr(self, "_label_owner", None) is None:
+            tri = np.asarray(self.triangles, dtype=np.int64)
+            first = np.full(self.n_labels, -1, dtype=np.int64)
+            for t in range(tri.shape[0] - 1, -1, -1):        # T x 3 once per model
+                first[tri[t]] = t
+            self._label_owner = first[tri] == np.arange(tri.shape[0])[:, None]
+        return self._label_owner
+
+    def rest_limits(self, floor_s: float) -> np.ndarray:
+        """(M,) how long a point may rest (stay within 1 cm) as each label before the rest reads
+        as a fixed reflection's: ``floor_s``, or :data:`REST_MARGIN` x the label's longest rest in
+        the training takes (``settings["longest_rest_s"]``, :func:`~dtm_labeler.labeling.rest_clock.longest_rests`)
+        where that is longer -- a foot that stood for 12 s in training may stand as long again.
+        Models trained before the training rests were kept: ``floor_s`` for every label."""
+        longest = self.settings.get("longest_rest_s")
+        out = np.full(self.n_labels, float(floor_s))
+        if longest is not None and len(longest) == self.n_labels:
+            out = np.maximum(out, REST_MARGIN * np.asarray(longest, dtype=np.float64))
+        return out
 
     @property
     def kernel_tables(self) -> tuple:

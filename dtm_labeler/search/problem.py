@@ -46,7 +46,8 @@ class Background:
     Clutter positions are uniform over the capture volume; clutter velocities uniform within
     ``+-max_speed_mps`` per axis, plus the fixed reflections of the volume (floor tape, a prop's
     edge): a share ``fixed_share`` of the velocity density sits in a Gaussian of
-    ``fixed_speed_mps`` per axis about 0 (:meth:`log_velocity_of`). The paper's clutter is the
+    ``fixed_speed_mps`` per axis about 0 (:meth:`fixed_loss`, paid through
+    :meth:`FrameProblem.rest_term` by points resting longer than their label's limit). The paper's clutter is the
     uniform part alone; it makes a still point look far likelier on the body than in the clutter
     (a body marker's velocity marginal puts much of its mass near 0), so a fixed reflection takes
     the label of a marker whose triangle neighbours are hidden -- every term of that label then
@@ -77,28 +78,20 @@ class Background:
             raise ValueError("the fixed reflections' share must be in [0, 1), their speed spread positive "
                              "and their rest time >= 0")
 
-    def log_velocity_of(self, v: np.ndarray, rest_s: np.ndarray | None = None) -> np.ndarray:
-        """(n,) log clutter density of velocities ``v`` (n, 3) of points that have rested
-        ``rest_s`` (n,) seconds (:mod:`dtm_labeler.labeling.rest_clock`; None: unknown): the
-        uniform part plus, for points resting at least ``fixed_after_s``, the fixed
-        reflections' Gaussian (class doc), ``log U + log1p(share N(v) / U)`` -- exactly the
-        uniform density wherever the Gaussian underflows."""
+    def fixed_loss(self, v: np.ndarray) -> np.ndarray:
+        """(n,) nats the fixed reflections take from labelling a point with velocity ``v`` (n, 3)
+        (NaN rows: 0): the log-ratio of the clutter velocity density with and without its fixed
+        part, ``log1p(share N(v) / U)`` -- 0 wherever the Gaussian underflows, about 9 for a
+        perfectly still point at a share of 0.002."""
         v = np.asarray(v, dtype=np.float64).reshape(-1, 3)
-        out = np.full(v.shape[0], self.log_velocity)
-        if self.fixed_share <= 0:
+        out = np.zeros(v.shape[0])
+        ok = np.isfinite(v).all(1)
+        if self.fixed_share <= 0 or not ok.any():
             return out
-        if self.fixed_after_s > 0:
-            if rest_s is None:
-                return out
-            on = np.flatnonzero(np.asarray(rest_s, dtype=np.float64).reshape(-1) >= self.fixed_after_s)
-            if not on.size:
-                return out
-        else:
-            on = np.arange(v.shape[0])
         sd2 = self.fixed_speed_mps ** 2
-        w = v[on]
+        w = v[ok]
         log_n = -0.5 * (w * w).sum(1) / sd2 - 1.5 * np.log(2.0 * np.pi * sd2)
-        out[on] = self.log_velocity + np.log1p(self.fixed_share * np.exp(log_n - self.log_velocity))
+        out[ok] = np.log1p(self.fixed_share * np.exp(log_n - self.log_velocity))
         return out
 
     @property
@@ -148,8 +141,8 @@ class FrameProblem:
         # gain of labelling point p (relative to it being clutter), before model terms
         log_detect, log_pos = np.log(b.detection_probability), b.log_position
         self.label_gain = np.empty(self.n + 1)
-        log_vel = b.log_velocity_of(self.states[:-1, 3:6], rest_s)   # NaN rows: unused below
-        self.label_gain[:-1] = np.where(has_v, log_detect - (log_pos + log_vel), log_detect - log_pos)
+        self.label_gain[:-1] = np.where(has_v, log_detect - (log_pos + b.log_velocity), log_detect - log_pos)
+        self._rest = self._rest_inputs(rest_s)
         self.label_gain[-1] = np.log1p(-b.detection_probability)
         self.cache = TermTable()
         self.evaluations = 0
@@ -219,8 +212,45 @@ class FrameProblem:
         factor (:meth:`TriangulatedModel.edge_terms`) folded in."""
         out = frame_terms(np.ascontiguousarray(keys, dtype=np.int64), self.states, self.codes, self.dist,
                           self.n + 1, self.T, self.bins, self.background.log_position, *self.model.kernel_tables)
+        if self._rest is not None:
+            out -= self.rest_term(keys)
         self.evaluations += keys.size
         return out
+
+    def _rest_inputs(self, rest_s):
+        """What :meth:`rest_term` reads, or None when no point this frame could pay it (the
+        paper's clutter; every term as the kernel computes it)."""
+        b = self.background
+        if b.fixed_share <= 0 or not self.n:
+            return None
+        loss = b.fixed_loss(self.states[:-1, 3:6])
+        rest = np.zeros(self.n) if rest_s is None else np.asarray(rest_s, dtype=np.float64).reshape(-1)
+        limit = self.model.rest_limits(b.fixed_after_s)
+        if not ((loss > 0) & (rest >= limit.min())).any():
+            return None
+        return np.r_[loss, 0.0], np.r_[rest, -np.inf], limit
+
+    def rest_term(self, keys: np.ndarray) -> np.ndarray:
+        """(K,) nats the fixed reflections take from term-cache ``keys``: for each label the
+        triangle owns (:attr:`TriangulatedModel.label_owner`) whose point has rested at least the
+        label's limit (:meth:`TriangulatedModel.rest_limits`), that point's
+        :meth:`Background.fixed_loss`.
+
+        The reading: the clutter is the paper's uniform density plus a share of fixed
+        reflections, which stay put for good; a body point stays put too, but a label rests
+        only as long as its training showed (a foot in stance, not the head). A point resting
+        beyond its label's limit is explained as well by a reflection as by that label, so
+        labelling it gains the label's terms minus the fixed part's likelihood ratio. Kept in
+        the DTM's form -- a term of one label added to one triangle's term -- so the CBGA, the
+        DP and the region checks see it through the term cache like every other term."""
+        loss, rest, limit = self._rest
+        n1 = self.n + 1
+        keys = np.asarray(keys, dtype=np.int64)
+        pts = np.stack([(keys // (n1 * n1)) % n1, (keys // n1) % n1, keys % n1], axis=1)
+        t = (keys // (n1 * n1 * n1)) % self.T
+        labels = self.tri[t]
+        hit = self.model.label_owner[t] & (rest[pts] >= limit[labels])
+        return (loss[pts] * hit).sum(1)
 
     def fitness(self, pop: np.ndarray, return_bins: bool = False):
         """Fitness (relative log-likelihood, see module doc) of (P, M) assignments."""

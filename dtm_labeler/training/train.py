@@ -50,6 +50,7 @@ from .gaps import (MIN_TRIPLE_FRAMES, coverage_report, fill_yaw, fit_rows, fit_t
                    structure_scores, unattachable, usable_structure)
 from ..model.structure import BODY14_GIVEN, Structure
 from ..search import structure_search as ss
+from ..labeling.rest_clock import longest_rests
 from .body_fit import (BodySettings, bar_orders, broad_components, edge_prior, fit_body, handedness_quads,
                        pair_statistics, trunk_twists, validation_rows, person_rigid_pairs)
 
@@ -483,6 +484,8 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         ll = model.frame_log_likelihood(states[complete]) if complete.any() else np.array([np.nan])
     else:                                           # gappy takes: marginalised over what each frame misses
         ll = model.frame_log_likelihood(states[np.isfinite(states).all(-1).sum(1) >= 3])
+    # how long each label's point stood still in training (the rests a label is allowed)
+    model.settings["longest_rest_s"] = [round(float(r), 3) for r in longest_rests(clips)]
     # the typical model log-likelihood per labelled point: the stream labeler's starting level
     model.settings["loglik_per_label"] = float(np.median(ll) / len(labels)) if scored_on == "complete frames" \
         else loglik_per_label(model, states)
