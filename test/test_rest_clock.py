@@ -92,7 +92,7 @@ def test_a_long_rest_costs_a_label_only_beyond_what_its_training_showed():
     still[:, :3] = [[0.0, 0.0, 1.0], [0.3, 0.0, 1.0], [0.0, 0.3, 1.0]]
     rest = np.array([3.0, 3.0, 1.0])                    # two points resting 3 s, one 1 s
     problem = FrameProblem(model, still, b, rest_s=rest)
-    plain = FrameProblem(model, still, Background(), rest_s=rest)
+    plain = FrameProblem(model, still, Background(fixed_share=0.0), rest_s=rest)
     loss = b.fixed_loss(still[:, 3:])
     n, M = 3, model.n_labels
     for label in range(M):
@@ -103,6 +103,6 @@ def test_a_long_rest_costs_a_label_only_beyond_what_its_training_showed():
             pays = rest[p] >= limits[label]
             assert cost == pytest.approx(loss[p] if pays else 0.0, abs=1e-9), (label, p)
     assert FrameProblem(model, still, b)._rest is None               # rests unknown
-    assert FrameProblem(model, still, Background(fixed_after_s=2.0), rest_s=rest)._rest is None
+    assert FrameProblem(model, still, Background(fixed_share=0.0), rest_s=rest)._rest is None
     with pytest.raises(ValueError):
         Background(fixed_after_s=-1.0)

@@ -284,16 +284,17 @@ PARAMS: Tuple[Param, ...] = (
           "body marker is seen in a frame (missing-marker prior); in (0, 1).", range=(0.001, 0.999)),
     Param("clutter_fixed_share", Background.fixed_share, "Share of the clutter velocity density "
           "that is fixed reflections (floor tape, a prop): a Gaussian about 0 of clutter_fixed_speed_mps, "
-          "so a still point is not taken for a marker whose neighbours are hidden. For a volume with "
-          "reflections the cameras cannot mask (0.002: a perfectly still point's gain -9 nats); it also "
-          "costs still body markers whose neighbours are hidden. 0 = uniform clutter (the paper's).",
+          "so a point that has stayed put longer than its label ever did in training (and than "
+          "clutter_fixed_after_s) is not taken for a marker whose neighbours are hidden (0.002: a "
+          "perfectly still point's gain -9 nats). 0 = uniform clutter (the paper's).",
           range=(0.0, 0.999)),
     Param("clutter_fixed_speed_mps", Background.fixed_speed_mps, "Measured speed spread (m/s per "
           "axis) of a fixed reflection; raise it for noisy systems (1 mm at 120 Hz: 0.17).",
           range=(1e-6, 100.0)),
     Param("clutter_fixed_after_s", Background.fixed_after_s, "A point is scored as possibly a fixed "
-          "reflection only once it has stayed within 1 cm this long (s): longer than a body marker "
-          "usually rests (a foot in stance: under a second). 0 = every still point.", range=(0.0, 3600.0)),
+          "reflection only once it has stayed within 1 cm this long (s) and 1.5 x its label's "
+          "longest rest in the training takes (a foot in stance: under a second in a walk). "
+          "0 with a model without training rests = every still point.", range=(0.0, 3600.0)),
     # -- input bounds ------------------------------------------------------------------------------
     Param("max_points", 0, "At most this many points (nearest the body) enter the "
           "search; the rest are published unlabelled. 0 = 2 x labels + 8.", range=(0, 1000000)),

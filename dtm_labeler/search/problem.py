@@ -44,30 +44,33 @@ class Background:
     """Clutter / missing-marker densities used by the fitness.
 
     Clutter positions are uniform over the capture volume; clutter velocities uniform within
-    ``+-max_speed_mps`` per axis, plus the fixed reflections of the volume (floor tape, a prop's
-    edge): a share ``fixed_share`` of the velocity density sits in a Gaussian of
-    ``fixed_speed_mps`` per axis about 0 (:meth:`fixed_loss`, paid through
-    :meth:`FrameProblem.rest_term` by points resting longer than their label's limit). The paper's clutter is the
-    uniform part alone; it makes a still point look far likelier on the body than in the clutter
-    (a body marker's velocity marginal puts much of its mass near 0), so a fixed reflection takes
-    the label of a marker whose triangle neighbours are hidden -- every term of that label then
-    marginalised (eq. 30-31) -- and keeps it. At a share of 0.002 the fixed part takes about 9
-    nats from a perfectly still point's gain, 4.5 at 6 cm/s and nothing above ~10 cm/s.
+    ``+-max_speed_mps`` per axis (the paper's clutter), plus the volume's fixed reflections
+    (floor tape, a force plate's edge, a prop): a share ``fixed_share`` of the velocity density
+    in a Gaussian of ``fixed_speed_mps`` per axis about 0, for points that stay put for good.
 
-    Off by default (share 0: the paper's clutter, bit for bit). A still *body* marker pays the
-    same price, and where its neighbours are hidden it loses its label: at 0.002 ``dtm-eval``'s
-    clean takes lost up to 12 points (the MoCap Toolbox walk with gaps, 60 Hz, feet in stance:
-    97.93 -> 85.99 %; subject 55's lambada under subjects 5, 7 and 9, 94.78 -> 84.88 %), while
-    takes with fixed reflections gained (HDM05's 41 markers, half hidden, three reflections,
-    ``dtm-label``'s default 95.47 / 96.16 -> 97.42 / 98.63 %; ``results/captures.md``). Set it for a
-    volume with reflections that cannot be masked at the cameras."""
+    Why: with a label's triangle neighbours hidden, every term of that label is marginalised
+    (eq. 30-31) and a point scores only the label's gain over clutter. A body marker's velocity
+    marginal puts much of its mass near 0, the uniform clutter very little: a still point looks
+    ~9 nats likelier on the body, so a fixed reflection takes the label of a marker whose
+    neighbours are hidden and the hold prior keeps it there. The fixed part takes
+    :meth:`fixed_loss` back from such a point (9 nats perfectly still at a share of 0.002, 4.5
+    at 6 cm/s, nothing above ~10 cm/s).
+
+    A body marker stays put too -- a foot in stance -- and its instantaneous velocity is the
+    reflection's. What tells them apart is how long (:mod:`dtm_labeler.labeling.rest_clock`): the
+    loss is paid only by a point resting beyond its label's limit
+    (:meth:`TriangulatedModel.rest_limits`: ``fixed_after_s``, or 1.5 x the label's longest rest in
+    the training takes), through :meth:`FrameProblem.rest_term`. With ``fixed_after_s`` 0 and a
+    model without training rests every still point pays (the first, instantaneous form: on
+    ``dtm-eval``'s clean takes it cost up to 12 points). ``fixed_share`` 0: the paper's clutter,
+    bit for bit."""
 
     volume_m3: float = 60.0            # capture volume for the uniform position density
     max_speed_mps: float = 4.0         # clutter velocities uniform in a cube of this half-width
     detection_probability: float = 0.95
-    fixed_share: float = 0.0           # share of the clutter velocity density at rest (fixed reflections)
+    fixed_share: float = 0.002         # share of the clutter velocity density at rest (fixed reflections)
     fixed_speed_mps: float = 0.02      # their measured speed spread per axis
-    fixed_after_s: float = 0.0         # ... counted only for points resting this long (0: every point)
+    fixed_after_s: float = 2.0         # ... paid only by points resting this long (and their label's limit)
 
     def __post_init__(self) -> None:
         if not self.volume_m3 > 0 or not self.max_speed_mps > 0:
