@@ -162,6 +162,12 @@ def test_dtm_train_says_which_bars_it_ordered(data_dir, tmp_path, capsys):
     line = next(s for s in printed.splitlines() if s.startswith("bars "))
     assert "LSHO" in line and "nearer LWRA than LWRB" in line and line.endswith("(applied once calibrated)")
     assert len(model.body.orders) == line.count(",") + line.count(" nearer ") and model.body_order is None
+    # the actor stands on the left foot: its labels may rest that long before a rest reads as a reflection
+    rests = dict(zip(model.labels, model.settings["longest_rest_s"]))
+    line = next(s for s in printed.splitlines() if s.startswith("rests "))
+    longest = max(rests, key=rests.get)
+    assert longest.startswith("L") and rests[longest] > 5.0 and f"{longest} {rests[longest]:.1f} s" in line
+    assert model.rest_limits(2.0)[model.labels.index(longest)] == 1.5 * rests[longest]
     assert train_main([take, "--points", "all", "--frames", "0:30%", "--k-max", "2", "--out", str(out),
                        "--quiet", "--calibrate"]) == 0
     assert "(applied: calibrated)" in capsys.readouterr().out and load_model(out).body_order is not None

@@ -201,8 +201,12 @@ def test_burst_keeps_only_the_newest_frame(running):
                                             carry_max_ms=0.0))
     cl.wait_for(lambda: cl.pub.get_subscription_count() == 1, 10, "rematch")
     cl.probe()
+    from dtm_labeler.ros.diagnostics import DROP_REASONS
     from dtm_labeler.ros.pointcloud import make_xyz_cloud
-    d0 = cl.wait_diag(lambda d: True)
+    # the baseline with no frame in flight (every received frame published or skipped): a probe
+    # frame still being labelled when it was read would leave the counts below one apart for good
+    d0 = cl.wait_diag(lambda d: int(d["frames_received"]) == int(d["frames_published"])
+                      + sum(int(d[f"frames_skipped_{r}"]) for r in DROP_REASONS))
     for _ in range(3):
         # 40 clouds built first, then published back to back: far faster than the node labels
         # (built inside the loop, a test process starved by a busy machine could space them out

@@ -9,7 +9,9 @@ import numpy as np
 
 from tqdm import tqdm
 
+from ..model.dtm import REST_MARGIN
 from ..model.io import save_model
+from ..search.problem import Background
 from ..training.train import BODY_AUGMENTATION, MIXTURE_KINDS, STRUCTURE_METHODS, TrainConfig, train_model
 from .common import (CliError, HelpFormatter, add_capture_options, capture_kwargs, load_inputs, point_spec,
                      run_main)
@@ -164,6 +166,9 @@ def _main(argv=None) -> int:
     if model.body is not None:
         s["body"] = {"segments": int(len(model.body.segments)), "rigid_pairs": int(model.body.rigid_pairs.shape[0]),
                      "bar_orders": [[model.labels[i] for i in row] for row in model.body.orders.tolist()]}
+    rests = model.settings.get("longest_rest_s")
+    if rests:
+        s["longest_rest_s"] = dict(zip(model.labels, rests))
     if args.json:
         print(json.dumps(s, indent=1))
         return 0
@@ -198,6 +203,15 @@ def _main(argv=None) -> int:
             nearer.setdefault((near, far), []).append(x)
         print("bars      " + "; ".join(f"{', '.join(xs)} nearer {near} than {far}" for (near, far), xs in nearer.items())
               + (" (applied: calibrated)" if model.body.calibration else " (applied once calibrated)"))
+    if rests:
+        floor = Background().fixed_after_s
+        still = sorted(((r, lab) for lab, r in zip(model.labels, rests) if REST_MARGIN * r > floor), reverse=True)
+        print("rests     " + (f"{len(still)} labels stood still for over {floor / REST_MARGIN:.1f} s in training "
+                              "(longest: " + ", ".join(f"{lab} {r:.1f} s" for r, lab in still[:6])
+                              + (", ..." if len(still) > 6 else "") + ")"
+                              if still else f"no label stood still for {floor / REST_MARGIN:.1f} s in training")
+              + f"; a point still for longer than {REST_MARGIN:g} x its label's longest rest and {floor:g} s "
+              "is scored as possibly a fixed reflection")
     if calibration:
         print(f"calibrated to the takes' person: {calibration['segments']} of {calibration['segments_total']} "
               f"segment lengths from {calibration['frames']} frames (scale {calibration['scale']:.3f})")

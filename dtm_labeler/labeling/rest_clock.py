@@ -8,13 +8,14 @@ CMU 85's breakdance and the MoCap Toolbox dance, and up to 37 s for a foot of HD
 standing actor (median 2.2 s there). A point's *rest* -- the time it has stayed within
 :data:`REST_RADIUS_M` of where it stopped -- is what the clutter model's fixed part reads
 (:class:`~dtm_labeler.search.problem.Background`): a still point is scored as possibly a
-reflection only once it has rested longer than a body marker usually does.
+reflection only once it has rested longer than its label's limit -- the floor, or 1.5 x the
+longest rest that label took in the training takes (:func:`longest_rests`).
 
 :class:`RestClock` keeps one rest per track and carries it across a reflection's flicker: a
 new track that begins where an ended one rested continues that rest (a reflection seen every
 other frame ends its track after the tracker's ``max_misses`` and starts another at the same
-place). Per frame the work is a lookup of the frame's tracks and one (new x remembered)
-distance table: no loop over points.
+place). Per frame the work is one compiled pass over the frame's points (12 us at 45) and, for
+new tracks only, a (new x remembered) distance table.
 """
 from __future__ import annotations
 
@@ -159,7 +160,7 @@ def take_rests(xyz, track_ids, rate: float, radius_m: float = REST_RADIUS_M) -> 
     return np.split(longest[ep], np.cumsum(sizes)[:-1])
 
 
-def longest_rests(clips, progress=None) -> np.ndarray:
+def longest_rests(clips) -> np.ndarray:
     """(M,) each point's longest rest (seconds) over the clips (sharing their point order): what a
     model keeps of its training takes (``settings["longest_rest_s"]``) so that a label is allowed
     the rests its body point took (:meth:`~dtm_labeler.model.dtm.TriangulatedModel.rest_limits`).

@@ -90,11 +90,12 @@ def member(values: np.ndarray, among: np.ndarray) -> np.ndarray:
 
 
 def warm_up() -> None:
-    """Load (or compile) :func:`gated_cost` (and the rest clock's kernel) now: lazily, the stream's second frame paid it
-    (20-50 ms, the first frame with tracks to match), a live node's budget several times over."""
+    """Load (or compile) :func:`gated_cost` and the rest clock's kernel now: lazily, the stream's
+    second frame paid it (20-50 ms, the first frame with tracks to match), a live node's budget
+    several times over."""
     one = np.zeros((1, 3))
     gated_cost(one, one, np.zeros(1), np.ones(1), 0.0, one, np.full(1, -1, dtype=np.int64))
-    clock = RestClock()                      # ... and the rest clock's kernel
+    clock = RestClock()
     clock.update(np.zeros(1, dtype=np.int64), one, 0.0)
     clock.update(np.zeros(1, dtype=np.int64), one, 0.01)
 
