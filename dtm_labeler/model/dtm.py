@@ -551,11 +551,15 @@ class TriangulatedModel:
         the training takes (``settings["longest_rest_s"]``, :func:`~dtm_labeler.labeling.rest_clock.longest_rests`)
         where that is longer -- a foot that stood for 12 s in training may stand as long again.
         Models trained before the training rests were kept: ``floor_s`` for every label."""
-        longest = self.settings.get("longest_rest_s")
-        out = np.full(self.n_labels, float(floor_s))
-        if longest is not None and len(longest) == self.n_labels:
-            out = np.maximum(out, REST_MARGIN * np.asarray(longest, dtype=np.float64))
-        return out
+        cache = self.__dict__.setdefault("_rest_limits", {})
+        if floor_s not in cache:
+            longest = self.settings.get("longest_rest_s")
+            out = np.full(self.n_labels, float(floor_s))
+            if longest is not None and len(longest) == self.n_labels:
+                out = np.maximum(out, REST_MARGIN * np.asarray(longest, dtype=np.float64))
+            out.setflags(write=False)
+            cache[floor_s] = out
+        return cache[floor_s]
 
     @property
     def kernel_tables(self) -> tuple:

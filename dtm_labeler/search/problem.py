@@ -226,10 +226,13 @@ class FrameProblem:
         b = self.background
         if b.fixed_share <= 0 or not self.n:
             return None
-        loss = b.fixed_loss(self.states[:-1, 3:6])
-        rest = np.zeros(self.n) if rest_s is None else np.asarray(rest_s, dtype=np.float64).reshape(-1)
         limit = self.model.rest_limits(b.fixed_after_s)
-        if not ((loss > 0) & (rest >= limit.min())).any():
+        rest = np.zeros(self.n) if rest_s is None else np.asarray(rest_s, dtype=np.float64).reshape(-1)
+        resting = rest >= limit.min()
+        if not resting.any():                      # the usual frame: nobody has rested that long
+            return None
+        loss = b.fixed_loss(self.states[:-1, 3:6])
+        if not (loss[resting] > 0).any():
             return None
         return np.r_[loss, 0.0], np.r_[rest, -np.inf], limit
 
