@@ -172,11 +172,8 @@ def longest_rests(clips) -> np.ndarray:
         if longest is None:
             longest = np.zeros(P.shape[1])
         seen = np.isfinite(P).all(-1)
-        clock = RestClock()
-        labels = np.arange(P.shape[1], dtype=np.int64)
-        rate = float(clip.rate)
-        for f in range(P.shape[0]):
-            ok = seen[f]
-            rest, _ = clock.update(labels[ok], P[f, ok], f / rate)
-            longest[ok] = np.maximum(longest[ok], rest)
+        labels = [np.flatnonzero(ok) for ok in seen]           # the labels are the tracks
+        rests = take_rests([P[f, lab] for f, lab in enumerate(labels)], labels, float(clip.rate))
+        if seen.any():
+            np.maximum.at(longest, np.concatenate(labels), np.concatenate(rests))
     return np.zeros(0) if longest is None else longest
