@@ -413,6 +413,19 @@ def test_model_file_v2_round_trip_and_v1_files(models, tmp_path, walker):
     states = canonical_states(walker, model.heading_pairs)[3:9]
     assert np.array_equal(back.frame_log_likelihood(states), calibrate(model, walker).frame_log_likelihood(states))
     assert np.array_equal(back.broad.weights, model.broad.weights)
+    # format 7 keeps the body it was calibrated from; a format-6 file loads without it
+    assert not back.generic_body.calibration
+    for k in ("pairs", "lo", "hi", "between_sd", "rigid_pairs", "orders"):
+        assert np.array_equal(getattr(back.generic_body, k), getattr(model.body, k))
+    with np.load(path, allow_pickle=False) as z:
+        v6 = {k: z[k] for k in z.files if not k.startswith("generic_")}
+    header = json.loads(bytes(v6["header"]).decode())
+    header["format_version"] = 6
+    header.pop("generic_body")
+    v6["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    old = model_from_arrays(v6, "v6")
+    assert old.generic_body is None and old.provenance["format_version_read"] == 6
+    assert np.array_equal(old.frame_log_likelihood(states), back.frame_log_likelihood(states))
     # a version-1 file (no body arrays) loads as a model without body terms
     with np.load(path, allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files if not k.startswith("body_")}
@@ -426,9 +439,9 @@ def test_model_file_v2_round_trip_and_v1_files(models, tmp_path, walker):
     assert v1.body is None and v1.broad is None and v1.provenance["format_version_read"] == 1
     assert np.allclose(v1.frame_log_likelihood(states),       # the file's mixtures: the calibrated placement
                        cal.replace(body=None, broad=None).frame_log_likelihood(states))
-    header["format_version"] = 7
+    header["format_version"] = FORMAT_VERSION + 1
     arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
-    with pytest.raises(ModelFileError, match="format version 7 is not supported"):
+    with pytest.raises(ModelFileError, match=f"format version {FORMAT_VERSION + 1} is not supported"):
         model_from_arrays(arrays, "v3")
     # a version-2 header announcing body terms without the arrays is refused
     with np.load(path, allow_pickle=False) as z:

@@ -87,23 +87,64 @@ def test_v1_model_cannot_be_calibrated(models, data_dir, run):
 
 
 def test_dtm_train_calibrate_makes_the_takes_person_model(data_dir, tmp_path, capsys):
-    """``dtm-train --calibrate``: the model comes out calibrated to the training takes' person
-    (segment terms applied), with lengths measured on those takes."""
+    """``dtm-train``: takes of one capture come out calibrated to their person by default
+    (``--calibrate auto``; segment terms applied, lengths measured on those takes, the generic
+    body kept in the file); ``--calibrate`` asks for it, ``--calibrate off`` keeps the body
+    generic; takes of two people (two CMU subjects) stay generic under auto."""
     from dtm_labeler.cli.train import main as train_main
     out = tmp_path / "m.npz"
     args = [str(data_dir / LAMBADA), "--frames", "0:360", "--mixture", "fixed", "--k-fixed", "2",
             "--structure", "given", "--quiet"]
-    assert train_main(args + ["--out", str(out), "--calibrate", "--json"]) == 0
+    assert train_main(args + ["--out", str(out), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     cal = summary["calibration"]
     assert cal["source"] == "training takes" and cal["frames"] == 360 and cal["segments"] > 0
+    assert cal["why"] == "one capture"
     model = load_model(out)
     assert model.body.calibration and model.provenance["calibration"]["source"] == "training takes"
-    assert SEGMENT in model.body.applied_kinds
-    assert train_main(args + ["--out", str(tmp_path / "g.npz")]) == 0
+    assert SEGMENT in model.body.applied_kinds and model.broad_applied
+    assert model.generic_body is not None and not model.generic_body.calibration
+    assert train_main(args + ["--out", str(tmp_path / "c.npz"), "--calibrate", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["calibration"]["why"] == "asked"
+    assert train_main(args + ["--out", str(tmp_path / "g.npz"), "--calibrate", "off"]) == 0
     generic = load_model(tmp_path / "g.npz")
-    assert not generic.body.calibration and SEGMENT not in generic.body.applied_kinds
-    capsys.readouterr()
+    assert not generic.body.calibration and SEGMENT not in generic.body.applied_kinds and generic.generic_body is None
+    assert np.array_equal(generic.body.hi, model.generic_body.hi)
+    text = capsys.readouterr().out
+    assert "person " not in text
+    two = [str(data_dir / LAMBADA), str(data_dir / PIROUETTE), "--frames", "0:200", "--mixture", "fixed",
+           "--k-fixed", "2", "--structure", "given", "--quiet", "--points", "body14", "--json"]
+    assert train_main(two + ["--out", str(tmp_path / "two.npz")]) == 0
+    assert "calibration" not in json.loads(capsys.readouterr().out)
+    assert not load_model(tmp_path / "two.npz").body.calibration
+
+
+def test_dtm_label_sets_a_training_calibration_aside_for_someone_else(models, data_dir, run, tmp_path):
+    """A model calibrated to its training takes' person (subject 55's lambada, as ``dtm-train``
+    makes it): on the rest of that capture ``--calibrate auto`` keeps the calibration; on
+    another person's capture (subject 5's pirouette) it sets it aside, self-calibrates the
+    generic body as for any generic model and says so. Calibrating such a model again starts
+    from its generic body: the same lengths as calibrating the generic model."""
+    from dtm_labeler.training.calibrate import calibrate, calibrate_on_takes, generic_view
+    model_path, _, _ = models
+    generic = load_model(model_path)
+    clip = load_clip(data_dir / LAMBADA, points="body14").slice(0, 360)
+    person = calibrate_on_takes(generic, [clip])
+    path = save_model(person, tmp_path / "person.npz")
+    assert np.array_equal(generic_view(load_model(path)).body.hi, generic.body.hi)
+    own = json.loads(run("dtm-label", path, data_dir / LAMBADA, "--frames", "360:420", "--no-take-pass",
+                         "--json", "--quiet").stdout)
+    cal = own["inputs"][0]["calibration"]
+    assert cal["applied"] is False and "capture the model was trained on" in cal["reason"] and "set_aside" not in cal
+    other = json.loads(run("dtm-label", path, data_dir / PIROUETTE, "--frames", "0:120", "--no-take-pass",
+                           "--json", "--quiet").stdout)
+    cal = other["inputs"][0]["calibration"]
+    assert "training takes' person" in cal["set_aside"] and cal["applied"] and cal["segments"] > 5
+    assert other["accuracy"] > 0.95
+    s5 = load_clip(data_dir / PIROUETTE, points="body14").slice(0, 240)
+    again, direct = calibrate(person, s5, check_labels=False), calibrate(generic, s5, check_labels=False)
+    assert np.array_equal(again.body.lo, direct.body.lo) and np.array_equal(again.body.hi, direct.body.hi)
+    assert np.array_equal(again.generic_body.hi, generic.body.hi)
 
 
 def test_dtm_label_self_calibrates_a_generic_body_by_default(models, data_dir, run):

@@ -66,7 +66,7 @@ def test_file_is_plain_numeric_npz(trained, tmp_path):
             assert info.filename.endswith(".npy")
             assert b"pickle" not in zf.read(info)[:128].lower()
     header = json.loads(bytes(arrays["header"]).decode())
-    assert header["format"] == "dtm_labeler.model" and header["format_version"] == 6
+    assert header["format"] == "dtm_labeler.model" and header["format_version"] == 7 and header["generic_body"] is False
     assert header["components"] == [2] * 12 and header["broad"] and header["body"]["pairs"] == 91
     assert arrays["body_rigid_pairs"].shape == (0, 2)           # joint centres: no rigid marker pairs
     assert ({f"tri{t}_{k}" for t in range(12) for k in ("weights", "means", "covariances")} | {"header"}
@@ -92,7 +92,7 @@ def _corrupt_cases(good):
     c0 = good["tri0_covariances"]
     return {
         "wrong format name": (with_header(format="something.else"), "does not name format"),
-        "wrong version": (with_header(format_version=7), "format version 7 is not supported"),
+        "wrong version": (with_header(format_version=8), "format version 8 is not supported"),
         "body arrays missing": (drop("body_lo"), "body terms lack"),
         "body pair out of range": (replace("body_pairs", good["body_pairs"] + 50), "inconsistent model"),
         "twist label out of range": (replace("body_twists", good["body_twists"] + 50), "inconsistent model"),
@@ -170,7 +170,7 @@ def test_pickled_object_array_is_refused(trained, tmp_path):
 def test_model_from_arrays_direct():
     with pytest.raises(ModelFileError, match="mine: no header"):
         model_from_arrays({}, "mine")
-    assert mio.FORMAT_VERSION == 6 and mio.READABLE_VERSIONS == (1, 2, 3, 4, 5, 6)
+    assert mio.FORMAT_VERSION == 7 and mio.READABLE_VERSIONS == (1, 2, 3, 4, 5, 6, 7)
 
 
 @settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

@@ -90,7 +90,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calibrate", default="auto", metavar="auto|off|A:B",
                    help="subject calibration of a model whose body is generic (not yet calibrated to a person): "
                         "'auto' (default) self-calibrates it (not on the one capture a model was trained on: "
-                        "that is its person) on each take's first 5 s (a shorter take: its first "
+                        "that is its person; a model dtm-train calibrated to its takes' person keeps that on "
+                        "their captures and has it set aside for anyone else's) on each take's first 5 s (a shorter take: its first "
                         "third or all of it, whichever the calibrated model reproduces better; the model's own "
                         "confirmed labels, the take's names unused) and keeps the calibration when the "
                         "calibrated model keeps the labels it was measured on (and stops, keeping the model as "

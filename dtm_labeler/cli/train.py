@@ -11,6 +11,7 @@ from tqdm import tqdm
 
 from ..model.dtm import REST_MARGIN
 from ..model.io import save_model
+from ..motion.naming import one_subject
 from ..search.problem import Background
 from ..training.train import BODY_AUGMENTATION, MIXTURE_KINDS, STRUCTURE_METHODS, TrainConfig, train_model
 from .common import (CliError, HelpFormatter, add_capture_options, capture_kwargs, load_inputs, point_spec,
@@ -87,19 +88,22 @@ def build_parser() -> argparse.ArgumentParser:
                         "slower (every velocity times the factor, positions kept)")
     a.add_argument("--yaw-jitter", type=float, default=_DEFAULTS.yaw_jitter_deg, metavar="DEG",
                    help="uniform heading error in +-DEG per copied frame (tolerance to heading noise)")
-    g = p.add_argument_group("body model (motions the training never showed; dtm-calibrate sets a person's body)")
+    g = p.add_argument_group("body model (motions the training never showed; --calibrate / dtm-calibrate set a person's body)")
     g.add_argument("--body-terms", action=argparse.BooleanOptionalAction, default=True,
                    help="motion-independent terms on the structure's edges: segment lengths (bones, marker "
-                        "clusters; applied once dtm-calibrate has set them for a person) and reach limits")
+                        "clusters; applied once calibrated to a person: --calibrate, dtm-calibrate) and reach limits")
     g.add_argument("--broad-component", action=argparse.BooleanOptionalAction, default=True,
                    help="one broad component per triangle mixture, its weight fitted on held-out frames, so a "
                         "pose the training never showed is not vetoed; applied once the body is calibrated "
-                        "(dtm-calibrate, dtm-label --calibrate, ~/calibrate): with a generic body it would make "
+                        "(--calibrate, dtm-calibrate, dtm-label --calibrate, ~/calibrate): with a generic body it would make "
                         "ghosts near the body cheap to label")
-    g.add_argument("--calibrate", action="store_true",
-                   help="the takes are one person: calibrate the body terms to them (their segment lengths from "
-                        "the takes' own labels, as dtm-calibrate on a labelled capture), so the model is that "
-                        "person's from the start")
+    g.add_argument("--calibrate", nargs="?", const="on", default="auto", choices=("auto", "on", "off"),
+                   help="calibrate the body terms to the takes' person (their segment lengths from the takes' own "
+                        "labels, as dtm-calibrate on a labelled capture), so the model is that person's from the "
+                        "start: 'auto' (default) when the takes are known to be one person (one capture, or CMU "
+                        "takes of one subject), 'on' (or the bare flag): the takes are one person, 'off': a "
+                        "generic body. dtm-label sets the calibration aside for a capture of someone else and "
+                        "self-calibrates there (its --calibrate auto)")
     p.add_argument("--seed", type=int, default=0)
     b = p.add_argument_group("model bank (one model per action, Ukita sections 4.1-4.4)")
     b.add_argument("--action", default=None, metavar="NAME",
@@ -159,8 +163,12 @@ def _main(argv=None) -> int:
         if bar is not None:
             bar.close()
     calibration = None
-    if args.calibrate:
-        model, calibration = _calibrated(model, clips)
+    why = {"on": "asked", "off": None}[args.calibrate] if args.calibrate != "auto" else \
+        one_subject([c.source for c in clips])
+    if why is not None and (model.body is not None or args.calibrate == "on"):
+        model, calibration = _calibrated(model, clips, strict=args.calibrate == "on")
+        if calibration is not None:     # kept in the file: dtm-label reads whose the calibration is
+            calibration["why"] = model.provenance["calibration"]["why"] = why
     save_model(model, args.out)
     s = summary.as_dict() | {"out": str(args.out)} | ({"calibration": calibration} if calibration else {})
     if model.body is not None:
@@ -213,18 +221,24 @@ def _main(argv=None) -> int:
               + f"; a point still for longer than {REST_MARGIN:g} x its label's longest rest and {floor:g} s "
               "is scored as possibly a fixed reflection")
     if calibration:
-        print(f"calibrated to the takes' person: {calibration['segments']} of {calibration['segments_total']} "
-              f"segment lengths from {calibration['frames']} frames (scale {calibration['scale']:.3f})")
+        print(f"person    calibrated to the takes' person ({calibration['why']}): {calibration['segments']} of "
+              f"{calibration['segments_total']} segment lengths from {calibration['frames']} frames (scale "
+              f"{calibration['scale']:.3f}); dtm-label sets it aside for another capture (--calibrate off: generic)")
     print(f"time      {s['seconds']:.1f} s")
     return 0
 
 
-def _calibrated(model, clips):
-    """``model`` calibrated to the training takes' person and the JSON-ready summary."""
+def _calibrated(model, clips, strict: bool = True):
+    """``model`` calibrated to the training takes' person and the JSON-ready summary; a
+    calibration that cannot be made is an error when asked for (``strict``), else a note and
+    the generic model (summary None)."""
     from ..training.calibrate import CalibrationError, calibrate_on_takes
     try:
         out = calibrate_on_takes(model, clips)
     except CalibrationError as e:
+        if not strict:
+            print(f"note: the body stays generic: {e}", file=sys.stderr)
+            return model, None
         raise CliError(f"--calibrate: {e}") from None
     summary = out.provenance["calibration"]
     return out, {k: v for k, v in summary.items() if not isinstance(v, (dict, list))}

@@ -37,8 +37,9 @@ from ..labeling.stream import LabelerSettings
 from ..model.io import model_from_arrays
 from ..motion.clip import frame_range
 from ..motion.load import load_clip
+from ..motion.naming import one_subject
 from ..motion.unlabelled import model_input
-from ..training.calibrate import CalibrationError, calibrate_from_clip
+from ..training.calibrate import CalibrationError, calibrate_from_clip, generic_view
 from .labelled_capture import CaptureFormat, from_records
 from .metrics import MetricsAccumulator
 from .pipeline import label_clip_run
@@ -160,6 +161,10 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
             auto, res.calibration = False, {
                 "applied": False, "source": "auto (the take's first frames, self-labelled)",
                 "reason": "the take is the capture the model was trained on: the model is of its person"}
+        set_aside = None
+        if auto and of_training_person(model, job.source) is None and generic_view(model) is not None:
+            model, set_aside = generic_view(model), (
+                "the model's calibration to its training takes' person, for a capture not known to be theirs")
         mi = model_input(clip, model.labels, job.keep_unlabelled, job.ignore_names)
         run = label_clip_run(model, mi.clip, job.settings, occlude=job.occlude, clutter=job.clutter,
                              noise_mm=job.noise_mm, seed=job.seed, progress=progress, use_ids=job.use_ids,
@@ -168,7 +173,7 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
                              take_pass=job.take_pass, calibrate_s=AUTO_CALIBRATION_S if auto else 0.0,
                              calibration_progress=calibration_progress)
         if auto:
-            res.calibration = run.settings["calibration"]
+            res.calibration = run.settings["calibration"] | ({"set_aside": set_aside} if set_aside else {})
         if job.out:
             cap = from_records(run.records, model.labels, clip.n_frames, CaptureFormat.of(clip, a))
             res.out = str(cap.write(job.out))
@@ -194,8 +199,31 @@ def trained_on(model, source: str) -> bool:
     under the model of its first half: 99.66 % without, 98.93 % with the self-calibration it
     passed; ``results/captures.md``). A model of several captures may be of several people."""
     sources = model.provenance.get("sources") or []
+    return len(sources) == 1 and _same_file(source, sources[0])
+
+
+def of_training_person(model, source: str) -> str | None:
+    """Why the capture ``source`` is of the person a model calibrated on its training takes
+    was calibrated to -- one of those captures, the same CMU subject
+    (:func:`~dtm_labeler.motion.naming.one_subject`), or any capture when the user said the
+    takes were one person (``dtm-train --calibrate``) -- else None (also for a model not
+    calibrated on its training takes). ``--calibrate auto`` keeps such a model's calibration for
+    its person and sets it aside for anyone else (:func:`generic_view`): another person's
+    segment lengths cost right labelings more than they save (:mod:`dtm_labeler.model.body`)."""
+    cal = model.provenance.get("calibration") or {}
+    if cal.get("source") != "training takes":
+        return None
+    if cal.get("why") == "asked":
+        return "the person dtm-train --calibrate was told the takes are"
+    sources = [str(s) for s in model.provenance.get("sources") or []]
+    if any(_same_file(source, s) for s in sources):
+        return "one of its training captures"
+    return one_subject(sources + [source]) if sources else None
+
+
+def _same_file(a: str, b: str) -> bool:
     try:
-        return len(sources) == 1 and os.path.samefile(source, sources[0])
+        return os.path.samefile(a, b)
     except (OSError, TypeError, ValueError):            # gone, moved, or not a path
         return False
 

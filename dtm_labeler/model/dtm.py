@@ -337,6 +337,9 @@ class TriangulatedModel:
     provenance: dict = field(default_factory=dict)
     body: BodyModel | None = None               # motion-independent edge terms (None: none)
     broad: BroadMotion | None = None            # broad part of every triangle's conditional (None: none)
+    # a calibrated model's body before its calibration: what dtm-label sets the calibration to the
+    # training takes' person aside for on a capture of someone else (None: not kept)
+    generic_body: BodyModel | None = None
 
     def __post_init__(self) -> None:
         self.labels = tuple(self.labels)
@@ -356,8 +359,9 @@ class TriangulatedModel:
                 raise ValueError(f"{name} pair index out of range")
         self.terms = [shared_triangle_terms(m, first=(t == 0)) for t, m in enumerate(self.mixtures)]
         self.triangles = self.structure.array
-        if self.body is not None and self.body.n_labels != len(self.labels):
-            raise ValueError(f"body terms for {self.body.n_labels} labels, model has {len(self.labels)}")
+        for b in (self.body, self.generic_body):
+            if b is not None and b.n_labels != len(self.labels):
+                raise ValueError(f"body terms for {b.n_labels} labels, model has {len(self.labels)}")
         edges = EdgeTerms(self.body, self.triangles, self.body.applied_kinds) if self.body is not None else None
         self.body_edges = edges if edges is not None and edges.active else None
         cross = CrossSegments(self.body, self.triangles) if self.body is not None and \
@@ -388,7 +392,8 @@ class TriangulatedModel:
         """A copy with some fields replaced (mixtures, body, settings, provenance ...)."""
         kw = dict(labels=self.labels, structure=self.structure, mixtures=self.mixtures,
                   heading_pairs=self.heading_pairs, mirror_pairs=self.mirror_pairs, settings=dict(self.settings),
-                  provenance=dict(self.provenance), body=self.body, broad=self.broad)
+                  provenance=dict(self.provenance), body=self.body, broad=self.broad,
+                  generic_body=self.generic_body)
         kw.update(changes)
         return TriangulatedModel(**kw)
 

@@ -29,10 +29,12 @@ Versions: 2 adds the body terms and the broad components (issue 13); 3 the clust
 (:class:`~dtm_labeler.model.body.Handedness`); 4 the trunk's twist limit
 (:class:`~dtm_labeler.model.body.TrunkTwist`); 5 the trained person's rigid marker pairs
 (:attr:`~dtm_labeler.model.body.BodyModel.rigid_pairs`, read by the offline take pass only); 6 the
-marker bars' order (:class:`~dtm_labeler.model.body.BarOrder`). Version 1
+marker bars' order (:class:`~dtm_labeler.model.body.BarOrder`); 7 a calibrated model's body before
+its calibration (``generic_body_*``, the same arrays as ``body_*``; the header's ``"generic_body"``
+is set: :attr:`~dtm_labeler.model.dtm.TriangulatedModel.generic_body`). Version 1
 files still load, as models without body terms, version 2 files as bodies without handedness, version 3
 files as bodies without twist limits, version 4 files as bodies without the person's rigid pairs,
-version 5 files as bodies without bar orders (all
+version 5 files as bodies without bar orders, version 6 files without the generic body (all
 score exactly as they did;
 ``provenance["format_version_read"]`` says which). A file that is
 not a model, has an unknown format version, or whose arrays disagree with the header raises
@@ -55,8 +57,9 @@ from .mixture import GaussianMixture
 from .structure import Structure
 
 FORMAT_NAME = "dtm_labeler.model"
-FORMAT_VERSION = 6
-READABLE_VERSIONS = (1, 2, 3, 4, 5, 6)
+FORMAT_VERSION = 7
+READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7)
+GENERIC = "generic_"                     # prefix of the generic body's arrays (version 7)
 
 
 class ModelFileError(ValueError):
@@ -77,6 +80,7 @@ def model_to_bytes(model: TriangulatedModel) -> bytes:
         "body": None if model.body is None else {"pairs": int(model.body.pairs.shape[0]),
                                                  "calibration": model.body.calibration},
         "broad": model.broad is not None,
+        "generic_body": model.generic_body is not None,
     }
     arrays = {"header": np.frombuffer(json.dumps(header, indent=1).encode(), dtype=np.uint8)}
     for t, mix in enumerate(model.mixtures):
@@ -86,6 +90,8 @@ def model_to_bytes(model: TriangulatedModel) -> bytes:
         arrays.update(model.body.to_arrays())
     if model.broad is not None:
         arrays.update(model.broad.to_arrays())
+    if model.generic_body is not None:
+        arrays.update({GENERIC + k: v for k, v in model.generic_body.to_arrays().items()})
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
     return buf.getvalue()
@@ -153,10 +159,15 @@ def model_from_arrays(arrays: dict, where: str = "model") -> TriangulatedModel:
                 raise ModelFileError(f"{where}: header entry 'body' must be an object or null")
             body = BodyModel.from_arrays(arrays, len(labels), body_info.get("calibration"))
         broad = BroadMotion.from_arrays(arrays, structure.n_triangles) if version >= 2 and header.get("broad") else None
+        generic = None
+        if version >= 7 and header.get("generic_body"):
+            generic = BodyModel.from_arrays({k[len(GENERIC):]: v for k, v in arrays.items() if k.startswith(GENERIC)},
+                                            len(labels))
         provenance = dict(header.get("provenance", {}))
         if version != FORMAT_VERSION:
             provenance["format_version_read"] = version
         return TriangulatedModel(labels=tuple(labels), structure=structure, mixtures=mixtures, body=body, broad=broad,
+                                 generic_body=generic,
                                  heading_pairs=np.asarray(header.get("heading_pairs", []), dtype=np.int64),
                                  mirror_pairs=(np.asarray(header["mirror_pairs"], dtype=np.int64)
                                                if "mirror_pairs" in header else None),

@@ -19,7 +19,9 @@ Rules (the same for every loader and every tool):
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -107,3 +109,18 @@ def cmu_subject(stem: str) -> str | None:
     """CMU take naming: ``'93_04' -> '93'`` (subject number before the underscore), else None."""
     head, sep, tail = stem.partition("_")
     return head if sep and head.isdigit() and tail[:1].isdigit() else None
+
+
+def one_subject(sources: Sequence[str]) -> str | None:
+    """Why the captures at paths ``sources`` are of one person -- ``'one capture'`` (every
+    path the same file) or ``'CMU subject N'`` (CMU take naming, one subject number) -- or None
+    when the names do not tell (several captures of unknown people)."""
+    paths = [os.path.realpath(str(s)) for s in sources]
+    if not paths:
+        return None
+    if len(set(paths)) == 1:
+        return "one capture"
+    subjects = {cmu_subject(Path(p).stem) for p in paths}
+    if len(subjects) == 1 and None not in subjects:
+        return f"CMU subject {subjects.pop()}"
+    return None

@@ -416,13 +416,19 @@ def calibrate(model: TriangulatedModel, source: MotionClip | np.ndarray,
     :func:`.body_fit.window_broad_weights`); the confidence's fit
     reference (``settings["fit_reference_per_label"]``) is measured on the frames too (module
     doc) when their rate is known (a clip's, or ``rate``). ``check_labels``: check left against right and each
-    point's side (labels from a model); False trusts them (an operator-labelled capture)."""
+    point's side (labels from a model); False trusts them (an operator-labelled capture).
+    The body before the calibration stays with the model (``generic_body``, :func:`generic_view`)
+    and a calibrated model is calibrated again from it: one person's lengths are never the
+    starting range of another's."""
     if model.body is None:
         raise CalibrationError("the model has no body terms to calibrate (format version 1 or trained "
                                "without them); retrain with dtm-train")
     s = settings or CalibrationSettings()
     P = labelled_positions(model, source)
-    body, summary = calibrated_body(model.body, P, s, model.mirror_pairs, model.heading_pairs, check_labels)
+    # calibrations do not compound: a calibrated model is calibrated again from its generic body
+    generic = model.generic_body if model.body.calibration else model.body
+    body, summary = calibrated_body(generic or model.body, P, s, model.mirror_pairs, model.heading_pairs,
+                                    check_labels)
     mixtures = model.mixtures
     if s.placement_relevance > 0:
         mixtures, summary["placement"] = adapted_mixtures(model, P, s.placement_relevance, s.min_frames)
@@ -434,7 +440,8 @@ def calibrate(model: TriangulatedModel, source: MotionClip | np.ndarray,
                                                    facing_states(P, model.heading_pairs, rate), trained,
                                                    s.broad_min_frames)
         broad = BroadMotion(w, broad.gaussians)
-    out = model.replace(body=body, mixtures=mixtures, broad=broad)
+    # the body before any calibration stays with the model (:func:`generic_view`)
+    out = model.replace(body=body, mixtures=mixtures, broad=broad, generic_body=generic)
     out.settings.pop("fit_reference_per_label", None)     # calibrations do not compound
     if trained is not None:
         out.settings["broad_weights_training"] = trained.tolist()
@@ -444,6 +451,22 @@ def calibrate(model: TriangulatedModel, source: MotionClip | np.ndarray,
         out.settings["fit_reference_per_label"] = min(float(training), ref)
         summary["fit_per_label"] = {"training": training, "calibration_frames": ref}
     out.provenance["calibration"] = summary
+    return out
+
+
+def generic_view(model: TriangulatedModel) -> TriangulatedModel | None:
+    """``model`` with its calibration set aside: its body as it was before it was calibrated
+    (:attr:`TriangulatedModel.generic_body`), so the segment terms, the broad part and the
+    clusters' handedness wait for a calibration again; None when the model is not calibrated or
+    did not keep that body (files before format 7). The mixtures keep the calibration's
+    placement (:mod:`.placement`), which for a calibration on the training takes themselves
+    (:func:`calibrate_on_takes`) is their own frames again, and the broad weights it fitted
+    (applied only once calibrated again, which fits them anew from the training ones)."""
+    if model.body is None or not model.body.calibration or model.generic_body is None:
+        return None
+    out = model.replace(body=model.generic_body, generic_body=None)
+    out.provenance.pop("calibration", None)
+    out.settings.pop("fit_reference_per_label", None)     # the calibration's yardstick (:func:`calibrate`)
     return out
 
 
@@ -831,5 +854,5 @@ def calibrate_from_clip(model: TriangulatedModel, clip: MotionClip, labels: str 
     return out, dict(out.provenance["calibration"])
 
 
-__all__ = ["LABEL_SOURCES", "auto_calibrate", "auto_calibrate_bytes", "auto_calibration_process", "idle_priority", "calibratable", "kept_share", "calibrate_from_clip", "calibrate_on_takes", "confirmed_positions", "confirmation_of", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "mirror_rows", "wrong_side", "self_label",
+__all__ = ["LABEL_SOURCES", "auto_calibrate", "auto_calibrate_bytes", "auto_calibration_process", "idle_priority", "calibratable", "generic_view", "kept_share", "calibrate_from_clip", "calibrate_on_takes", "confirmed_positions", "confirmation_of", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "mirror_rows", "wrong_side", "self_label",
            "self_calibrate", "labelled_positions"]
