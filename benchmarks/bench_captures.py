@@ -68,6 +68,7 @@ from dtm_labeler.model.io import model_to_bytes, save_model  # noqa: E402
 from dtm_labeler.motion.c3d_write import write_c3d  # noqa: E402
 from dtm_labeler.motion.load import load_clip  # noqa: E402
 from dtm_labeler.motion.pointsets import AllBut, to_point_set  # noqa: E402
+from dtm_labeler.training.calibrate import calibrate_on_takes  # noqa: E402
 from dtm_labeler.training.gaps import RarelySeen  # noqa: E402
 from dtm_labeler.training.train import TrainConfig, train_model  # noqa: E402
 
@@ -83,6 +84,7 @@ TRAIN_FRAMES, LABEL_FRAMES = 1500, 600
 TAKE_VOTES_S = 1.0            # dtm-label's default --take-votes
 SWEEP = (0.1, 0.25, 0.5)
 CONFIG = dict(seed=0, k_max=3)
+CALIBRATE = os.environ.get("CALIBRATE", "1") != "0"     # dtm-train's default for one capture (:func:`train`)
 #: reflections: (take, markers drawn or None for all, missing shares); the draw of 22 markers is seed 5's
 REFLECTION_CASES = (("hdm05", None, (0.5,)), ("hdm05", 22, (0.25, 0.5)), ("qualisys", None, (0.5,)))
 REFLECTIONS = 3
@@ -111,8 +113,12 @@ def write_take(path: Path, clip, names=None) -> Path:
 
 
 def train(clip, **over):
+    """A model of one capture as ``dtm-train`` makes it: calibrated to the capture's person (its
+    ``--calibrate auto`` for one capture; ``CALIBRATE=0`` in the environment: the generic body)."""
     t0 = time.perf_counter()
     model, summary = train_model([clip], TrainConfig(**(CONFIG | over)))
+    if CALIBRATE and model.body is not None:
+        model = calibrate_on_takes(model, [clip])
     return model, summary, time.perf_counter() - t0
 
 
@@ -402,7 +408,8 @@ def write_md(res: dict, meta: dict) -> str:
     L = ["# Captures: gappy training, real ghosts, unnamed C3D -> labelled C3D, archives", "",
          f"{meta['machine']}; other jobs share the machine. Sections run: "
          + "; ".join(f"{name} {r['date']} (commit {r['commit']}, load average {r['load_start']:.1f} -> "
-                     f"{r['load_end']:.1f})" for name, r in meta.get("runs", {}).items()) + ".", ""]
+                     f"{r['load_end']:.1f}{'' if r.get('calibrate', False) else ', models of a generic body'})"
+                     for name, r in meta.get("runs", {}).items()) + ".", ""]
     if "gaps" in res:
         g = GAPS
         L += ["## Training on gappy captures", "",
@@ -576,7 +583,8 @@ def main(argv=None) -> int:
     meta["load_end"] = os.getloadavg()[0]
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    runs = {name: {k: meta[k] for k in ("date", "commit", "load_start", "load_end")} for name in res}
+    meta["calibrate"] = CALIBRATE
+    runs = {name: {k: meta[k] for k in ("date", "commit", "load_start", "load_end", "calibrate")} for name in res}
     if args.update and out.with_suffix(".json").is_file():
         old = json.loads(out.with_suffix(".json").read_text())
         runs = old["meta"].get("runs", {}) | runs
