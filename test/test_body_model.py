@@ -472,6 +472,12 @@ def test_cross_segments_formula_and_marginalisation():
     reach = BodyModel(n_labels=4, pairs=[[2, 3]], kind=[REACH], lo=[0.0], hi=[1.0], within_sd=[0.03],
                       between_sd=[0.0], calibration={"source": "test"})
     assert not CrossSegments(reach, np.array([[0, 1, 2], [3, 0, 1]])).active
+    # a calibrated model holds its reach limits off the edges too: only beyond the limit
+    held = CrossSegments(reach, np.array([[0, 1, 2], [3, 0, 1]]), kinds=(SEGMENT, REACH))
+    far = np.zeros((n + 1, n + 1))
+    far[2, 3] = far[3, 2] = 1.06                                     # 2 sd beyond the reach
+    assert held.active and held(pop, far, n) == pytest.approx([-2.0, -2.0, 0.0])
+    assert held(pop, dist, n) == pytest.approx([0.0, 0.0, 0.0])      # within reach: nothing
 
 
 def test_cross_segments_join_the_fitness_once_calibrated(models, person, walker):
@@ -480,8 +486,10 @@ def test_cross_segments_join_the_fitness_once_calibrated(models, person, walker)
     and to the frame log-likelihood of labelled frames: nothing while the pair keeps its length,
     the quadratic when it does not; a generic body has none."""
     from dataclasses import replace
-    assert models[0].body_cross is None and person.body_cross is None     # 14 points: every bone is an edge
+    assert models[0].body_cross is None                                # a generic body: no pairs off the edges
     b = person.body
+    held = person.body_cross.pairs                                     # calibrated: its reach limits only,
+    assert (b.kind[b.pair_index()[held[:, 0], held[:, 1]]] == REACH).all()   # 14 points: every bone is an edge
     edge = np.zeros((14, 14), bool)
     for t in person.triangles:
         edge[np.ix_(t, t)] = True

@@ -125,3 +125,26 @@ def reversed_orders(idx, pts, orders):  # pragma: no cover - compiled
 
 
 __all__ = ["mirrored_quads", "reversed_orders", "twist_cosines", "twist_factors"]
+
+
+@njit(cache=True, nogil=True)
+def pair_factors(pop, dist, n, pairs, lo, hi, inv_sd):  # pragma: no cover - compiled
+    """(P,) summed dead-zone quadratics ``-1/2 (max(0, lo - d, d - hi) / sd)^2`` of the label
+    pairs ``pairs`` (K, 2) for each row of ``pop`` (P, M) (``n`` = missing: the pair drops),
+    ``d`` read from the frame's point distances ``dist`` (n+1, n+1) (:class:`~dtm_labeler.model.body.CrossSegments`).
+    A calibrated 41-marker body holds some 740 pairs off the edges: in numpy the gathers cost
+    54 us for one row and 1.4 ms for 60."""
+    P = pop.shape[0]
+    out = np.zeros(P)
+    for p in range(P):
+        acc = 0.0
+        for k in range(pairs.shape[0]):
+            a = pop[p, pairs[k, 0]]
+            b = pop[p, pairs[k, 1]]
+            if a >= n or b >= n:
+                continue
+            d = dist[a, b]
+            x = max(lo[k] - d, d - hi[k], 0.0) * inv_sd[k]
+            acc += x * x
+        out[p] = -0.5 * acc
+    return out

@@ -364,9 +364,9 @@ class TriangulatedModel:
                 raise ValueError(f"body terms for {b.n_labels} labels, model has {len(self.labels)}")
         edges = EdgeTerms(self.body, self.triangles, self.body.applied_kinds) if self.body is not None else None
         self.body_edges = edges if edges is not None and edges.active else None
-        cross = CrossSegments(self.body, self.triangles) if self.body is not None and \
+        cross = CrossSegments(self.body, self.triangles, self.body.applied_kinds) if self.body is not None and \
             SEGMENT in self.body.applied_kinds else None
-        self.body_cross = cross if cross is not None and cross.active else None     # rigid pairs off the edges
+        self.body_cross = cross if cross is not None and cross.active else None     # pairs off the edges
         hand = Handedness(self.body) if self.body is not None and self.body.calibration else None
         self.body_handedness = hand if hand is not None and hand.active else None  # clusters' handedness
         order = BarOrder(self.body) if self.body is not None and self.body.calibration else None
@@ -478,6 +478,8 @@ class TriangulatedModel:
             self.body_handedness(np.zeros((1, self.n_labels), dtype=np.int64), np.zeros((1, 3)))
         if self.body_twist is not None:                                               # and the twist kernel
             self.body_twist(np.zeros((1, self.n_labels), dtype=np.int64), np.zeros((1, 3)))
+        if self.body_cross is not None:                                               # and the pairs off the edges
+            self.body_cross(np.zeros((1, self.n_labels), dtype=np.int64), np.zeros((1, 1)), 0)
         return self
 
     @property
