@@ -163,8 +163,8 @@ def _main(argv=None) -> int:
         if bar is not None:
             bar.close()
     calibration = None
-    why = {"on": "asked", "off": None}[args.calibrate] if args.calibrate != "auto" else \
-        one_subject([c.source for c in clips])
+    why = one_subject([c.source for c in clips]) if args.calibrate == "auto" else \
+        ("asked" if args.calibrate == "on" else None)
     if why is not None and (model.body is not None or args.calibrate == "on"):
         model, calibration = _calibrated(model, clips, strict=args.calibrate == "on")
         if calibration is not None:     # kept in the file: dtm-label reads whose the calibration is

@@ -161,10 +161,10 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
             auto, res.calibration = False, {
                 "applied": False, "source": "auto (the take's first frames, self-labelled)",
                 "reason": "the take is the capture the model was trained on: the model is of its person"}
-        set_aside = None
-        if auto and of_training_person(model, job.source) is None and generic_view(model) is not None:
-            model, set_aside = generic_view(model), (
-                "the model's calibration to its training takes' person, for a capture not known to be theirs")
+        generic = generic_view(model) if auto and of_training_person(model, job.source) is None else None
+        set_aside = None if generic is None else \
+            "the model's calibration to its training takes' person, for a capture not known to be theirs"
+        model = generic or model
         mi = model_input(clip, model.labels, job.keep_unlabelled, job.ignore_names)
         run = label_clip_run(model, mi.clip, job.settings, occlude=job.occlude, clutter=job.clutter,
                              noise_mm=job.noise_mm, seed=job.seed, progress=progress, use_ids=job.use_ids,

@@ -124,9 +124,6 @@ def reversed_orders(idx, pts, orders):  # pragma: no cover - compiled
     return out
 
 
-__all__ = ["mirrored_quads", "reversed_orders", "twist_cosines", "twist_factors"]
-
-
 @njit(cache=True, nogil=True)
 def pair_factors(pop, dist, n, pairs, lo, hi, inv_sd):  # pragma: no cover - compiled
     """(P,) summed dead-zone quadratics ``-1/2 (max(0, lo - d, d - hi) / sd)^2`` of the label
@@ -148,3 +145,6 @@ def pair_factors(pop, dist, n, pairs, lo, hi, inv_sd):  # pragma: no cover - com
             acc += x * x
         out[p] = -0.5 * acc
     return out
+
+
+__all__ = ["mirrored_quads", "pair_factors", "reversed_orders", "twist_cosines", "twist_factors"]
