@@ -1,4 +1,5 @@
 """Model files: round trip, no pickle, and every kind of corruption gives ModelFileError."""
+import io
 import json
 import zipfile
 
@@ -197,3 +198,18 @@ def test_fuzzed_files_load_or_raise_model_file_error(trained, tmp_path, data):
         assert p.name in str(e)
     else:
         assert back.labels == model.labels
+
+
+def test_a_damaged_npy_header_raises_model_file_error(trained, tmp_path):
+    """A member whose .npy header dict is damaged (numpy parses it as a Python literal: a
+    SyntaxError or tokenize.TokenError, found by the fuzz test above) is a ModelFileError."""
+    model, _ = trained
+    src = zipfile.ZipFile(io.BytesIO(model_to_bytes(model)))
+    for cut in (b"'shape'", b"'descr'"):
+        out = tmp_path / "damaged.npz"
+        with zipfile.ZipFile(out, "w") as z:
+            for info in src.infolist():
+                data = src.read(info)
+                z.writestr(info.filename, data.replace(cut, cut[:-1], 1) if info.filename == "header.npy" else data)
+        with pytest.raises(ModelFileError, match="damaged.npz: not a dtm_labeler model file"):
+            load_model(out)

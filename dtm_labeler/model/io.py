@@ -45,6 +45,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import tokenize
 import zipfile
 import zlib
 from pathlib import Path
@@ -123,8 +124,10 @@ def _load(source, where: str) -> TriangulatedModel:
     try:
         with np.load(source, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, zlib.error, NotImplementedError, ValueError, OSError, EOFError) as e:
-        # zlib.error: damaged deflate data; NotImplementedError: damaged compression-method field
+    except (zipfile.BadZipFile, zlib.error, NotImplementedError, ValueError, OSError, EOFError, SyntaxError,
+            tokenize.TokenError) as e:
+        # zlib.error: damaged deflate data; NotImplementedError: damaged compression-method field;
+        # SyntaxError / TokenError: a damaged .npy header dict (numpy parses it as a Python literal)
         raise ModelFileError(f"{where}: not a dtm_labeler model file ({e})") from None
     return model_from_arrays(arrays, where)
 
