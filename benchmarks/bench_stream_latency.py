@@ -4,12 +4,14 @@
 A 120 Hz capture leaves 8.3 ms per frame. Each stream is long (hundreds to a thousand frames),
 so p99 describes steady state; start-up is reported on its own.
 
-Cases (model trained on the first part of the recording(s), stream = frames after that):
+Cases (model trained on the first part of the recording(s) as ``dtm-train`` makes it by default:
+calibrated to the person when the takes are one person; stream = frames after that):
 
 * ``body14``: the 14 body points; model from the first half of walk 07_01, run 09_11 and
   dance 55_01; stream = the second half of the dance (900 frames).
 * ``markers41``: all 41 labelled markers of the HDM05 C3D (its 3 unlabelled copies left out);
-  model from its first 70 %; stream = 1000 frames after that.
+  model from its first 70 %, calibrated to its person (one capture); stream = 1000 frames
+  after that.
 
 Conditions: clean; gaps (3 hidden points, occlusions of ~24 frames) + 2 ghosts + 1 mm noise;
 flicker (2 hidden, a new set every frame) + 2 ghosts + 1 mm noise.
@@ -56,6 +58,7 @@ CASES = {
 CONDITIONS = {"clean": dict(occlude=0, clutter=0, noise_mm=0.0, gap_frames=1),
               "gaps 3 + ghosts 2 + 1 mm": dict(occlude=3, clutter=2, noise_mm=1.0, gap_frames=24),
               "flicker 2 + ghosts 2 + 1 mm": dict(occlude=2, clutter=2, noise_mm=1.0, gap_frames=1)}
+CALIBRATE = os.environ.get("CALIBRATE", "1") != "0"     # dtm-train's default (:func:`load_case`)
 STEADY = 10                       # frames of start-up left out of the steady-state figures
 RIGHT = 0.9                       # share of a frame's visible markers labelled right that counts as right
 
@@ -65,13 +68,22 @@ def _ms(v):
 
 
 def load_case(name: str, max_frames: int | None):
+    """(model, stream clip) of a case. The model as ``dtm-train`` makes it by default
+    (``--calibrate auto``): calibrated to the takes' person when they are one person
+    (``markers41``: one capture), a generic body otherwise (``body14``: three subjects);
+    ``CALIBRATE=0`` in the environment keeps every model generic (this table before
+    2026-12-03)."""
     from dtm_labeler.cli.common import load_inputs
+    from dtm_labeler.motion.naming import one_subject
+    from dtm_labeler.training.calibrate import calibrate_on_takes
     from dtm_labeler.training.train import TrainConfig, train_model
     spec = CASES[name]
     split = spec.get("split", 0.5)
     train = [c.slice(0, int(c.n_frames * split)) for c in load_inputs([str(DATA / p) for p in spec["train"]],
                                                                        spec["points"])]
     model, _ = train_model(train, TrainConfig(seed=0))
+    if CALIBRATE and model.body is not None and one_subject([c.source for c in train]) is not None:
+        model = calibrate_on_takes(model, train)
     clip = load_inputs([str(DATA / spec["stream"])], spec["points"])[0]
     start = int(clip.n_frames * split)
     return model, clip.slice(start, start + (max_frames or spec["frames"]))
@@ -159,7 +171,8 @@ def main() -> None:
     lines = ["# Stream-mode latency on long real streams (library)", "",
              f"{meta['date']}, commit {commit}, {meta['cpus']} cores, load average {load0:.1f} at start "
              f"(shared machine: CPU time is the stable figure). Model trained on the first part of the "
-             f"recording(s); stream = frames after that. Steady state = the frames from {STEADY} frames after "
+             f"recording(s) as dtm-train makes it ({'calibrated to the person when the takes are one person: markers41' if CALIBRATE else 'generic bodies: CALIBRATE=0'}); "
+             f"stream = frames after that. Steady state = the frames from {STEADY} frames after "
              f"the first labelled one. "
              "inline: searches in the frame that needs them; background: searches in the worker process, "
              "frames fed on a real-time schedule. Start-up = first frame with a label (stream time); "
