@@ -123,8 +123,9 @@ def test_dtm_label_sets_a_training_calibration_aside_for_someone_else(models, da
     """A model calibrated to its training takes' person (subject 55's lambada, as ``dtm-train``
     makes it): on the rest of that capture ``--calibrate auto`` keeps the calibration; on
     another person's capture (subject 5's pirouette) it sets it aside, self-calibrates the
-    generic body as for any generic model and says so. Calibrating such a model again starts
-    from its generic body: the same lengths as calibrating the generic model."""
+    generic body as for any generic model and says so -- and where that self-calibration does
+    not hold up, labels with the training person's calibration. Calibrating such a model again
+    starts from its generic body: the same lengths as calibrating the generic model."""
     from dtm_labeler.training.calibrate import calibrate, calibrate_on_takes, generic_view
     model_path, _, _ = models
     generic = load_model(model_path)
@@ -141,6 +142,20 @@ def test_dtm_label_sets_a_training_calibration_aside_for_someone_else(models, da
     cal = other["inputs"][0]["calibration"]
     assert "training takes' person" in cal["set_aside"] and cal["applied"] and cal["segments"] > 5
     assert other["accuracy"] > 0.95
+    # a take the generic body cannot follow (the pirouette's frames in a random order: every frame
+    # a full search), so its self-calibration is refused: the take is labelled with the training
+    # person's calibration -- the same labels as --calibrate off -- and the summary says so
+    from dtm_labeler.motion.c3d_write import write_c3d
+    from dtm_labeler.evaluation.archive import TRAINING_PERSON_KEPT
+    pir = load_clip(data_dir / PIROUETTE, points="body14")
+    order = np.random.default_rng(1).choice(pir.n_frames, 36, replace=False)
+    shuffled = write_c3d(tmp_path / "shuffled.c3d", pir.positions[order], list(pir.names), pir.rate)
+    args = [path, shuffled, "--no-take-pass", "--json", "--quiet"]
+    auto, off = (json.loads(run("dtm-label", *args, *extra).stdout) for extra in ((), ("--calibrate", "off")))
+    cal = auto["inputs"][0]["calibration"]
+    assert cal["applied"] is False and cal["kept"] == TRAINING_PERSON_KEPT and "set_aside" not in cal
+    assert "full search" in cal["reason"] and cal["reason"].endswith(TRAINING_PERSON_KEPT), cal["reason"]
+    assert auto["accuracy"] == off["accuracy"] and auto["frames"] == off["frames"] == 36
     s5 = load_clip(data_dir / PIROUETTE, points="body14").slice(0, 240)
     again, direct = calibrate(person, s5, check_labels=False), calibrate(generic, s5, check_labels=False)
     assert np.array_equal(again.body.lo, direct.body.lo) and np.array_equal(again.body.hi, direct.body.hi)

@@ -223,7 +223,8 @@ def _main(argv=None) -> int:
     if calibration:
         print(f"person    calibrated to the takes' person ({calibration['why']}): {calibration['segments']} of "
               f"{calibration['segments_total']} segment lengths from {calibration['frames']} frames (scale "
-              f"{calibration['scale']:.3f}); dtm-label sets it aside for another capture (--calibrate off: generic)")
+              f"{calibration['scale']:.3f}); on another capture dtm-label self-calibrates that person instead "
+              "(keeping this one where that does not hold up; --calibrate off: generic)")
     print(f"time      {s['seconds']:.1f} s")
     return 0
 

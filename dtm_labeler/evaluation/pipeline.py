@@ -196,20 +196,24 @@ def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: Labeler
                    keep_records: bool = True, done: int = 0, total: int | None = None,
                    extra: np.ndarray | None = None, named: bool = True, take_votes_s: float = 0.0,
                    take_pass: bool = False, calibrate_s: float = 0.0,
-                   calibration_progress: Progress | None = None) -> ClipRun:
+                   calibration_progress: Progress | None = None,
+                   fallback: TriangulatedModel | None = None) -> ClipRun:
     """:func:`label_clip` returning the full :class:`ClipRun`; ``extra`` (F, K, 3): the take's
     unlabelled points; ``named=False``: ``clip`` holds no truth (labelled, not scored).
     ``calibrate_s`` > 0: a generic body is first self-calibrated on the stream's first
     ``calibrate_s`` seconds (:func:`_auto_calibrated`; the points as the labeler gets them, no
     label used) and kept when it holds up (:func:`~dtm_labeler.training.calibrate.auto_calibrate`);
-    every frame is then labelled; ``settings["calibration"]`` says what was done;
-    ``calibration_progress``: the frames of each of its self-labellings."""
+    every frame is then labelled -- by ``fallback``, when given, if the calibration is not
+    kept; ``settings["calibration"]`` says what was done; ``calibration_progress``: the frames
+    of each of its self-labellings."""
     mc = clip if not named else model_clip(model, clip)
     stream = corrupt_clip(mc, occlude=occlude, clutter=clutter, noise_mm=noise_mm, seed=seed,
                           gap_frames=gap_frames, extra=extra)
     calibration = None
     if calibrate_s > 0:
         model, calibration = _auto_calibrated(model, stream, calibrate_s, calibration_progress)
+        if fallback is not None and not calibration["applied"]:
+            model = fallback
     run = run_stream(model, stream, settings, use_ids=use_ids, keep_records=keep_records, progress=progress,
                      done=done, total=total, scored=named, take_votes_s=take_votes_s, take_pass=take_pass)
     if calibration is not None:

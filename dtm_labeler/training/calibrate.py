@@ -177,6 +177,12 @@ class WindowNotFollowed(CalibrationError):
     frame there (:func:`auto_calibrate`)."""
 
 
+#: how a refused self-calibration's reason ends (:func:`auto_calibrate` returns the model it was
+#: given); ``dtm-label`` says otherwise where it labels with another model then
+#: (:func:`dtm_labeler.evaluation.archive.label_take`)
+KEPT_AS_IT_IS = "the generic model is kept"
+
+
 @dataclass
 class SearchBudget:
     """The full searches a self-calibration may spend (:func:`auto_calibrate`): ``share`` of each
@@ -199,12 +205,12 @@ class SearchBudget:
             raise WindowNotFollowed(
                 f"the model needed a full search in {searched} of the first {frame} of {frames} frames "
                 f"(at most {100 * self.share:.0f} % of them): it does not follow this take's points from frame "
-                "to frame, so labels to measure the person on would be a guess; the generic model is kept")
+                f"to frame, so labels to measure the person on would be a guess; {KEPT_AS_IT_IS}")
         if self.left < 0:
             raise WindowNotFollowed(
                 f"the self-labellings spent the {self.total:g} full searches their window allows without a "
                 "calibration that holds up: the model hardly follows this take's points from frame to frame; "
-                "the generic model is kept")
+                f"{KEPT_AS_IT_IS}")
 
 
 def labelled_positions(model: TriangulatedModel, source: MotionClip | np.ndarray) -> np.ndarray:
@@ -773,7 +779,7 @@ def _self_calibration_checked(model: TriangulatedModel, clouds: list[np.ndarray]
                    kept_share=kept)
     if kept < s.min_kept:
         summary["reason"] = (f"the calibrated model relabels {100 * (1 - kept):.0f} % of the labels it was "
-                             f"measured on (at most {100 * (1 - s.min_kept):.0f} %): the generic model is kept")
+                             f"measured on (at most {100 * (1 - s.min_kept):.0f} %): {KEPT_AS_IT_IS}")
         return model, summary
     summary["applied"] = True
     calibrated.provenance["calibration"] = dict(info, source=summary["source"], kept_share=kept)
