@@ -229,8 +229,8 @@ def training_person_note(calibration: dict) -> dict:
     (``kept``), not the generic body. Another person's lengths are a better prior than none: the
     calibrated body also holds the broad motion component, so a motion the training never showed
     is not vetoed. Measured (``dtm-label``'s default, generic body -> the training person's
-    calibration; models of one capture as ``dtm-train`` makes them; takes of another person with
-    30-45 % of the samples in gaps, where the self-calibration was refused in every case: the
+    calibration; models of one capture as ``dtm-train`` makes them; other captures with 30-45 %
+    of the samples in gaps, where the self-calibration was refused in every case: the
     generic body needed a full search in over half of the window's frames): MoCap Toolbox dance ->
     walk 86.78 -> 95.46 %, with three ghosts and the dance model of a gapped first half 73.60 ->
     93.31 %, the gapped walk's model -> the gapped dance 24.25 -> 61.25 %; another lab's markers,
