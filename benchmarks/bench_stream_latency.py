@@ -71,8 +71,8 @@ def load_case(name: str, max_frames: int | None):
     """(model, stream clip) of a case. The model as ``dtm-train`` makes it by default
     (``--calibrate auto``): calibrated to the takes' person when they are one person
     (``markers41``: one capture), a generic body otherwise (``body14``: three subjects);
-    ``CALIBRATE=0`` in the environment keeps every model generic (this table before
-    2026-12-03)."""
+    ``CALIBRATE=0`` in the environment keeps every model generic (the tables of 2026-11-29
+    and before)."""
     from dtm_labeler.cli.common import load_inputs
     from dtm_labeler.motion.naming import one_subject
     from dtm_labeler.training.calibrate import calibrate_on_takes

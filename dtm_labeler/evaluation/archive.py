@@ -221,6 +221,10 @@ def of_training_person(model, source: str) -> str | None:
     return one_subject(sources + [source]) if sources else None
 
 
+#: what labels a take when the self-calibration of a set-aside training calibration fails
+TRAINING_PERSON_KEPT = "the model labels with its training takes' person's calibration"
+
+
 def training_person_note(calibration: dict) -> dict:
     """What ``--calibrate auto`` did with a model calibrated to its training takes' person on a
     capture not known to be theirs (:func:`of_training_person`): the calibration was set aside
@@ -237,16 +241,15 @@ def training_person_note(calibration: dict) -> dict:
     HDM05 (first 30 %) -> CMU 85 jump + twist 7.95 -> 23.74 %, CMU 85 jump + twist -> HDM05 (first
     20 %) 73.31 -> 79.53 %. Where the self-calibration holds, it wins (the same pairs without gaps:
     HDM05 -> CMU 85 79.91 % against 50.66 % with HDM05's person, CMU 85 -> HDM05 100 % against
-    69.85 %; lambada -> subject 5's pirouette 100 % against 41.61 %)."""
+    69.85 %; lambada -> subject 5's pirouette 100 % against 41.61 %). Without a self-calibration
+    neither body suits every take (subject 55's lambada -> subject 7's walk, no gaps: 64.29 % with
+    the generic body, 51.08 % with subject 55's); none of the takes where it was refused labelled
+    better with the generic body."""
     if calibration.get("applied"):
         return {"set_aside": "the model's calibration to its training takes' person, for a capture not known "
                              "to be theirs"}
     reason = calibration.get("reason", "").replace(KEPT_AS_IT_IS, TRAINING_PERSON_KEPT)
     return {"reason": reason, "kept": TRAINING_PERSON_KEPT}
-
-
-#: what labels a take when the self-calibration of a set-aside training calibration fails
-TRAINING_PERSON_KEPT = "the model labels with its training takes' person's calibration"
 
 
 def _same_file(a: str, b: str) -> bool:
