@@ -19,8 +19,8 @@ from dtm_labeler.motion.pointsets import BODY14
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search import structure_search as ss
 from dtm_labeler.search.problem import Background, FrameProblem
-from dtm_labeler.training.body_fit import (broad_weight, clip_spread, fit_body, reach_limits, spans_a_point,
-                                          unmirrored_crossing)
+from dtm_labeler.training.body_fit import (broad_weight, clip_spread, fit_body, reach_limits, reach_tree,
+                                          spans_a_point, unmirrored_crossing)
 from dtm_labeler.training.calibrate import (CalibrationError, CalibrationSettings, calibrate, calibrated_body,
                                            fit_per_label, self_calibrate, symmetric_segments, wrong_side)
 from dtm_labeler.training.train import TrainConfig, canonical_states, train_model
@@ -186,6 +186,34 @@ def test_reach_limits_are_tree_path_lengths():
         longest[c, p] = longest[p, c] = L
     R = reach_limits(longest, parents)
     assert R[2, 3] == pytest.approx(0.95) and R[1, 3] == pytest.approx(0.7) and R[0, 2] == pytest.approx(0.55)
+
+
+def test_reach_runs_through_the_trunk_not_between_two_limbs_that_held_still():
+    """The most rigid tree of a standing take can join the two feet (left ankle by the right
+    forefoot, held within a millimetre while the mirror pair moved): reach limits along it bound
+    the two legs to each other at the training's stance. The reach tree drops that link and
+    joins the left leg through the pelvis; a trunk diagonal whose mirror image held as rigid
+    (a shoulder and the other side's hip) stays."""
+    C, LHIP, RHIP, LANK, RANK, LSHO, RSHO = range(7)
+    mirror = np.array([[LHIP, RHIP], [LANK, RANK], [LSHO, RSHO]])
+    parents = np.array([-1, C, C, RANK, RHIP, RHIP, C])       # LANK hangs on the right ankle
+    spread = np.full((7, 7), 0.05)
+    length = np.full((7, 7), 0.5)
+    for a, b, sd in ((C, LHIP, 0.002), (C, RHIP, 0.002), (RHIP, RANK, 0.004), (LHIP, LANK, 0.006),
+                     (LANK, RANK, 0.001), (LSHO, RHIP, 0.01), (RSHO, LHIP, 0.012), (C, RSHO, 0.008)):
+        spread[a, b] = spread[b, a] = sd
+    segment = np.zeros((7, 7), dtype=bool)
+    for a, b in ((C, LHIP), (C, RHIP), (RHIP, RANK), (LHIP, LANK)):
+        segment[a, b] = segment[b, a] = True
+    tree = reach_tree(parents, segment, spread, length, mirror)
+    assert tree[LANK] == LHIP and tree[LSHO] == RHIP                 # the feet's link gone, the diagonal kept
+    assert (tree >= 0).sum() == 6 and tree[C] == -1
+    longest = np.full((7, 7), 0.4)
+    longest[LANK, RANK] = longest[RANK, LANK] = 0.3                  # the stance the training showed
+    assert reach_limits(longest, parents)[LANK, RANK] == pytest.approx(0.3)
+    assert reach_limits(longest, tree)[LANK, RANK] == pytest.approx(1.6)  # ankle-hip-centre-hip-ankle
+    untouched = np.array([-1, C, C, LHIP, RHIP, RHIP, C])
+    assert np.array_equal(reach_tree(untouched, segment, spread, length, mirror), untouched)
 
 
 def test_a_bone_noisy_in_one_clip_of_many_stays_a_segment():
