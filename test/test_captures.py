@@ -17,7 +17,7 @@ from dtm_labeler.motion.c3d import load_c3d
 from dtm_labeler.motion.c3d_write import write_c3d
 from dtm_labeler.motion.load import load_clip
 from dtm_labeler.motion.markers_csv import write_markers_csv
-from dtm_labeler.motion.naming import common_names, split_channels
+from dtm_labeler.motion.naming import cmu_subject, common_names, one_subject, split_channels
 from dtm_labeler.motion.unlabelled import model_input
 from dtm_labeler.training.train import TrainConfig, train_model
 
@@ -99,6 +99,17 @@ def test_training_aligns_channel_orders_and_sets(hdm):
     c.source = "knees.c3d"
     with pytest.raises(ValueError, match="share no point name"):
         train_model([a, c], TrainConfig(seed=0, k_max=1, structure="greedy"))
+
+
+def test_cmu_take_names_tell_one_subject(data_dir):
+    """CMU's own take names and the shared data's ``cmu_`` names say whose takes they are; other
+    names do not (dtm-train calibrates to one person only when the names tell)."""
+    assert cmu_subject("93_04") == "93" and cmu_subject("cmu_85_12_breakdance_s85_41markers") == "85"
+    assert cmu_subject("cmu_s05_pirouette-dance") is None and cmu_subject("hdm05_bd_05-01_01_120") is None
+    c3d = data_dir / "markers_c3d"
+    assert one_subject([c3d / "cmu_85_02_jumptwist_s85_41markers.c3d",
+                        c3d / "cmu_85_12_breakdance_s85_41markers.c3d"]) == "CMU subject 85"
+    assert one_subject([c3d / "cmu_85_02_jumptwist_s85_41markers.c3d", c3d / "hdm05_bd_05-01_01_120.c3d"]) is None
 
 
 def test_cmu_subject_skeleton_and_asf_flag(data_dir, tmp_path):

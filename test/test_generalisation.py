@@ -29,7 +29,9 @@ def cells(data_dir):
         out[variant] = gen.run_variant(model, test, variant, plan, markers=False)
         if variant == "body":
             out["body + calibration"] = gen.run_variant(model, test, "body + calibration", plan, markers=False)
-            out["dtm-label default"] = gen.run_variant(model, test, "dtm-label default", plan, markers=False)
+            out["dtm-label default"] = gen.run_variant(model, test, "dtm-label default", plan, markers=False,
+                                                       train=[train])
+            out["several people"] = gen.run_variant(model, test, "dtm-label default", plan, markers=False)
     return plan, out, info
 
 
@@ -44,8 +46,13 @@ def test_variants_are_scored_on_the_same_frames(cells):
         assert d["model_errors"] + d["search_errors"] == d["wrong"] <= d["frames"] == 24
     cal = out["body + calibration"]["calibration"]
     assert cal["segments"] == cal["segments_total"] and 0.5 < cal["confirmed_fraction"] <= 1.0
-    auto = out["dtm-label default"]["calibration"]              # the same person: the calibration holds
+    # dtm-train calibrated the model of one capture to its person; dtm-label keeps that on the capture
+    person = out["dtm-label default"]["calibration"]
+    assert not person["applied"] and person["person"].startswith("training takes'") and "one capture" in person["person"]
+    # a model of several people (no person known): dtm-label self-calibrates on the window, and it holds
+    auto = out["several people"]["calibration"]
     assert auto["applied"] and auto["frames"] == 30 and auto["kept_share"] >= 0.9
+    assert auto["person"] == "self-calibrated on the window"
 
 
 def test_report_section_and_merge(cells, tmp_path):

@@ -10,10 +10,19 @@ does (labels stripped, points shuffled, stream and single mode), in four variant
 * **body** -- the same training with the body terms (:mod:`dtm_labeler.model.body`; the
   ``dtm-train`` default): a generic body, whose reach limits apply (its segment lengths wait
   for a calibration);
-* **dtm-label default** -- that model as ``dtm-label`` runs it by default (``--calibrate
-  auto``): self-calibrated on the same window, its points shuffled as the labeler gets them,
-  and kept only when the calibrated model keeps >= 90 % of the labels it was measured on
-  (:func:`~dtm_labeler.training.calibrate.auto_calibrate`; else the generic model labels);
+* **dtm-label default** -- what a user gets from ``dtm-train`` then ``dtm-label`` (both
+  defaults; :func:`as_dtm_label`): ``dtm-train`` calibrates the model to its training takes'
+  person when they are one person (one capture, or CMU takes of one subject:
+  :func:`~dtm_labeler.motion.naming.one_subject`); ``dtm-label --calibrate auto`` labels a
+  capture of that person with that calibration, no window of the test used
+  (:func:`~dtm_labeler.evaluation.archive.of_training_person`), and anyone else's with the
+  generic body self-calibrated on the same window, its points shuffled as the labeler gets
+  them, kept only when the calibrated model keeps >= 90 % of the labels it was measured on
+  (:func:`~dtm_labeler.training.calibrate.auto_calibrate`), else the training person's
+  calibration (the generic model when the training takes are several people). Until
+  2026-12-02 this variant always self-calibrated the generic body: the same person's other
+  take or motion was never labelled with the person's own training calibration, as users
+  get it;
 * **body + calibration** -- that model calibrated on the first seconds of the test recording
   (at most ``calibration_s``, at most a third of it), the frames -- their points shuffled as
   the labeler gets them -- labelled by the model itself and confirmed by their vote confidence
@@ -59,7 +68,9 @@ from ..model.features import point_states
 from ..motion.clip import MotionClip
 from ..motion.load import load_clip
 from ..search.problem import Background, FrameProblem
-from ..training.calibrate import CalibrationError, auto_calibrate, self_calibrate
+from ..motion.naming import one_subject
+from ..training.calibrate import CalibrationError, auto_calibrate, calibrate_on_takes, self_calibrate
+from .archive import of_training_person
 from ..training.train import TrainConfig, train_model
 
 # recordings in the shared data folder: key -> (relative path, subject, what)
@@ -239,15 +250,41 @@ def calibration_frames(clip: MotionClip, seconds: float) -> int:
     return int(min(round(seconds * clip.rate), clip.n_frames // 3))
 
 
-def run_variant(model: TriangulatedModel, test: MotionClip, variant: str, plan: Plan, markers: bool) -> dict:
-    """Stream and single-mode scores of one variant on the frames after the calibration window."""
+def as_dtm_label(model: TriangulatedModel, train: list[MotionClip], window: MotionClip,
+                 seed: int) -> tuple[TriangulatedModel, dict]:
+    """The model ``dtm-train`` makes of ``train`` (``model``: its generic body) as ``dtm-label
+    --calibrate auto`` labels a capture whose first frames are ``window`` (the module doc's
+    *dtm-label default*), and a summary of what was done (``person`` says whose body labels)."""
+    why = one_subject([c.source for c in train])
+    person = None
+    if why is not None and model.body is not None:
+        try:
+            person = calibrate_on_takes(model, train)
+        except CalibrationError:
+            person = None
+        else:
+            person.provenance["calibration"]["why"] = why
+    if person is not None and of_training_person(person, window.source) is not None:
+        return person, {"applied": False, "person": "training takes' (the same person: " + why + ")"}
+    stream = corrupt_clip(model_clip(model, window), seed=seed)
+    out, summary = auto_calibrate(model, [f.xyz for f in stream], stream.rate)
+    if summary.get("applied"):
+        return out, summary | {"person": "self-calibrated on the window"}
+    if person is not None:
+        return person, summary | {"person": "training takes' (self-calibration refused)"}
+    return out, summary | {"person": "generic body"}
+
+
+def run_variant(model: TriangulatedModel, test: MotionClip, variant: str, plan: Plan, markers: bool,
+                train: list[MotionClip] | None = None) -> dict:
+    """Stream and single-mode scores of one variant on the frames after the calibration window
+    (``train``: the training clips, for the *dtm-label default*'s person; :func:`as_dtm_label`)."""
     t0 = time.perf_counter()
     n_cal = calibration_frames(test, plan.calibration_s)
     rest = test.slice(n_cal, None)
     out: dict = {"calibration_frames": n_cal}
-    if variant == "dtm-label default":         # auto_calibrate on the window as the labeler gets it
-        stream = corrupt_clip(model_clip(model, test.slice(0, n_cal)), seed=plan.seed)
-        model, out["calibration"] = auto_calibrate(model, [f.xyz for f in stream], stream.rate)
+    if variant == "dtm-label default":         # dtm-train's model, as dtm-label --calibrate auto runs it
+        model, out["calibration"] = as_dtm_label(model, train or [], test.slice(0, n_cal), plan.seed)
     if variant == "body + calibration":         # the window as the labeler gets it (module doc)
         cal = corrupt_clip(model_clip(model, test.slice(0, n_cal)), seed=plan.seed)
         try:
@@ -339,10 +376,11 @@ def cell_tasks(data_dir: Path, plan: Plan, models: dict[tuple, TriangulatedModel
     """(case key, variant, kwargs of :func:`run_variant`) for every case and variant."""
     out = []
     for case in selected_cases(plan):
-        _, test = case_clips(data_dir, case)
+        train, test = case_clips(data_dir, case)
         for variant in VARIANTS:
+            kw = dict(train=train) if variant == "dtm-label default" else {}
             out.append((case.key, variant, dict(model=models[model_key(case, variant)], test=test, variant=variant,
-                                                plan=plan, markers=case.points != "body14")))
+                                                plan=plan, markers=case.points != "body14", **kw)))
     return out
 
 
@@ -369,4 +407,4 @@ def plan_dict(plan: Plan) -> dict:
 
 
 __all__ = ["CASES", "Case", "Plan", "quick_plan", "VARIANTS", "GROUPS", "RECORDINGS", "model_tasks", "cell_tasks",
-           "case_info", "run_variant", "diagnose", "train_case_model", "calibration_frames", "load_source"]
+           "case_info", "run_variant", "as_dtm_label", "diagnose", "train_case_model", "calibration_frames", "load_source"]

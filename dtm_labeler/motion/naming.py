@@ -106,7 +106,10 @@ def common_names(name_lists: Sequence[Sequence[str]], sources: Sequence[str] | N
 
 
 def cmu_subject(stem: str) -> str | None:
-    """CMU take naming: ``'93_04' -> '93'`` (subject number before the underscore), else None."""
+    """CMU take naming: ``'93_04' -> '93'`` (subject number before the underscore), also after a
+    ``cmu_`` prefix (``'cmu_85_02_jumptwist_s85' -> '85'``), else None."""
+    if stem[:4].lower() in ("cmu_", "cmu-"):
+        stem = stem[4:]
     head, sep, tail = stem.partition("_")
     return head if sep and head.isdigit() and tail[:1].isdigit() else None
 
