@@ -19,7 +19,7 @@ from dtm_labeler.motion.pointsets import BODY14
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search import structure_search as ss
 from dtm_labeler.search.problem import Background, FrameProblem
-from dtm_labeler.training.body_fit import (broad_weight, clip_spread, fit_body, reach_limits, reach_tree,
+from dtm_labeler.training.body_fit import (broad_weight, clip_spread, fit_body, reach_limits, reach_off_edges,
                                           spans_a_point, unmirrored_crossing)
 from dtm_labeler.training.calibrate import (CalibrationError, CalibrationSettings, calibrate, calibrated_body,
                                            fit_per_label, self_calibrate, symmetric_segments, wrong_side)
@@ -188,32 +188,39 @@ def test_reach_limits_are_tree_path_lengths():
     assert R[2, 3] == pytest.approx(0.95) and R[1, 3] == pytest.approx(0.7) and R[0, 2] == pytest.approx(0.55)
 
 
-def test_reach_runs_through_the_trunk_not_between_two_limbs_that_held_still():
+def test_reach_between_two_limbs_that_held_still_stays_on_the_edges():
     """The most rigid tree of a standing take can join the two feet (left ankle by the right
-    forefoot, held within a millimetre while the mirror pair moved): reach limits along it bound
-    the two legs to each other at the training's stance. The reach tree drops that link and
-    joins the left leg through the pelvis; a trunk diagonal whose mirror image held as rigid
-    (a shoulder and the other side's hip) stays."""
+    ankle's foot, within a millimetre, while the mirror pair moved): the reach limits of the two
+    legs run through that link and bind them at the training's stance. Those pairs hold their
+    reach on the DTM's edges only; pairs through a trunk diagonal whose mirror image held as
+    rigid (a shoulder and the other side's hip) hold it off the edges too, and a calibrated
+    model's off-edge factors leave the feet free to part."""
     C, LHIP, RHIP, LANK, RANK, LSHO, RSHO = range(7)
     mirror = np.array([[LHIP, RHIP], [LANK, RANK], [LSHO, RSHO]])
     parents = np.array([-1, C, C, RANK, RHIP, RHIP, C])       # LANK hangs on the right ankle
     spread = np.full((7, 7), 0.05)
-    length = np.full((7, 7), 0.5)
     for a, b, sd in ((C, LHIP, 0.002), (C, RHIP, 0.002), (RHIP, RANK, 0.004), (LHIP, LANK, 0.006),
                      (LANK, RANK, 0.001), (LSHO, RHIP, 0.01), (RSHO, LHIP, 0.012), (C, RSHO, 0.008)):
         spread[a, b] = spread[b, a] = sd
     segment = np.zeros((7, 7), dtype=bool)
     for a, b in ((C, LHIP), (C, RHIP), (RHIP, RANK), (LHIP, LANK)):
         segment[a, b] = segment[b, a] = True
-    tree = reach_tree(parents, segment, spread, length, mirror)
-    assert tree[LANK] == LHIP and tree[LSHO] == RHIP                 # the feet's link gone, the diagonal kept
-    assert (tree >= 0).sum() == 6 and tree[C] == -1
-    longest = np.full((7, 7), 0.4)
-    longest[LANK, RANK] = longest[RANK, LANK] = 0.3                  # the stance the training showed
-    assert reach_limits(longest, parents)[LANK, RANK] == pytest.approx(0.3)
-    assert reach_limits(longest, tree)[LANK, RANK] == pytest.approx(1.6)  # ankle-hip-centre-hip-ankle
-    untouched = np.array([-1, C, C, LHIP, RHIP, RHIP, C])
-    assert np.array_equal(reach_tree(untouched, segment, spread, length, mirror), untouched)
+    off = reach_off_edges(parents, segment, spread, mirror)
+    assert not off[LANK, RANK] and not off[LANK, RHIP] and not off[LANK, C]     # through the feet's link
+    assert off[LSHO, RANK] and off[LSHO, C] and off[C, RHIP]                    # the diagonal stays
+    assert reach_off_edges(np.array([-1, C, C, LHIP, RHIP, RHIP, C]), segment, spread, mirror).all()
+    # a calibrated body's factors off the edges: none on the feet's pairs, the others as before
+    iu, ju = np.triu_indices(7, 1)
+    body = BodyModel(n_labels=7, pairs=np.stack([iu, ju], 1), kind=np.full(iu.size, REACH), lo=np.zeros(iu.size),
+                     hi=np.full(iu.size, 0.3), within_sd=np.full(iu.size, 0.03), between_sd=np.zeros(iu.size),
+                     calibration={"frames": 1}, reach_off_edges=off[iu, ju])
+    cross = CrossSegments(body, np.array([[C, LHIP, RHIP]]), (SEGMENT, REACH))
+    held = {tuple(p) for p in cross.pairs.tolist()}
+    assert (LANK, RANK) not in held and (C, LANK) not in held and (RANK, LSHO) in held and (C, LSHO) in held
+    back = BodyModel.from_arrays(body.to_arrays(), 7, body.calibration)
+    assert np.array_equal(back.reach_off_edges, off[iu, ju])
+    old = {k: v for k, v in body.to_arrays().items() if k != "body_reach_off_edges"}   # a version 7 file
+    assert BodyModel.from_arrays(old, 7).reach_off_edges.all()
 
 
 def test_a_bone_noisy_in_one_clip_of_many_stays_a_segment():

@@ -101,6 +101,8 @@ class BodyModel:
     No term of the frame fitness: the offline pass over a whole take reads them as the person's
     ruler (:func:`dtm_labeler.labeling.rigid_tracks.body_pairs`). ``orders``: the marker bars'
     order (:class:`BarOrder`), rows ``(x, near, far)`` of label indices (none for joint centres).
+    ``reach_off_edges``: whether each pair's reach limit holds off the DTM's edges too
+    (:class:`CrossSegments`; None: all).
     """
 
     n_labels: int
@@ -118,6 +120,7 @@ class BodyModel:
     rigid_length: np.ndarray = field(default_factory=lambda: np.zeros(0))                      # (R,) m
     rigid_spread: np.ndarray = field(default_factory=lambda: np.zeros(0))                      # (R,) m
     orders: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.int64))       # (K, 3) labels
+    reach_off_edges: np.ndarray | None = None    # (P,) bool: a reach limit held off the DTM's edges too
 
     def __post_init__(self) -> None:
         self.orders = np.asarray(self.orders, dtype=np.int64).reshape(-1, 3)
@@ -163,6 +166,10 @@ class BodyModel:
             raise ValueError("body pair kinds must be 0 (segment) or 1 (reach)")
         if not (self.sd > 0).all():
             raise ValueError("body spreads must be positive")
+        off = np.ones(P, dtype=bool) if self.reach_off_edges is None else np.asarray(self.reach_off_edges)
+        if off.shape != (P,) or not np.isin(off, (0, 1)).all():
+            raise ValueError("body reach_off_edges needs one 0 / 1 per pair")
+        self.reach_off_edges = off.astype(bool)
 
     @property
     def sd(self) -> np.ndarray:
@@ -209,7 +216,7 @@ class BodyModel:
                 "body_between_sd": self.between_sd, "body_quads": self.quads, "body_quad_sign": self.quad_sign,
                 "body_twists": self.twists, "body_rigid_pairs": self.rigid_pairs,
                 "body_rigid_length": self.rigid_length, "body_rigid_spread": self.rigid_spread,
-                "body_orders": self.orders}
+                "body_orders": self.orders, "body_reach_off_edges": self.reach_off_edges.astype(np.int64)}
 
     @classmethod
     def from_arrays(cls, arrays: dict, n_labels: int, calibration: dict | None = None) -> "BodyModel":
@@ -218,8 +225,10 @@ class BodyModel:
                                                                  "between_sd")}
         except KeyError as e:
             raise ValueError(f"body terms lack {e.args[0]!r}") from None
-        for k in ("quads", "quad_sign", "twists", "rigid_pairs", "rigid_length", "rigid_spread", "orders"):
-            # format 3: handedness, 4: twists, 5: the person's rigid pairs, 6: bar orders (older: none)
+        for k in ("quads", "quad_sign", "twists", "rigid_pairs", "rigid_length", "rigid_spread", "orders",
+                  "reach_off_edges"):
+            # format 3: handedness, 4: twists, 5: the person's rigid pairs, 6: bar orders (older: none),
+            # 8: which reach limits hold off the edges (older: all)
             if "body_" + k in arrays:
                 kw[k] = np.asarray(arrays["body_" + k])
         for k, a in kw.items():
@@ -306,7 +315,9 @@ class CrossSegments:
     from any other than the chain of the person's segments between them allows. On the edges
     alone, a label whose triangle neighbours are all hidden is bound to nothing: with 22
     markers and half of them hidden, fixed floor reflections 2.3 m from the body held RTOE and
-    LMT5 for 2-3 s while the true toe, seen, stayed unlabelled.
+    LMT5 for 2-3 s while the true toe, seen, stayed unlabelled. A reach limit whose path joins
+    two limbs that held still in the training (:attr:`BodyModel.reach_off_edges`,
+    :func:`~dtm_labeler.training.body_fit.reach_off_edges`) holds on the edges only.
     """
 
     def __init__(self, body: BodyModel, triangles: np.ndarray, kinds: tuple[int, ...] = (SEGMENT,)):
@@ -315,7 +326,8 @@ class CrossSegments:
         edge = np.zeros((M, M), dtype=bool)
         for i, j in EdgeTerms.SLOTS:
             edge[tri[:, i], tri[:, j]] = edge[tri[:, j], tri[:, i]] = True
-        keep = np.isin(body.kind, kinds) & ~edge[body.pairs[:, 0], body.pairs[:, 1]]
+        keep = (np.isin(body.kind, kinds) & ~edge[body.pairs[:, 0], body.pairs[:, 1]]
+                & ((body.kind == SEGMENT) | body.reach_off_edges))
         self.pairs = np.ascontiguousarray(body.pairs[keep], dtype=np.int64)
         self.lo, self.hi = (np.ascontiguousarray(x[keep], dtype=np.float64) for x in (body.lo, body.hi))
         self.inv_sd = np.ascontiguousarray(1.0 / body.sd[keep], dtype=np.float64)

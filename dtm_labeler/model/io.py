@@ -21,6 +21,7 @@ Layout (all entries plain numeric arrays; loaded with ``allow_pickle=False``)::
     body_rigid_spread (R,)    float64
     body_orders       (K,3)   int64     the marker bars' order (version 6): a label and the bar's
                                         end it lies nearer, then the other end
+    body_reach_off_edges (P,) int64     1 where a reach limit holds off the DTM's edges too (version 8)
     broad_weights     (T,)    float64   broad part of each triangle's conditional (version 2, when
     broad<t>_mean     (15,)   float64   the header's "broad" is true; see dtm_labeler.model.body)
     broad<t>_covariance (15,15) float64
@@ -31,10 +32,12 @@ Versions: 2 adds the body terms and the broad components (issue 13); 3 the clust
 (:attr:`~dtm_labeler.model.body.BodyModel.rigid_pairs`, read by the offline take pass only); 6 the
 marker bars' order (:class:`~dtm_labeler.model.body.BarOrder`); 7 a calibrated model's body before
 its calibration (``generic_body_*``, the same arrays as ``body_*``; the header's ``"generic_body"``
-is set: :attr:`~dtm_labeler.model.dtm.TriangulatedModel.generic_body`). Version 1
+is set: :attr:`~dtm_labeler.model.dtm.TriangulatedModel.generic_body`); 8 which reach limits hold
+off the DTM's edges (:attr:`~dtm_labeler.model.body.BodyModel.reach_off_edges`). Version 1
 files still load, as models without body terms, version 2 files as bodies without handedness, version 3
 files as bodies without twist limits, version 4 files as bodies without the person's rigid pairs,
-version 5 files as bodies without bar orders, version 6 files without the generic body (all
+version 5 files as bodies without bar orders, version 6 files without the generic body, version 7
+files with every reach limit held off the edges (all
 score exactly as they did;
 ``provenance["format_version_read"]`` says which). A file that is
 not a model, has an unknown format version, or whose arrays disagree with the header raises
@@ -58,8 +61,8 @@ from .mixture import GaussianMixture
 from .structure import Structure
 
 FORMAT_NAME = "dtm_labeler.model"
-FORMAT_VERSION = 7
-READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7)
+FORMAT_VERSION = 8
+READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7, 8)
 GENERIC = "generic_"                     # prefix of the generic body's arrays (version 7)
 
 

@@ -29,9 +29,8 @@ Body terms from labelled clips
     markers sit 11 cm apart along the thigh). A body outside that range is what calibration is for.
     Every other pair gets a **reach limit**: the path length between the two points along the
     most rigid tree (:func:`dtm_labeler.training.train.rigid_tree`), each link taken at its
-    longest, so only anatomically impossible distances cost anything -- the tree's links that
-    join the body's two sides without being a segment (two limbs that held still) replaced by
-    links through the trunk (:func:`reach_tree`).
+    longest, so only anatomically impossible distances cost anything; those whose path joins
+    two limbs that held still hold on the DTM's edges only (:func:`reach_off_edges`).
 
 Broad components by EM on held-out frames
     The last ``validation_fraction`` of every clip is held out (contiguous: other moves of the
@@ -65,7 +64,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree, shortest_path
+from scipy.sparse.csgraph import connected_components, shortest_path
 
 from ..model.body import (BAR_TOLERANCE_M, HANDEDNESS_SHARE, ORDER_MARGIN_M, ORDER_SHARE, ORDERS_PER_BAR, REACH,
                           RIGID_SPREAD, SEGMENT, TWIST_COS_MIN, TWIST_COS_SD, BodyModel, BroadMotion, Handedness,
@@ -401,45 +400,50 @@ def reach_limits(longest: np.ndarray, parents: np.ndarray) -> np.ndarray:
 MIRROR_RIGID_RATIO, MIRROR_RIGID_SLACK_M = 2.0, 0.005
 
 
-def reach_tree(parents: np.ndarray, segment: np.ndarray, spread: np.ndarray, length: np.ndarray,
+def limb_links(parents: np.ndarray, segment: np.ndarray, spread: np.ndarray,
                mirror_pairs: np.ndarray | None) -> np.ndarray:
-    """Parent per point of the tree the reach limits run along (:func:`reach_limits`): the most
-    rigid tree ``parents`` without its *limb-to-limb* links, its pieces joined again by the most
-    rigid pairs that are not such links either (``spread``, ``length`` (M, M): within-clip
-    distance sd and mean, NaN = never seen together; the rigid tree's weight), only where
-    nothing else joins them by one of those links.
-
-    A link of the most rigid tree that is no segment (``segment`` (M, M)) is a joint, a limb's
-    hinge, and bounds reach at the longest the training showed it. Between the body's two sides
-    (``mirror_pairs``) a link is the trunk's or the head's when its mirror image held about as
-    rigid (a shoulder and the other side's hip, :data:`MIRROR_RIGID_RATIO`); a link between
-    mirror partners that is no segment, or whose mirror image moved, joins two limbs that merely
-    held still, and nothing holds them together. HDM05's standing take (its first 30 %) kept the
-    left ankle by the right fifth metatarsal (the tree's link, longest 0.36 m; right ankle to left
-    metatarsal varied 16 mm), and every pair of the two legs had its reach through it: the left
-    ankle no farther than 0.40 m from the right foot. Self-calibrated on a CMU 85 person's jump
-    and twist, whose feet part up to 1.6 m, the true labeling paid some 400 nats a frame once
-    those limits held off the DTM's edges too (``dtm-eval``, HDM05 -> CMU 85, calibrated stream
-    99.13 -> 82.76 %). Through the trunk the same pairs reach well over a metre."""
+    """(M,) whether the link of each point to its parent in the most rigid tree ``parents``
+    joins two limbs: a left and a right point (``mirror_pairs``) that are no segment
+    (``segment`` (M, M)), either mirror partners or a pair whose mirror image did not hold about
+    as rigid (``spread`` (M, M), within-clip distance sd; :data:`MIRROR_RIGID_RATIO`). A link
+    between the body's two sides whose mirror image held as rigid is the trunk's or the head's
+    (a shoulder and the other side's hip); two limbs that merely held still are not held
+    together by anything (HDM05's standing take: the left ankle by the right fifth metatarsal,
+    1.3 mm, while the right ankle to the left metatarsal varied 16 mm)."""
     M = parents.size
     side, mate = sides(M, mirror_pairs)
-    sd = np.where(np.isfinite(spread), spread, np.inf)
-    mirror_sd = sd[mate[:, None], mate[None, :]]
-    trunk_like = mirror_sd <= np.maximum(MIRROR_RIGID_RATIO * sd, sd + MIRROR_RIGID_SLACK_M)
-    mates = mate[:, None] == np.arange(M)[None, :]
-    loose = (side[:, None] * side[None, :] < 0) & ~segment & (mates | ~trunk_like)
     child = np.flatnonzero(parents >= 0)
     par = parents[child]
-    if not loose[child, par].any():
-        return parents
-    w = 2.0 + np.where(np.isfinite(spread + length), spread + 1e-3 * length, 1e6)   # >= 1: a dense 0 is no link
-    w = np.where(loose, w + 1e7, w)                            # only where nothing else joins
-    kept = ~loose[child, par]
-    w[child[kept], par[kept]] = w[par[kept], child[kept]] = 1.0       # the tree's other links stay
-    np.fill_diagonal(w, 0.0)
-    root = int(np.flatnonzero(parents < 0)[0])
-    _, pred = breadth_first_order(minimum_spanning_tree(w), root, directed=False)
-    return np.where(pred < 0, -1, pred).astype(np.int64)
+    sd = np.where(np.isfinite(spread), spread, np.inf)
+    link_sd, mirror_sd = sd[child, par], sd[mate[child], mate[par]]
+    trunk_like = mirror_sd <= np.maximum(MIRROR_RIGID_RATIO * link_sd, link_sd + MIRROR_RIGID_SLACK_M)
+    out = np.zeros(M, dtype=bool)
+    out[child] = (side[child] * side[par] < 0) & ~segment[child, par] & ((mate[child] == par) | ~trunk_like)
+    return out
+
+
+def reach_off_edges(parents: np.ndarray, segment: np.ndarray, spread: np.ndarray,
+                    mirror_pairs: np.ndarray | None) -> np.ndarray:
+    """(M, M) whether a pair's reach limit may hold off the DTM's edges too
+    (:class:`~dtm_labeler.model.body.CrossSegments`): its path along the most rigid tree crosses
+    no :func:`limb_links` link. Such a link's longest in the training is no anatomical bound but
+    the stance the training showed, and every pair of the two limbs has its reach through it:
+    HDM05's standing take (its first 30 %) kept the left ankle within 0.40 m of the right foot.
+    On the DTM's edges those limits always held (where the motion terms were trained on the same
+    stance); off the edges they bind every pair of the two legs at once, and a CMU 85 person
+    self-calibrated on that body paid some 400 nats a frame for parting the feet (``dtm-eval``,
+    HDM05 -> CMU 85 jump + twist, calibrated stream 99.13 % before the off-edge limits, 82.76 %
+    with them on every pair). Measured and not kept: reach limits run through the trunk instead
+    of that link (the tree's pieces joined again by other links) -- they loosen the limits on the
+    edges too, and the generic bodies there labelled worse (``dtm-eval`` markers: the MoCap
+    Toolbox walk with gaps 97.8 -> 73.4 %, CMU 85's breakdance clean 100 -> 97.0 %; CMU 85 ->
+    HDM05 calibrated 100 -> 92.7 %)."""
+    M = parents.size
+    keep = (parents >= 0) & ~limb_links(parents, segment, spread, mirror_pairs)
+    child = np.flatnonzero(keep)
+    graph = coo_matrix((np.ones(child.size), (child, parents[child])), shape=(M, M))
+    _, piece = connected_components(graph, directed=False)
+    return piece[:, None] == piece[None, :]
 
 
 def fit_body(stats: dict[str, np.ndarray], parents: np.ndarray, settings: BodySettings | None = None,
@@ -473,7 +477,8 @@ def fit_body(stats: dict[str, np.ndarray], parents: np.ndarray, settings: BodySe
     longest = np.where(np.isfinite(longest), longest, 0.0)
     segment = np.zeros((M, M), dtype=bool)
     segment[iu, ju] = segment[ju, iu] = seg
-    reach = reach_limits(longest, reach_tree(parents, segment, sd_clip, length, mirror_pairs))
+    reach = reach_limits(longest, parents)
+    off_edges = reach_off_edges(parents, segment, sd_clip, mirror_pairs)
     kind = np.where(seg, SEGMENT, REACH)
     L = np.where(seg, length[iu, ju], reach[iu, ju])
     pair_lo = np.where(seg, lo[iu, ju], 0.0)
@@ -483,7 +488,8 @@ def fit_body(stats: dict[str, np.ndarray], parents: np.ndarray, settings: BodySe
     between = between_rel * L
     keep = seen | ~seg
     return BodyModel(n_labels=M, pairs=np.stack([iu, ju], 1)[keep], kind=kind[keep], lo=pair_lo[keep],
-                     hi=pair_hi[keep], within_sd=within[keep], between_sd=between[keep])
+                     hi=pair_hi[keep], within_sd=within[keep], between_sd=between[keep],
+                     reach_off_edges=off_edges[iu, ju][keep])
 
 
 #: a pair spans a third point lying within this share of its length of the straight line between
