@@ -57,21 +57,21 @@ from pathlib import Path
 
 import numpy as np
 
-from .experiments import SUMMARY_KEYS, label_single, spread_frames
-from .metrics import is_search_error
-from .corruption import corrupt_clip
-from .pipeline import label_clip_run, model_clip
 from ..labeling.stream import LabelerSettings
 from ..model.body import SEGMENT, slot_distances
 from ..model.dtm import TriangulatedModel
 from ..model.features import point_states
 from ..motion.clip import MotionClip
 from ..motion.load import load_clip
-from ..search.problem import Background, FrameProblem
 from ..motion.naming import one_subject
+from ..search.problem import Background, FrameProblem
 from ..training.calibrate import CalibrationError, auto_calibrate, calibrate_on_takes, self_calibrate
-from .archive import of_training_person
 from ..training.train import TrainConfig, train_model
+from .archive import of_training_person
+from .corruption import corrupt_clip
+from .experiments import SUMMARY_KEYS, label_single, spread_frames
+from .metrics import is_search_error
+from .pipeline import label_clip_run, model_clip
 
 # recordings in the shared data folder: key -> (relative path, subject, what)
 RECORDINGS = {
