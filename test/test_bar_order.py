@@ -3,7 +3,8 @@ other end of a bar pays a fixed factor per row, a missing point drops it, the tr
 rows from real takes (the wrist bars: the shoulder and upper-arm markers lie nearer the radial
 end), they hold in another lab's takes of other motions, only calibrated bodies apply them, a
 calibration keeps the rows the person's frames do not reverse, and model files keep them
-(format 6; format 5 files load without)."""
+(format 6; format 5 files load without). On the same real bodies: the reach limits that run
+between two limbs held still in the training stay on the DTM's edges (format 8)."""
 from dataclasses import replace
 
 import numpy as np
@@ -12,7 +13,7 @@ import pytest
 from dtm_labeler.evaluation.generalisation import CASES, calibration_frames, case_clips, train_case_model, train_config
 from dtm_labeler.evaluation.pipeline import label_clip_run, model_clip
 from dtm_labeler.labeling.config import LabelerSettings
-from dtm_labeler.model.body import ORDER_NATS, BarOrder, BodyModel, quads_off_ordered_bars
+from dtm_labeler.model.body import ORDER_NATS, BarOrder, BodyModel, CrossSegments, quads_off_ordered_bars
 from dtm_labeler.model.features import point_states
 from dtm_labeler.model.io import FORMAT_VERSION, load_model, save_model
 from dtm_labeler.search.problem import Background, FrameProblem
@@ -172,3 +173,28 @@ def test_dtm_train_says_which_bars_it_ordered(data_dir, tmp_path, capsys):
     assert train_main([take, "--points", "all", "--frames", "0:30%", "--k-max", "2", "--out", str(out),
                        "--quiet"]) == 0
     assert "(applied: calibrated)" in capsys.readouterr().out and load_model(out).body_order is not None
+
+
+def test_reach_between_two_feet_held_still_stays_on_the_edges(hdm_case, tmp_path):
+    """HDM05's standing take held the left ankle by the right forefoot, a link of its most rigid
+    tree, and every pair of the two legs has its reach limit through it (the stance the training
+    showed). A calibrated body holds those limits on the DTM's edges only: CMU 85's person, whose
+    feet part up to 1.6 m, calibrated on the first frames of the jump + twist, pays a nat or two
+    off the edges for the true labels of the frames after them (the legs' own chains); held off
+    the edges as well (a format-7 file's reading), the same frames pay some 100 nats each."""
+    model, _, test = hdm_case
+    L = list(model.labels)
+    off = model.body.matrix(model.body.reach_off_edges.astype(float), fill=1.0)
+    legs = ("LANK", "LHEE", "LTOE", "LMT5"), ("RANK", "RHEE", "RTOE", "RMT5")
+    assert all(off[L.index(a), L.index(b)] == 0 for a in legs[0] for b in legs[1])
+    assert off[L.index("LANK"), L.index("LHEE")] == 1 and off[L.index("C7"), L.index("RTOE")] == 1
+    window = model_clip(model, test.slice(0, 270)).positions
+    body, _ = calibrated_body(model.body, window, mirror_pairs=model.mirror_pairs, heading_pairs=model.heading_pairs)
+    cal = model.replace(body=body)
+    X = model_clip(model, test.slice(270, 630)).positions
+    now = cal.body_cross.labelled(X)
+    every = CrossSegments(replace(body, reach_off_edges=None), cal.triangles, body.applied_kinds).labelled(X)
+    assert np.median(now) > -3.0 and now.min() > -10.0 and np.median(every) < -50.0
+    v7 = as_older_format(save_model(cal, tmp_path / "m.npz"), 7, lambda k: k.endswith("reach_off_edges"))
+    assert v7.provenance["format_version_read"] == 7 and v7.body.reach_off_edges.all()
+    assert np.allclose(v7.body_cross.labelled(X), every)
