@@ -16,6 +16,7 @@ from dtm_labeler.training.train import TrainConfig, train_model
 
 LAMBADA = "cmu_skeletal/asf_amc/cmu_55_02_lambada-dance_s55.amc"
 PIROUETTE = "cmu_skeletal/asf_amc/cmu_s05_pirouette-dance.amc"
+WHIRL = "cmu_skeletal/bvh_from_fbx/cmu_55_01_dance-whirl_s55.bvh"
 FAST = dict(mixture="fixed", k_fixed=2, structure="given", seed=0)
 
 
@@ -121,8 +122,8 @@ def test_dtm_train_calibrate_makes_the_takes_person_model(data_dir, tmp_path, ca
 
 def test_dtm_label_sets_a_training_calibration_aside_for_someone_else(models, data_dir, run, tmp_path):
     """A model calibrated to its training takes' person (subject 55's lambada, as ``dtm-train``
-    makes it): on the rest of that capture ``--calibrate auto`` keeps the calibration; on
-    another person's capture (subject 5's pirouette) it sets it aside, self-calibrates the
+    makes it): on the rest of that capture and on the same subject's other capture (the whirl)
+    ``--calibrate auto`` keeps the calibration; on another person's capture (subject 5's pirouette) it sets it aside, self-calibrates the
     generic body as for any generic model and says so -- and where that self-calibration does
     not hold up, labels with the training person's calibration. Calibrating such a model again
     starts from its generic body: the same lengths as calibrating the generic model."""
@@ -137,6 +138,12 @@ def test_dtm_label_sets_a_training_calibration_aside_for_someone_else(models, da
                          "--json", "--quiet").stdout)
     cal = own["inputs"][0]["calibration"]
     assert cal["applied"] is False and "capture the model was trained on" in cal["reason"] and "set_aside" not in cal
+    # another capture of the same CMU subject (55's whirl): the person's calibration, as it is
+    same = json.loads(run("dtm-label", path, data_dir / WHIRL, "--frames", "0:120", "--no-take-pass",
+                          "--json", "--quiet").stdout)
+    cal = same["inputs"][0]["calibration"]
+    assert cal["applied"] is False and "set_aside" not in cal and "CMU subject 55" in cal["reason"], cal
+    assert same["accuracy"] > 0.95
     other = json.loads(run("dtm-label", path, data_dir / PIROUETTE, "--frames", "0:120", "--no-take-pass",
                            "--json", "--quiet").stdout)
     cal = other["inputs"][0]["calibration"]

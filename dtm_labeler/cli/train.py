@@ -221,10 +221,12 @@ def _main(argv=None) -> int:
               + f"; a point still for longer than {REST_MARGIN:g} x its label's longest rest and {floor:g} s "
               "is scored as possibly a fixed reflection")
     if calibration:
+        kept = ("dtm-label keeps it on every capture" if calibration["why"] == "asked" else
+                "dtm-label keeps it on these captures and on other CMU takes of the same subject, and "
+                "self-calibrates anyone else's capture (keeping this calibration where that does not hold up)")
         print(f"person    calibrated to the takes' person ({calibration['why']}): {calibration['segments']} of "
               f"{calibration['segments_total']} segment lengths from {calibration['frames']} frames (scale "
-              f"{calibration['scale']:.3f}); on another capture dtm-label self-calibrates that person instead "
-              "(keeping this one where that does not hold up; --calibrate off: generic)")
+              f"{calibration['scale']:.3f}); {kept}; --calibrate off: generic")
     print(f"time      {s['seconds']:.1f} s")
     return 0
 

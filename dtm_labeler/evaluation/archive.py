@@ -161,7 +161,8 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
             auto, res.calibration = False, {
                 "applied": False, "source": "auto (the take's first frames, self-labelled)",
                 "reason": "the take is the capture the model was trained on: the model is of its person"}
-        generic = generic_view(model) if auto and of_training_person(model, job.source) is None else None
+        whose = of_training_person(model, job.source) if auto else None
+        generic = generic_view(model) if auto and whose is None else None
         person, model = (model, generic) if generic is not None else (None, model)
         mi = model_input(clip, model.labels, job.keep_unlabelled, job.ignore_names)
         run = label_clip_run(model, mi.clip, job.settings, occlude=job.occlude, clutter=job.clutter,
@@ -174,6 +175,9 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
             res.calibration = run.settings["calibration"]
             if person is not None:
                 res.calibration = res.calibration | training_person_note(res.calibration)
+            elif whose is not None:     # the same person's other capture: their calibration as it is
+                res.calibration = res.calibration | {"reason": f"the model is calibrated to this capture's person "
+                                                               f"({whose})"}
         if job.out:
             cap = from_records(run.records, model.labels, clip.n_frames, CaptureFormat.of(clip, a))
             res.out = str(cap.write(job.out))
