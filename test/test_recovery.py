@@ -68,6 +68,30 @@ def test_deferred_recovery_publishes_doubtful_frames_then_joins(model, walker):
     assert np.mean(acc[first:]) >= 0.97
 
 
+def test_an_audit_that_confirms_the_labeling_starts_no_region_pass(model, walker):
+    """The worker's periodic audits are full searches. One whose labeling is the carried one
+    confirms it: the region checks and cluster turns that follow a search that changed the
+    labeling stay off (after every audit they ran in a third of a 41-marker stream's frames).
+    The first search, which finds a labeling where none was carried, starts the pass."""
+    lab = StreamLabeler(model, LabelerSettings(recovery="background", audit_period_s=0.2))
+    lab.recovery.close()
+    lab.recovery = DeferredRecovery(lab, delay_frames=2)
+    rng = np.random.default_rng(1)
+    joined, due, acc = [], [], []
+    for k in range(walker.n_frames):
+        xyz, truth = shuffled(walker, k, rng)
+        r = lab.process(xyz, k / walker.rate)
+        joined.append(r.recovered)
+        due.append(lab._region_checks_due(lab.n_labels))
+        acc.append(float(np.mean(r.labels[truth >= 0] == truth[truth >= 0])))
+    first = joined.index(True)
+    assert due[first]                                   # the first search's labeling: a pass over the regions
+    later = [k for k in range(first + lab.n_labels + 1, len(joined)) if joined[k]]
+    assert len(later) >= 4                              # audits went on joining ...
+    assert not any(due[k] for k in later)               # ... and confirmed the labeling: no new pass
+    assert np.mean(acc[first:]) >= 0.97
+
+
 def test_first_search_waits_for_velocities(model, walker):
     """Background recovery: the stream's first frame (no velocities, nothing carried) asks for
     no search; the second asks for the full one, with velocities, and the stream is labelled

@@ -66,7 +66,11 @@ class FastPath:
         """Region checks run for one pass over the regions after a GA search or a reset
         (a search may land on a locally wrong labeling that tracking then carries on), and
         on every ``region_every``-th frame in between (a slow background check); steady
-        frames otherwise cost only the hill-climb."""
+        frames otherwise cost only the hill-climb. A background search counts when its
+        labeling is taken in place of the carried one (:meth:`~.tracked.TrackedLabeler._join`),
+        not when it confirms it: the worker's periodic audits are full searches, and a pass
+        after each of them put the cluster turns and a region check into a third of a 41-marker
+        stream's frames."""
         s = self.settings
         return self._since_search < M or (s.region_every > 0 and self._frame_no % s.region_every == 0)
 

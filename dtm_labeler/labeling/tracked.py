@@ -334,6 +334,7 @@ class TrackedLabeler(FastPath):
         self.heading = None
         self.centre = None
         self._since_search = 0                     # frames since the last GA search (or reset)
+        self._joined_full = False                  # the last joined background result came from a full search
         self._frame_no = 0
         self._new_tracks = np.zeros(0, dtype=np.int64)   # tracks started last frame
         self._event_points = np.zeros(0, dtype=np.int64)
@@ -493,7 +494,9 @@ class TrackedLabeler(FastPath):
         seeds = self._seeds(inp.upd.track_ids, n) if s.mode == "stream" and not self._provisional else None
         start = self._start_labeling(inp.upd.track_ids, n)
         if joined is not None:
-            seeds = self._prefer(problems, searched, seeds, joined)
+            carried, seeds = seeds, self._prefer(problems, searched, seeds, joined)
+            if self._joined_full and (carried is None or not np.array_equal(seeds[0], carried[0])):
+                self._since_search = 0          # a full search changed the labeling: check it region by region
         if seeds is not None:
             for p in problems:
                 p.anchor_heading(seeds[0])
@@ -701,7 +704,9 @@ class TrackedLabeler(FastPath):
         """A finished background search, mapped onto this frame: label -> the point of the
         track it labelled in the frame it was asked for (missing where that track is gone);
         labels it left out keep the carried labeling's points where those are free. None when
-        nothing finished, or it belongs to an earlier stream (reset since)."""
+        nothing finished, or it belongs to an earlier stream (reset since). Notes whether it
+        came from a full search (``_joined_full``: :meth:`_search_frame` restarts the region
+        pass when such a labeling replaces the carried one)."""
         res = self.recovery.poll()
         if res is None or res.request.epoch != self._epoch or self.recovery.inline:
             return None
@@ -721,8 +726,7 @@ class TrackedLabeler(FastPath):
         if carried is not None:
             free = ~tracker.member(carried[0], out) & (out == n)
             out[free] = carried[0][free]
-        if res.full:
-            self._since_search = 0
+        self._joined_full = res.full
         return out
 
     def _prefer(self, problems, searched, seeds, joined) -> np.ndarray:
