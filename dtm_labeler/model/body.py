@@ -76,7 +76,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from .body_kernel import mirrored_quads, pair_factors, reversed_orders, twist_cosines, twist_factors
+from .body_kernel import label_members, mirrored_quads, pair_factors, reversed_orders, twist_cosines, twist_factors
 from .mixture import GaussianMixture
 
 SEGMENT, REACH = 0, 1
@@ -331,13 +331,14 @@ class CrossSegments:
         self.pairs = np.ascontiguousarray(body.pairs[keep], dtype=np.int64)
         self.lo, self.hi = (np.ascontiguousarray(x[keep], dtype=np.float64) for x in (body.lo, body.hi))
         self.inv_sd = np.ascontiguousarray(1.0 / body.sd[keep], dtype=np.float64)
+        self.members = label_members(self.pairs, M)          # the pairs of each label (rows against the first)
         self.active = bool(keep.any())
 
     def __call__(self, pop: np.ndarray, dist: np.ndarray, n: int) -> np.ndarray:
         """(P,) summed factors of (P, M) assignments (``n`` = missing) given the frame's (n+1, n+1)
         point distances."""
         return pair_factors(np.ascontiguousarray(pop, dtype=np.int64), np.ascontiguousarray(dist, dtype=np.float64),
-                            int(n), self.pairs, self.lo, self.hi, self.inv_sd)
+                            int(n), self.pairs, self.lo, self.hi, self.inv_sd, *self.members)
 
     def labelled(self, positions: np.ndarray) -> np.ndarray:
         """(F,) summed factors of labelled frames (F, M, 3) (NaN = unseen: the factor drops)."""
@@ -426,6 +427,7 @@ class Handedness(PointFactor):
     def __init__(self, body: BodyModel):
         self.quads = np.ascontiguousarray(body.quads, dtype=np.int64).reshape(-1, 4)
         self.sign = np.ascontiguousarray(body.quad_sign, dtype=np.float64)
+        self.members = label_members(self.quads, body.n_labels)   # the quadruples of each label
         self.active = bool(self.quads.shape[0])
 
     @staticmethod
@@ -436,7 +438,7 @@ class Handedness(PointFactor):
 
     def _factors(self, idx: np.ndarray, pts: np.ndarray) -> np.ndarray:
         """(P,) summed factors of the rows of ``idx`` (P, M), label -> row of ``pts`` (N, 3)."""
-        return -HANDEDNESS_NATS * mirrored_quads(idx, pts, self.quads, self.sign)
+        return -HANDEDNESS_NATS * mirrored_quads(idx, pts, self.quads, self.sign, *self.members)
 
 
 #: a quadruple's handedness is learnt when one sign holds in this share of the training frames
