@@ -51,14 +51,30 @@ def label_members(items: np.ndarray, n_labels: int) -> tuple[np.ndarray, np.ndar
 
 @njit(cache=True, nogil=True, inline="always")
 def _row_work(pop, p, ptr):  # pragma: no cover - compiled
-    """Items (pairs, quadruples) held by the labels in which row ``p`` of ``pop`` differs from
-    row 0 (-1: the same row)."""
-    changed, work = False, 0
+    """How many items (pairs, quadruples) the labels in which row ``p`` of ``pop`` differs from
+    row 0 hold, counted with repeats: a row past the items' number is scored in full."""
+    work = 0
     for m in range(pop.shape[1]):
         if pop[p, m] != pop[0, m]:
-            changed = True
             work += ptr[m + 1] - ptr[m]
-    return work if changed else -1
+    return work
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _changed_items(pop, p, ptr, members, seen, buf):  # pragma: no cover - compiled
+    """The items held by the labels in which row ``p`` of ``pop`` differs from row 0, each
+    once (``seen`` marks them with ``p``), written to ``buf``; returns their count."""
+    count = 0
+    for m in range(pop.shape[1]):
+        if pop[p, m] == pop[0, m]:
+            continue
+        for j in range(ptr[m], ptr[m + 1]):
+            k = members[j]
+            if seen[k] != p:
+                seen[k] = p
+                buf[count] = k
+                count += 1
+    return count
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -86,25 +102,15 @@ def mirrored_quads(idx, pts, quads, sign, ptr, members):  # pragma: no cover - c
     for q in range(Q):
         base[q] = _mirrored(idx, 0, pts, quads, sign, q)
         out[0] += base[q]
-    seen = np.zeros(Q, dtype=np.int64)
+    seen, buf = np.zeros(Q, dtype=np.int64), np.empty(Q, dtype=np.int64)
     for p in range(1, P):
-        work = _row_work(idx, p, ptr)
-        if work < 0:
-            out[p] = out[0]
-        elif work >= Q:
+        if _row_work(idx, p, ptr) >= Q:
             for q in range(Q):
                 out[p] += _mirrored(idx, p, pts, quads, sign, q)
-        else:
-            count = out[0]
-            for m in range(idx.shape[1]):
-                if idx[p, m] == idx[0, m]:
-                    continue
-                for j in range(ptr[m], ptr[m + 1]):
-                    q = members[j]
-                    if seen[q] != p:
-                        seen[q] = p
-                        count += _mirrored(idx, p, pts, quads, sign, q) - base[q]
-            out[p] = count
+            continue
+        out[p] = out[0]
+        for i in range(_changed_items(idx, p, ptr, members, seen, buf)):
+            out[p] += _mirrored(idx, p, pts, quads, sign, buf[i]) - base[buf[i]]
     return out
 
 
@@ -211,26 +217,16 @@ def pair_factors(pop, dist, n, pairs, lo, hi, inv_sd, ptr, members):  # pragma: 
         base[k] = _pair_square(pop, 0, dist, n, pairs, lo, hi, inv_sd, k)
         total += base[k]
     out[0] = -0.5 * total
-    seen = np.zeros(K, dtype=np.int64)
+    seen, buf = np.zeros(K, dtype=np.int64), np.empty(K, dtype=np.int64)
     for p in range(1, P):
-        work = _row_work(pop, p, ptr)
-        if work < 0:
-            out[p] = out[0]
-            continue
-        if work >= K:
-            acc = 0.0
+        acc = 0.0
+        if _row_work(pop, p, ptr) >= K:
             for k in range(K):
                 acc += _pair_square(pop, p, dist, n, pairs, lo, hi, inv_sd, k)
         else:
             acc = total
-            for m in range(pop.shape[1]):
-                if pop[p, m] == pop[0, m]:
-                    continue
-                for j in range(ptr[m], ptr[m + 1]):
-                    k = members[j]
-                    if seen[k] != p:
-                        seen[k] = p
-                        acc += _pair_square(pop, p, dist, n, pairs, lo, hi, inv_sd, k) - base[k]
+            for i in range(_changed_items(pop, p, ptr, members, seen, buf)):
+                acc += _pair_square(pop, p, dist, n, pairs, lo, hi, inv_sd, buf[i]) - base[buf[i]]
         out[p] = -0.5 * acc
     return out
 
