@@ -334,7 +334,6 @@ class TrackedLabeler(FastPath):
         self.heading = None
         self.centre = None
         self._since_search = 0                     # frames since the last GA search (or reset)
-        self._joined_full = False                  # the last joined background result came from a full search
         self._frame_no = 0
         self._new_tracks = np.zeros(0, dtype=np.int64)   # tracks started last frame
         self._event_points = np.zeros(0, dtype=np.int64)
@@ -482,11 +481,13 @@ class TrackedLabeler(FastPath):
             **self._result_fields(m_pub))
 
     def _search_frame(self, problems: list[FrameProblem], inp: FrameInput,
-                      joined: np.ndarray | None) -> FrameSearch:
+                      joined: tuple[np.ndarray, bool] | None) -> FrameSearch:
         """Fast path; when it cannot vouch for the frame, a recovery search (warm GA, full GA
         with restarts) -- at once (inline) or in the background while the best labeling known
         is published as doubtful. ``joined``: a finished background search's labeling mapped
-        onto this frame (:meth:`_join`), preferred to the carried one when it fits better."""
+        onto this frame and whether it was a full search (:meth:`_join`), preferred to the
+        carried one when it fits better; a full search's labeling taken in place of the carried
+        one restarts the region pass."""
         s = self.settings
         n = problems[0].n
         searched = self._searched()
@@ -494,8 +495,9 @@ class TrackedLabeler(FastPath):
         seeds = self._seeds(inp.upd.track_ids, n) if s.mode == "stream" and not self._provisional else None
         start = self._start_labeling(inp.upd.track_ids, n)
         if joined is not None:
-            carried, seeds = seeds, self._prefer(problems, searched, seeds, joined)
-            if self._joined_full and (carried is None or not np.array_equal(seeds[0], carried[0])):
+            labeling, full = joined
+            carried, seeds = seeds, self._prefer(problems, searched, seeds, labeling)
+            if full and (carried is None or not np.array_equal(seeds[0], carried[0])):
                 self._since_search = 0          # a full search changed the labeling: check it region by region
         if seeds is not None:
             for p in problems:
@@ -700,13 +702,12 @@ class TrackedLabeler(FastPath):
     def _set_search_state(self, state: dict) -> None:
         self.level, self.spread = state["level"].copy(), state["spread"].copy()
 
-    def _join(self, inp: FrameInput) -> np.ndarray | None:
+    def _join(self, inp: FrameInput) -> tuple[np.ndarray, bool] | None:
         """A finished background search, mapped onto this frame: label -> the point of the
         track it labelled in the frame it was asked for (missing where that track is gone);
-        labels it left out keep the carried labeling's points where those are free. None when
-        nothing finished, or it belongs to an earlier stream (reset since). Notes whether it
-        came from a full search (``_joined_full``: :meth:`_search_frame` restarts the region
-        pass when such a labeling replaces the carried one)."""
+        labels it left out keep the carried labeling's points where those are free; with it,
+        whether it came from a full search. None when nothing finished, or it belongs to an
+        earlier stream (reset since)."""
         res = self.recovery.poll()
         if res is None or res.request.epoch != self._epoch or self.recovery.inline:
             return None
@@ -726,8 +727,7 @@ class TrackedLabeler(FastPath):
         if carried is not None:
             free = ~tracker.member(carried[0], out) & (out == n)
             out[free] = carried[0][free]
-        self._joined_full = res.full
-        return out
+        return out, res.full
 
     def _prefer(self, problems, searched, seeds, joined) -> np.ndarray:
         """Seeds with the better of the carried labeling and a joined search's first, judged
