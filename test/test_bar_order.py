@@ -64,6 +64,34 @@ def test_kept_orders_drop_only_what_the_person_reverses():
     assert q.tolist() == [[0, 1, 3, 5], [2, 3, 4, 5]] and s.tolist() == [-1.0, 1.0] and n == 1
 
 
+def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rodrigues: the rotation by ``angle`` about unit ``axis``."""
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def test_a_hand_marker_of_the_bars_cluster_orders_the_bar():
+    """A wrist bar (radial end 0, ulnar end 1), a forearm marker 2 as far from both ends, and a
+    finger marker 3 hanging from the ulnar end by a segment, 11 mm nearer the radial end, the
+    hand flexing +-40 deg about the line through the two ends while the arm turns every way.
+    The flexion leaves the finger's distance to each end as it was, so its order holds in every
+    frame: a row (finger, radial, ulnar), though the finger is in the bar's own cluster; the
+    forearm marker, as far from both, gives none."""
+    rng = np.random.default_rng(3)
+    a, b = np.zeros(3), np.array([0.0, 0.133, 0.0])
+    forearm, finger = np.array([-0.15, 0.0665, 0.0]), np.array([0.13, 0.055, 0.0])
+    frames = []
+    for _ in range(300):
+        flexed = _rotation(np.array([0.0, 1.0, 0.0]), rng.uniform(-0.7, 0.7)) @ finger
+        axis = rng.normal(size=3)
+        turn = _rotation(axis / np.linalg.norm(axis), rng.uniform(0, np.pi))
+        frames.append(np.stack([a, b, forearm, flexed]) @ turn.T + rng.normal(0, 0.5, 3))
+    P = np.array(frames) + rng.normal(0, 0.001, (300, 4, 3))
+    segments = np.array([[0, 1], [0, 2], [1, 2], [1, 3]])
+    assert [tuple(r) for r in bars(P, segments)] == [(0, 1)]
+    assert bar_orders([P], segments, np.array([[2, 0, 1], [3, 1, 0]])).tolist() == [[3, 0, 1]]
+
+
 @pytest.fixture(scope="module")
 def hdm_case(data_dir):
     """``dtm-eval``'s HDM05 -> CMU 85 cell: a body of HDM05's standing take (41 markers), and

@@ -204,10 +204,18 @@ def bar_orders(clips: Sequence[np.ndarray], segments: np.ndarray, triangles: np.
                min_frames: int = 20, max_frames: int = 3000) -> np.ndarray:
     """(K, 3) the marker bars' order (:class:`~dtm_labeler.model.body.BarOrder`) from (F, M, 3)
     labelled positions per clip: for each bar (:func:`bars`), the labels within two edges of the
-    structure's ``triangles`` of either end, outside the bar's cluster, whose nearer end is the
-    same in at least ``share`` of the frames of every clip that shows it (at least ``min_frames``)
-    and whose median margin is at least ``margin``; the ``per_bar`` with the clearest margin
-    (median over robust spread, 5 mm added), as rows ``(x, near, far)``."""
+    structure's ``triangles`` of either end (but the ends), whose nearer end is the same in at
+    least ``share`` of the frames of every clip that shows it (at least ``min_frames``) and
+    whose median margin is at least ``margin``; the ``per_bar`` with the clearest margin
+    (median over robust spread, 5 mm added), as rows ``(x, near, far)``.
+
+    Labels of the bar's own cluster count too. The finger or hand marker hangs from the wrist
+    bar by a segment to one end only, and the hand turns about the wrist's flexion axis, the
+    line through the two ends: the turn leaves its distance to each end as it was, so its
+    nearer end is the steadiest order there is (HDM05, left wrist: the finger nearer the radial
+    end in 99.8 % of the take's first 70 % and in 100 % of the rest, where the clavicle's and
+    the right shoulder's orders, which turn with the whole arm, held in 69 % and 78 %). A
+    member that keeps one distance to both ends has no margin and is never taken."""
     clips = [np.asarray(c, dtype=np.float64)[spread_sample(len(c), max_frames)] for c in clips if len(c)]
     if not clips:
         return np.zeros((0, 3), dtype=np.int64)
@@ -217,10 +225,10 @@ def bar_orders(clips: Sequence[np.ndarray], segments: np.ndarray, triangles: np.
     for tri in np.asarray(triangles, dtype=np.int64).reshape(-1, 3):
         adjacent[np.ix_(tri, tri)] = 1
     near = (adjacent @ adjacent) > 0                                   # within two triangle edges
-    cluster = segment_clusters(M, segments)
     rows = []
     for a, b in bars(P, segments):
-        candidates = np.flatnonzero((near[a] | near[b]) & (cluster != cluster[a]))
+        candidates = np.flatnonzero(near[a] | near[b])
+        candidates = candidates[(candidates != a) & (candidates != b)]
         if candidates.size == 0:
             continue
         holds = np.ones(candidates.size, dtype=bool)
