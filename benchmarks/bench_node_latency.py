@@ -27,7 +27,9 @@ structure along the rigid tree since 4d3713b).
 Reported: labelled fraction after the first 0.5 s, accuracy (all labelled frames, and those after the
 first 0.5 s, where the start-up search has joined; per second, and per 0.1 s over the first second) and ghost
 rejection of the labelled frames, latency, and the node's own split of it (labelling, overhead, receive -> published p99). ``--before-src DIR`` runs every case also with the node of another source tree
-(e.g. ``git archive <rev> | tar -x -C DIR``), side by side in the same run and on the same bags.
+(e.g. ``git archive <rev> | tar -x -C DIR``), side by side in the same run, on the same bags and with the
+same model files (this tree's training: a change to training is compared by running each tree's copy of
+this script, its models cached by the training code's revision).
 
 Writes results/node_latency.json and results/node_latency.md; prints the table.
 Rule one: this script sets ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a ROS_DOMAIN_ID itself.
@@ -95,8 +97,8 @@ CASES = {
 
 def model_for(case: dict, work: Path, structure: str) -> tuple[Path, object]:
     from dtm_labeler.cli.common import load_inputs
-    from dtm_labeler.cli.demo import TRAIN_WALKER, _train_cached, cache_dir
-    from dtm_labeler.model.io import load_model, save_model
+    from dtm_labeler.cli.demo import TRAIN_WALKER, _train_cached, cache_dir, training_revision
+    from dtm_labeler.model.io import FORMAT_VERSION, load_model, save_model
     from dtm_labeler.motion import synthesize
     from dtm_labeler.training.train import TrainConfig, train_model
     import hashlib
@@ -104,7 +106,10 @@ def model_for(case: dict, work: Path, structure: str) -> tuple[Path, object]:
         path = _train_cached({"synthetic": dict(TRAIN_WALKER), "v": 1}, lambda: [synthesize(**TRAIN_WALKER)],
                              True, lambda m: print(f"  {m}", flush=True))
         return path, load_model(path)
-    key = json.dumps([case, structure, (DATA / case["path"]).stat().st_mtime], sort_keys=True)
+    # keyed by the training code's revision too (as dtm-demo's cache): a model trained by older
+    # code would otherwise stand in for this tree's, and a before / after run compare nothing
+    key = json.dumps([case, structure, (DATA / case["path"]).stat().st_mtime, FORMAT_VERSION, training_revision()],
+                     sort_keys=True)
     path = cache_dir() / f"bench_model_{hashlib.sha1(key.encode()).hexdigest()[:12]}.npz"
     if not path.is_file():
         t = time.perf_counter()
