@@ -9,6 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from dtm_labeler.evaluation.generalisation import CASES, calibration_frames, case_clips, train_case_model, train_config
 from dtm_labeler.evaluation.pipeline import label_clip_run, model_clip
@@ -64,12 +65,6 @@ def test_kept_orders_drop_only_what_the_person_reverses():
     assert q.tolist() == [[0, 1, 3, 5], [2, 3, 4, 5]] and s.tolist() == [-1.0, 1.0] and n == 1
 
 
-def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rodrigues: the rotation by ``angle`` about unit ``axis``."""
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
-
-
 def test_a_hand_marker_of_the_bars_cluster_orders_the_bar():
     """A wrist bar (radial end 0, ulnar end 1), a forearm marker 2 as far from both ends, and a
     finger marker 3 hanging from the ulnar end by a segment, 11 mm nearer the radial end, the
@@ -82,9 +77,9 @@ def test_a_hand_marker_of_the_bars_cluster_orders_the_bar():
     forearm, finger = np.array([-0.15, 0.0665, 0.0]), np.array([0.13, 0.055, 0.0])
     frames = []
     for _ in range(300):
-        flexed = _rotation(np.array([0.0, 1.0, 0.0]), rng.uniform(-0.7, 0.7)) @ finger
+        flexed = Rotation.from_rotvec([0.0, rng.uniform(-0.7, 0.7), 0.0]).as_matrix() @ finger
         axis = rng.normal(size=3)
-        turn = _rotation(axis / np.linalg.norm(axis), rng.uniform(0, np.pi))
+        turn = Rotation.from_rotvec(axis / np.linalg.norm(axis) * rng.uniform(0, np.pi)).as_matrix()
         frames.append(np.stack([a, b, forearm, flexed]) @ turn.T + rng.normal(0, 0.5, 3))
     P = np.array(frames) + rng.normal(0, 0.001, (300, 4, 3))
     segments = np.array([[0, 1], [0, 2], [1, 2], [1, 3]])
