@@ -63,6 +63,15 @@ def test_kept_orders_drop_only_what_the_person_reverses():
     quads = np.array([[0, 1, 2, 3], [0, 1, 3, 5], [2, 3, 4, 5]])
     q, s, n = quads_off_ordered_bars(quads, np.array([1.0, -1.0, 1.0]), rows[:1])
     assert q.tolist() == [[0, 1, 3, 5], [2, 3, 4, 5]] and s.tolist() == [-1.0, 1.0] and n == 1
+    # ... unless all four are of one segment cluster (the bar's own markers and a hand hanging from it)
+    cluster = np.array([0, 0, 0, 0, 1, -1])
+    q, s, n = quads_off_ordered_bars(quads, np.array([1.0, -1.0, 1.0]), rows[:1], cluster)
+    assert q.tolist() == quads.tolist() and n == 0
+    cluster[3] = 1                                       # the fourth label on another segment: left to the order
+    q, s, n = quads_off_ordered_bars(quads, np.array([1.0, -1.0, 1.0]), rows[:1], cluster)
+    assert q.tolist() == [[0, 1, 3, 5], [2, 3, 4, 5]] and n == 1
+    cluster[:] = -1                                      # off every segment
+    assert quads_off_ordered_bars(quads, np.ones(3), rows[:1], cluster)[2] == 1
 
 
 def test_a_hand_marker_of_the_bars_cluster_orders_the_bar():

@@ -421,7 +421,7 @@ class Handedness(PointFactor):
     97.74 -> 96.17 %, CMU 85 -> HDM05 calibrated 93.62 -> 78.05 %, breakdance -> jump + twist
     100 -> 98.06 % (2026-11-28, not kept). What holds instead is the bar's order
     (:class:`BarOrder`): a calibrated body leaves the quadruples with both ends of an ordered bar
-    to it (:func:`quads_off_ordered_bars`).
+    to it, but for those within one segment cluster (:func:`quads_off_ordered_bars`).
     """
 
     def __init__(self, body: BodyModel):
@@ -494,8 +494,8 @@ class BarOrder(PointFactor):
         return -ORDER_NATS * reversed_orders(idx, pts, self.orders)
 
 
-def quads_off_ordered_bars(quads: np.ndarray, signs: np.ndarray, orders: np.ndarray
-                           ) -> tuple[np.ndarray, np.ndarray, int]:
+def quads_off_ordered_bars(quads: np.ndarray, signs: np.ndarray, orders: np.ndarray,
+                           cluster: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """The handedness quadruples (and signs) that do not hold both ends of a bar with an order
     (:class:`BarOrder`), and how many did.
 
@@ -506,12 +506,28 @@ def quads_off_ordered_bars(quads: np.ndarray, signs: np.ndarray, orders: np.ndar
     the standing window and in 68-74 % of the take's frames; against them the bar's order lost,
     and the wrist bar stayed exchanged in 40 of 360 frames (98.33 %); with the bar left to its
     order, none (98.77 %). Quadruples that hold one end only keep telling the cluster's mirror
-    image apart."""
+    image apart.
+
+    ``cluster`` ((M,) :func:`segment_clusters`, -1 off every segment): a quadruple whose four
+    labels are all of one segment cluster keeps its sign beside the order. There the other two
+    labels sit on the bar's own segment or hang from it by segments, and the quadruple is the
+    cluster's own shape, which the calibration measured on the person: HDM05's (LFRM, LWRA, LWRB,
+    LFIN), the forearm marker on one side of the plane through the bar and the finger, holds its
+    sign in 99.1 % of the take's first 70 % and 97.6 % of the rest. Both of the 41-marker stream's
+    left-hand errors mirror it -- the bar's ends exchanged, and the finger exchanged with the ulnar
+    end (LWRA, LWRB and LFIN are a near-isosceles triangle) -- where the order's rows see only
+    the first. ``bench_stream_latency`` markers41, inline: clean 97.82 -> 98.28 %, gaps + ghosts
+    and flicker + ghosts (corruption seeds 1-3) 0.3-0.5 points higher in five of six streams,
+    the sixth -0.03 (``results/stream_latency.md``). CMU 85's (RELB | RFRM, RWRA, RWRB, RFIN)
+    crosses the elbow, off HDM05's forearm cluster, and stays left to the order."""
     q = np.asarray(quads, dtype=np.int64).reshape(-1, 4)
     ends = np.asarray(orders, dtype=np.int64).reshape(-1, 3)[:, 1:]
     if q.shape[0] == 0 or ends.shape[0] == 0:
         return q, np.asarray(signs), 0
     both = ((q[:, None, :, None] == ends[None, :, None, :]).any(2).all(2)).any(1)      # (Q,)
+    if cluster is not None:
+        c = np.asarray(cluster, dtype=np.int64)[q]                                     # (Q, 4)
+        both &= ~((c >= 0) & (c == c[:, :1])).all(1)
     return q[~both], np.asarray(signs)[~both], int(both.sum())
 
 

@@ -44,7 +44,8 @@ lengths replace the generic ones. :func:`calibrate` does that for a model with b
 * the marker **bars' order** (:class:`~dtm_labeler.model.body.BarOrder`): the training's rows
   stay unless the calibration frames show the other order in most frames (another lab's
   placement), and the handedness quadruples that hold both ends of an ordered bar are left to
-  it (:func:`kept_orders`, :func:`~dtm_labeler.model.body.quads_off_ordered_bars`);
+  it, unless all four labels are of one cluster of the measured segments (:func:`kept_orders`,
+  :func:`~dtm_labeler.model.body.quads_off_ordered_bars`);
 * the **placement** of the person's markers: each triangle mixture's relative-position means
   shift together by the calibration frames' mean residual, shrunk by the evidence
   (:mod:`.placement`; weights, covariances and the velocity part are kept -- the motion is not
@@ -119,7 +120,7 @@ import numpy as np
 
 from ..labeling.confidence import CONFIRMED
 from ..labeling.stream import LabelerSettings, StreamLabeler
-from ..model.body import SEGMENT, BodyModel, BroadMotion, quads_off_ordered_bars
+from ..model.body import SEGMENT, BodyModel, BroadMotion, quads_off_ordered_bars, segment_clusters
 from ..model.dtm import TriangulatedModel
 from ..motion.clip import MotionClip
 from ..motion.pointsets import model_points
@@ -336,7 +337,8 @@ def calibrated_body(body: BodyModel, positions: np.ndarray, settings: Calibratio
     orders = kept_orders(body.orders, positions)         # the bars' order, unless the person reverses it
     summary["bar_orders"] = int(orders.shape[0])
     summary["bar_orders_dropped"] = int(body.orders.shape[0] - orders.shape[0])
-    quads, signs, summary["handedness_left_to_orders"] = quads_off_ordered_bars(quads, signs, orders)
+    quads, signs, summary["handedness_left_to_orders"] = quads_off_ordered_bars(
+        quads, signs, orders, segment_clusters(body.n_labels, body.pairs[seg | borrowed]))
     summary["handedness_quads"] = int(quads.shape[0])
     rigid = cluster_pairs(body, positions, seg | borrowed)
     summary["rigid_pairs"] = int(rigid["rigid_pairs"].shape[0])
