@@ -5,7 +5,7 @@ apply it (measured again on the person's frames), and model files keep it (forma
 import numpy as np
 import pytest
 
-from dtm_labeler.model.body import HANDEDNESS_NATS, BodyModel, Handedness, segment_clusters
+from dtm_labeler.model.body import HANDEDNESS_NATS, BodyModel, Handedness
 from dtm_labeler.labeling.rigid_tracks import body_pairs
 from dtm_labeler.labeling.take_pass import person_handedness
 from dtm_labeler.model.features import point_states
