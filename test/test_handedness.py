@@ -84,7 +84,7 @@ def test_real_wrist_cluster_learnt_and_applied_once_calibrated(models, hdm, tmp_
     assert calibrated.body.calibration["handedness_quads"] == len(calibrated.body.quads) > 0
 
     # the quadruples with both wrist-bar ends are left to the bar's order (model/body.py BarOrder)
-    # unless all four markers are of one segment cluster: the forearm, the bar and the hand hanging from it
+    # unless all four markers are of one segment cluster (here the elbow and forearm markers with the bar)
     assert calibrated.body.orders.shape[0] >= 1
     cluster = segment_clusters(len(names), calibrated.body.segments)
     both = [q for q in calibrated.body.quads.tolist() if bar <= set(q)]
