@@ -10,6 +10,7 @@ base settings have a small full GA so that the test stays quick.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
@@ -63,6 +64,7 @@ CHANGES = {
     "mirror_switch_nats": 1000.0,
     "hold_nats": 1000.0,
     "hold_s": 0.0,
+    "cluster_memory_s": 0.0,
     "cluster_turns": False,
     "turn_check": False,
     "upright_deg": 1.0,
@@ -138,6 +140,10 @@ HELD_CARRY = {"hold_nats", "hold_s"}
 #: bones form one) and the carried labeling reads one turned: compared on the fast path's climb from
 #: a frame's labeling with three of its labels each one along, the model given them as a cluster
 TURNED_CLUSTER = {"cluster_turns"}
+#: fields that act only where the model has small rigid clusters and a move would rearrange one
+#: against what its tracks' frames preferred: compared on what the fast path would pay for every
+#: arrangement of a cluster after 30 frames, the models given the right arm as their one cluster
+ARRANGED_CLUSTER = {"cluster_memory_s"}
 #: fields that act only on labels of tracks begun after the stream's first frame, less than
 #: ``YOUNG_S`` ago (this stream's labelled points keep the tracks they began with): compared on the
 #: fast path's climb with the stream made older, every track young, from a frame's labeling with
@@ -225,6 +231,25 @@ def held_prices(kind, models, settings, stream) -> list:
     return out
 
 
+def arrangement_prices(kind, models, settings, stream) -> list | None:
+    """What the fast path would pay for each arrangement of the right arm's labels over their
+    points after 30 frames, every model given the arm as its one small rigid cluster (None:
+    nothing to pay)."""
+    lab = make(kind, models, settings)
+    with lab:
+        for xyz, t in stream[:30]:
+            lab.process(xyz, t)
+        problems, _, found = lab.last_frame
+        p = problems[found.best_model]
+        a = found.best.assignment
+        arm = np.array([p.model.labels.index(n) for n in ("rshoulder", "relbow", "rwrist")])
+        cand = np.repeat(a[None], 6, 0)
+        for row, order in enumerate(itertools.permutations(range(3))):
+            cand[row, arm] = a[arm[list(order)]]
+        price = lab.cluster_evidence.cost(a, p.n, lab._frame_tracks, lab.last_stamp)
+    return None if price is None else np.round(price(cand), 6).tolist()
+
+
 def test_every_field_has_a_change():
     assert set(CHANGES) == {f.name for f in dataclasses.fields(LabelerSettings)}
 
@@ -235,7 +260,7 @@ def test_every_setting_changes_both_labelers(kind, models, stream, monkeypatch):
     assert trace(make(kind, models, BASE), stream) == base          # deterministic
     ignored = [name for name, value in CHANGES.items()
                if name not in BACKGROUND_ONLY | WHOLE_BODY_REGIONS | MIRRORED_CARRY | HELD_CARRY | TURNED_CLUSTER |
-               YOUNG_TRACKS | POOR_MARKER_COLD and
+               YOUNG_TRACKS | POOR_MARKER_COLD | ARRANGED_CLUSTER and
                trace(make(kind, models, dataclasses.replace(BASE, **{name: value})), stream, base) == base]
     bg = dataclasses.replace(BASE, recovery="background")
     for name in BACKGROUND_ONLY:
@@ -266,6 +291,14 @@ def test_every_setting_changes_both_labelers(kind, models, stream, monkeypatch):
     for name in YOUNG_TRACKS:
         if young_climb(kind, models, dataclasses.replace(no_regions_chains, **{name: CHANGES[name]}), stream) == base_young:
             ignored.append(name)
+    with monkeypatch.context() as patch:
+        patch.setattr(TriangulatedModel, "rigid_clusters",
+                      property(lambda self: (np.array([self.labels.index(n) for n in ("rshoulder", "relbow", "rwrist")]),)))
+        base_arranged = arrangement_prices(kind, models, BASE, stream)
+        assert base_arranged is not None and max(base_arranged) > 0      # the arm's frames preferred one arrangement
+        for name in ARRANGED_CLUSTER:
+            if arrangement_prices(kind, models, dataclasses.replace(BASE, **{name: CHANGES[name]}), stream) == base_arranged:
+                ignored.append(name)
     with monkeypatch.context() as patch:
         patch.setattr(TriangulatedModel, "marker_set", property(lambda self: True))
         patch.setattr(tracked, "BEND_SHARE", 10.0)

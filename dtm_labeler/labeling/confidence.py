@@ -114,7 +114,8 @@ CONFIRMATION_POWER = 0.6
 
 
 def label_posteriors(problem: FrameProblem, ind: np.ndarray, fit: float, alternatives: np.ndarray,
-                     temperature: float, fitness: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     temperature: float, fitness: np.ndarray | None = None,
+                     prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Local posterior of each label's point (module doc), twice: (published, strict), each (M,)
     with NaN for missing labels. ``alternatives`` (A, M): labelings near ``ind`` (those equal to
     it are ignored), with their ``fitness`` if already known; the release of every labelled
@@ -122,7 +123,10 @@ def label_posteriors(problem: FrameProblem, ind: np.ndarray, fit: float, alterna
     may tie, never outweigh: the search does not release labels, so its labels are not judged by
     an alternative it never weighs); *strict* counts the release in full -- what the subject
     calibration confirms by (:data:`CONFIRMED`): a label the model would rather leave unseen is
-    not taken as a measurement of the person."""
+    not taken as a measurement of the person. ``prior`` (A,): what each alternative pays besides
+    its fitness in the stream's priors (the arrangement prior of
+    :class:`~dtm_labeler.labeling.cluster_evidence.ClusterEvidence`), counted in *published* only:
+    a consumer's confidence is the stream's, a calibration's confirmation the frame's own."""
     n, M = problem.n, problem.M
     have = np.flatnonzero(ind < n)
     rel = np.repeat(ind[None], have.size, 0)
@@ -133,11 +137,13 @@ def label_posteriors(problem: FrameProblem, ind: np.ndarray, fit: float, alterna
         changed = alternatives != ind[None]
         keep = changed.any(1)
         odds = changed[keep].T.astype(float) @ _weight(f_alt[keep], fit, temperature)
+        odds_pub = odds if prior is None else \
+            changed[keep].T.astype(float) @ _weight(f_alt[keep] - np.asarray(prior)[keep], fit, temperature)
     else:
-        odds = np.zeros(M)
+        odds = odds_pub = np.zeros(M)
     w_rel = _weight(f_rel, fit, temperature)                             # one release per labelled label
     published, strict = np.full(M, np.nan), np.full(M, np.nan)
-    published[have] = 1.0 / (1.0 + odds[have] + np.minimum(w_rel, 1.0))
+    published[have] = 1.0 / (1.0 + odds_pub[have] + np.minimum(w_rel, 1.0))
     strict[have] = 1.0 / (1.0 + odds[have] + w_rel)
     return published, strict
 

@@ -196,6 +196,13 @@ PARAMS: Tuple[Param, ...] = (
           "it, and by which it must out-hold the point it would go to. Shorter also protects a wrong point "
           "that took a hidden marker's label during its gap (0.2 s: 41 markers with gaps -0.3 points).",
           range=(0.0, 3600.0)),
+    Param("cluster_memory_s", 4.0, "Memory (s) of the arrangement prior: a move of the fast path that "
+          "puts a small rigid cluster's labels (a wrist bar with its forearm and finger markers, a head) on "
+          "the same tracks in another arrangement pays the log-likelihood by which the frames since those "
+          "tracks began, discounted over this time, prefer the arrangement they carry (eq. 32 read as a "
+          "hidden Markov chain over the cluster's arrangement). Keeps a wrist bar's ends from following a "
+          "motion mixture that prefers them exchanged for a phase of each movement. 0 = off.",
+          range=(0.0, 3600.0)),
     Param("turn_check", True, "A search from scratch also tries the body turned round: the model's "
           "exact whole-body max-product at the facing opposite to the search's result, kept when it fits "
           "better (a cold start under a model of another lab settled on the body seen from behind: CMU 85 "
@@ -425,6 +432,7 @@ class LabelerSettings:
     cluster_turns: bool = DEFAULTS["cluster_turns"]
     hold_nats: float = DEFAULTS["hold_nats"]
     hold_s: float = DEFAULTS["hold_s"]
+    cluster_memory_s: float = DEFAULTS["cluster_memory_s"]
     turn_check: bool = DEFAULTS["turn_check"]
     upright_deg: float = DEFAULTS["upright_deg"]
     bend_starts: int = DEFAULTS["bend_starts"]

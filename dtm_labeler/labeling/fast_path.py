@@ -6,7 +6,8 @@ In ``stream`` mode most frames are labelled here and nowhere else (:meth:`FastPa
    mirror and left/right swaps, swaps of labels whose points are close, a label onto a free
    point within the distance bounds, releases of labels on young tracks), each move paying the
    priors of eq. 32 read as a hidden Markov chain over each track's label
-   (:meth:`FastPath._move_cost`: the whole body read mirrored, a newcomer taking a held label);
+   (:meth:`FastPath._move_cost`: the whole body read mirrored, a newcomer taking a held label, a
+   rigid cluster rearranged against what its tracks' frames preferred);
 2. *chain shifts* (a limb's labels passed one marker along) and *cluster turns* (a rigid
    cluster's labels turned as a block), which single moves cannot undo;
 3. *region checks*: the exact relabelling of a body region given the rest
@@ -16,7 +17,7 @@ In ``stream`` mode most frames are labelled here and nowhere else (:meth:`FastPa
    tracks (:meth:`FastPath._young_centres`), and every region in turn after a search.
 
 :class:`FastPath` is the half of :class:`~.tracked.TrackedLabeler` that does this; it reads the
-stream state the labeler keeps (``settings``, ``tracker``, ``tenure``, ``engine``, the frame's
+stream state the labeler keeps (``settings``, ``tracker``, ``tenure``, ``cluster_evidence``, ``engine``, the frame's
 track ids ``_frame_tracks``, the coasting labels ``_coasting`` / ``_coast_track``, ``last_stamp``,
 ``_stream_start``, ``_since_search``, ``_frame_no``, ``_event_points``) and keeps its own cursors
 (``_region_cursor``, ``_young_cursor``, ``_misfit_run``, ``_track_began``), which the labeler's
@@ -94,9 +95,12 @@ class FastPath:
 
     def _move_cost(self, problem: FrameProblem, seed: np.ndarray):
         """The prior the hill-climb's moves pay against the carried labeling ``seed``: the
-        mirror switch (:meth:`_mirror_cost`) plus the hold (:meth:`_hold_cost`); None when
-        neither applies."""
-        costs = [c for c in (self._mirror_cost(problem, seed), self._hold_cost(problem, seed)) if c is not None]
+        mirror switch (:meth:`_mirror_cost`), the hold (:meth:`_hold_cost`) and the rigid
+        clusters' arrangements (:meth:`~.cluster_evidence.ClusterEvidence.cost`); None when
+        none applies."""
+        costs = [c for c in (self._mirror_cost(problem, seed), self._hold_cost(problem, seed),
+                             self.cluster_evidence.cost(seed, problem.n, self._frame_tracks, self.last_stamp))
+                 if c is not None]
         return (lambda cand: sum(c(cand) for c in costs)) if costs else None
 
     def _hold_cost(self, problem: FrameProblem, seed: np.ndarray):

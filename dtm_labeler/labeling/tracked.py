@@ -50,6 +50,7 @@ from .confidence import CONFIRMATION_POWER, label_posteriors, published_confiden
 from .fast_path import FastPath
 from .fit_check import term_floors
 from .label_tenure import LabelTenure
+from .cluster_evidence import ClusterEvidence
 from .recovery import InlineRecovery, ProcessRecovery, Recovery, RecoveryRequest, RecoveryResult
 from . import tracker
 from .tracker import Tracker, TrackUpdate
@@ -315,6 +316,7 @@ class TrackedLabeler(FastPath):
         self.tracker = Tracker(s.tracker)
         self.votes = VoteBook(s.window if s.mode == "stream" else 1, self.n_labels)
         self.tenure = LabelTenure(self.n_labels)
+        self.cluster_evidence = ClusterEvidence(self.models[0].rigid_clusters, s.cluster_memory_s)
         method = "cbga" if s.method == "tracker" else s.method
         self.full_search: LabelSearch = make_search(method, s.full)
         self.warm_search: LabelSearch = make_search(method, s.warm)
@@ -325,6 +327,7 @@ class TrackedLabeler(FastPath):
         self.tracker.reset()
         self.votes.reset()
         self.tenure.reset()
+        self.cluster_evidence.reset()
         self.track_label: dict[int, int] = {}      # label each track carries (also while coasting)
         self._frame_tracks = np.zeros(0, dtype=np.int64)   # this frame's points' track ids
         self._track_began = None                   # ... and when each began (:meth:`_on_young_tracks`)
@@ -385,6 +388,7 @@ class TrackedLabeler(FastPath):
             self.warm_search.settings = settings.warm
             if settings.seed != old.seed:
                 self.rng = np.random.default_rng(settings.seed)
+            self.cluster_evidence.set_memory(settings.cluster_memory_s)
         else:
             self._build()
         self._configure_recovery()
@@ -1164,8 +1168,11 @@ class TrackedLabeler(FastPath):
         else:
             pub, share = search_labels.copy(), (search_labels >= 0).astype(float)
         alt, f_alt = best.neighbourhood or (self._moves(problem, assignment)(assignment), None)
+        # an alternative that rearranges a rigid cluster against what its tracks' frames preferred
+        # is that much less likely: the published odds carry the arrangement prior too
+        prior = self.cluster_evidence.cost(assignment, n, upd.track_ids, self.last_stamp)
         post, strict = label_posteriors(problem, assignment, best.fitness, alt, self.settings.confidence_temperature,
-                                        f_alt)
+                                        f_alt, None if prior is None or not len(alt) else prior(alt))
         post_point, strict_point = np.full(n, np.nan), np.full(n, np.nan)
         post_point[assign[present]] = post[present]
         strict_point[assign[present]] = strict[present]
@@ -1182,6 +1189,8 @@ class TrackedLabeler(FastPath):
         seen = set(int(t) for t in upd.track_ids)
         lost = set(int(t) for t in upd.lost)
         self.tenure.update(upd.track_ids, search_labels, upd.lost, self.last_stamp)
+        if not doubtful:
+            self.cluster_evidence.measure(problem, assignment, upd.track_ids, self.last_stamp)
         self.track_label = {t: lab for t, lab in self.track_label.items()
                             if t not in seen and t not in lost and lab not in taken}
         self.track_label.update(published)
