@@ -17,6 +17,7 @@ from dtm_labeler.training.train import TrainConfig, train_model
 
 ARM = ("rshoulder", "relbow", "rwrist")
 ORDERS = list(itertools.permutations(range(3)))
+OLD = np.zeros(64)                                     # every track began at the stream's start
 
 
 @pytest.fixture(scope="module")
@@ -47,24 +48,36 @@ def test_an_arrangement_pays_what_the_frames_preferred_the_carried_one_by(frame)
     f = p.fitness(cand)
     assert int(np.argmax(f)) == 0                      # the walker's arm as labelled fits best
     ev = ClusterEvidence([arm], tau_s=1.0, every=1)
-    ev.measure(p, a, tracks, 0.0)
+    ev.measure(p, a, tracks, OLD[:p.n], 0.0)
     once = f[0] - f
-    assert np.allclose(ev.cost(a, p.n, tracks, 0.0)(cand), once)
-    ev.measure(p, a, tracks, 0.0)                      # the same frame again, no time between: twice
-    assert np.allclose(ev.cost(a, p.n, tracks, 0.0)(cand), 2 * once)
+    assert np.allclose(ev.cost(a, p.n, tracks, OLD[:p.n], 0.0)(cand), once)
+    ev.measure(p, a, tracks, OLD[:p.n], 0.0)                      # the same frame again, no time between: twice
+    assert np.allclose(ev.cost(a, p.n, tracks, OLD[:p.n], 0.0)(cand), 2 * once)
     later = math.log(2.0)                              # one half-life of a 1 s memory later
-    ev.measure(p, a, tracks, later)
-    assert np.allclose(ev.cost(a, p.n, tracks, later)(cand), 2 * once)       # 2 * 1/2 + 1
-    assert np.allclose(ev.cost(a, p.n, tracks, later + math.log(2.0))(cand), once)   # decays while unmeasured
+    ev.measure(p, a, tracks, OLD[:p.n], later)
+    assert np.allclose(ev.cost(a, p.n, tracks, OLD[:p.n], later)(cand), 2 * once)       # 2 * 1/2 + 1
+    assert np.allclose(ev.cost(a, p.n, tracks, OLD[:p.n], later + math.log(2.0))(cand), once)   # decays while unmeasured
     # other tracks on the same points (a marker back from a gap): the evidence starts afresh
-    assert ev.cost(a, p.n, tracks + 1000, later) is None
-    ev.measure(p, a, tracks + 1000, later)
-    assert np.allclose(ev.cost(a, p.n, tracks + 1000, later)(cand), once)
-    assert ev.cost(a, p.n, tracks, later) is None
+    assert ev.cost(a, p.n, tracks + 1000, OLD[:p.n], later) is None
+    ev.measure(p, a, tracks + 1000, OLD[:p.n], later)
+    assert np.allclose(ev.cost(a, p.n, tracks + 1000, OLD[:p.n], later)(cand), once)
+    assert ev.cost(a, p.n, tracks, OLD[:p.n], later) is None
+    # one marker back from a gap on a track begun since, the others on theirs: the arrangement is
+    # the others' -- what the frames said of them carries over in full
+    ev.measure(p, a, tracks, OLD[:p.n], later)                   # the old tracks again: afresh
+    t2 = later + 0.01
+    back, began = tracks.copy(), OLD[:p.n].copy()
+    back[a[arm[2]]], began[a[arm[2]]] = 5000, t2
+    decay = math.exp(-0.01)
+    assert np.allclose(ev.cost(a, p.n, back, began, t2)(cand), decay * once)    # priced before it is measured
+    # ... but a track that was there all along, now with the wrist's label, is another marker: none
+    assert ev.cost(a, p.n, back, OLD[:p.n], t2) is None
+    ev.measure(p, a, back, began, t2)
+    assert np.allclose(ev.cost(a, p.n, back, began, t2)(cand), (decay + 1) * once)
     # no memory: nothing measured, nothing to pay
     off = ClusterEvidence([arm], tau_s=0.0, every=1)
-    off.measure(p, a, tracks, 0.0)
-    assert off.cost(a, p.n, tracks, 0.0) is None
+    off.measure(p, a, tracks, OLD[:p.n], 0.0)
+    assert off.cost(a, p.n, tracks, OLD[:p.n], 0.0) is None
 
 
 def test_a_carried_arrangement_the_frames_did_not_support_is_not_held(frame):
@@ -72,15 +85,15 @@ def test_a_carried_arrangement_the_frames_did_not_support_is_not_held(frame):
     cand = np.stack([arranged(a, arm, o) for o in ORDERS])
     f = p.fitness(cand)
     ev = ClusterEvidence([arm], tau_s=1.0, every=1)
-    ev.measure(p, a, tracks, 0.0)
+    ev.measure(p, a, tracks, OLD[:p.n], 0.0)
     worst = int(np.argmin(f))
     for k in range(1, len(ORDERS)):                    # the arm carried in a worse arrangement
         if k == worst:
             continue
-        price = ev.cost(cand[k], p.n, tracks, 0.0)(cand)      # every arrangement, seen from it
+        price = ev.cost(cand[k], p.n, tracks, OLD[:p.n], 0.0)(cand)      # every arrangement, seen from it
         assert price[0] == 0.0                         # back to the one the frames preferred: free
         assert np.allclose(price, np.maximum(f[k] - f, 0.0))
-    assert ev.cost(cand[worst], p.n, tracks, 0.0) is None     # nothing fits worse: no prior at all
+    assert ev.cost(cand[worst], p.n, tracks, OLD[:p.n], 0.0) is None     # nothing fits worse: no prior at all
 
 
 def test_hidden_and_departing_labels_read_at_their_best_completion(frame):
@@ -89,7 +102,7 @@ def test_hidden_and_departing_labels_read_at_their_best_completion(frame):
     f = p.fitness(cand)
     E = f - f.max()
     ev = ClusterEvidence([arm], tau_s=1.0, every=1)
-    ev.measure(p, a, tracks, 0.0)
+    ev.measure(p, a, tracks, OLD[:p.n], 0.0)
     point = {o: a[arm[list(o)]] for o in ORDERS}       # arrangement -> the arm's labels' points
 
     def best(fixed):                                   # max of E over arrangements giving labels fixed points
@@ -101,7 +114,7 @@ def test_hidden_and_departing_labels_read_at_their_best_completion(frame):
     swap = seed.copy()
     swap[arm[[0, 1]]] = seed[arm[[1, 0]]]
     want = best({0: a[arm[0]], 1: a[arm[1]]}) - best({0: a[arm[1]], 1: a[arm[0]]})
-    assert np.allclose(ev.cost(seed, p.n, tracks, 0.0)(np.stack([seed, swap])), [0.0, max(want, 0.0)])
+    assert np.allclose(ev.cost(seed, p.n, tracks, OLD[:p.n], 0.0)(np.stack([seed, swap])), [0.0, max(want, 0.0)])
     # the elbow's label leaving the arm (unlabelled), the others as they were: free
     out = a.copy()
     out[arm[1]] = p.n
@@ -109,12 +122,12 @@ def test_hidden_and_departing_labels_read_at_their_best_completion(frame):
     took = out.copy()
     took[arm[0]] = a[arm[1]]
     want = E[0] - best({0: a[arm[1]], 2: a[arm[2]]})
-    assert np.allclose(ev.cost(a, p.n, tracks, 0.0)(np.stack([out, took])), [0.0, want])
+    assert np.allclose(ev.cost(a, p.n, tracks, OLD[:p.n], 0.0)(np.stack([out, took])), [0.0, want])
     assert want > 0
     # one label of the cluster seen: nothing to arrange
     one = seed.copy()
     one[arm[1]] = p.n
-    assert ev.cost(one, p.n, tracks, 0.0) is None
+    assert ev.cost(one, p.n, tracks, OLD[:p.n], 0.0) is None
 
 
 def test_the_published_confidence_counts_the_prior_the_confirmation_does_not(frame):
@@ -127,8 +140,8 @@ def test_the_published_confidence_counts_the_prior_the_confirmation_does_not(fra
     f = p.fitness(cand)
     ev = ClusterEvidence([arm], tau_s=1.0, every=1)
     for _ in range(3):
-        ev.measure(p, a, tracks, 0.0)
-    prior = ev.cost(a, p.n, tracks, 0.0)(cand)
+        ev.measure(p, a, tracks, OLD[:p.n], 0.0)
+    prior = ev.cost(a, p.n, tracks, OLD[:p.n], 0.0)(cand)
     t = float(np.min(f[0] - f[1:]))                   # a temperature at which the closest one has odds 1/e
     plain_pub, plain_strict = label_posteriors(p, a, f[0], cand, t, f)
     pub, strict = label_posteriors(p, a, f[0], cand, t, f, prior)

@@ -246,7 +246,7 @@ def arrangement_prices(kind, models, settings, stream) -> list | None:
         cand = np.repeat(a[None], 6, 0)
         for row, order in enumerate(itertools.permutations(range(3))):
             cand[row, arm] = a[arm[list(order)]]
-        price = lab.cluster_evidence.cost(a, p.n, lab._frame_tracks, lab.last_stamp)
+        price = lab.cluster_evidence.cost(a, p.n, lab._frame_tracks, lab.tracker.began(lab._frame_tracks), lab.last_stamp)
     return None if price is None else np.round(price(cand), 6).tolist()
 
 

@@ -13,8 +13,8 @@ the fast path that puts the cluster's labels on the same tracks in another arran
 pays what the frames before preferred the carried one by, ``max(0, E_c(pi) - E_c(pi'))``
 (:meth:`ClusterEvidence.cost`): a frame may prefer another arrangement, but the labeling changes
 only once the frames of the tracks' shared life, as a whole, do. An arrangement the frames do not
-support is not held (leaving it is free), and a candidate that moves a label of the cluster to a
-point outside it is not priced (the cluster's tracks are another set then).
+support is not held (leaving it is free); a label hidden this frame, or moved off the cluster's
+points, is read at its best (max-marginal), so the prior prices what a move does to the others.
 
 Why: a wrist bar (HDM05's LWRA, LWRB, 13 cm apart) and the finger beside it are a near-isosceles
 triangle whose exchanges no distance sees. Trained on the take's first 70 %, the motion mixtures
@@ -29,9 +29,12 @@ only lone exchanges let every region check and cluster turn that changes three l
 The clusters are the model's :attr:`~dtm_labeler.model.dtm.TriangulatedModel.rigid_clusters`
 (marker sets; 3-4 labels, so at most 24 arrangements). One cluster whose labels are all on points
 is measured every ``MEASURE_EVERY`` frames, in turn (at 41 markers 24 fitness evaluations, 0.6 ms
-on a slow day's machine). A cluster's memory is keyed
-by the set of tracks that carried its labels: a new track (a marker back from a gap, a ghost)
-starts it afresh. Pure numpy.
+on a slow day's machine). A cluster's memory is about the tracks it was measured on: a track new
+since (a marker back from a gap, a ghost) is free in it -- each arrangement is read at its best
+over what it gives the new track -- so a marker back among three that stayed gets exactly the
+label left, and the three keep what their frames said. Starting afresh instead left the bar's
+ends to the mixtures after every gap of one of them (41 markers with gaps + ghosts, corruption
+seeds 1-3: 97.99 / 96.37 / 99.09 % against 98.37 / 98.11 / 99.73 %). Pure numpy.
 """
 from __future__ import annotations
 
@@ -70,25 +73,33 @@ class ClusterEvidence:
         self.active = self.tau_s > 0 and bool(self.clusters)
 
     def reset(self) -> None:
-        self.keys = [None] * len(self.clusters)      # per cluster: its tracks, sorted, when measured
-        self.evidence = [None] * len(self.clusters)  # ... and E over the orders of those tracks (max 0)
-        self.stamp = np.zeros(len(self.clusters))
-        self._tables = [{} for _ in self.clusters]  # max-marginals per pattern of seen labels
+        C = len(self.clusters)
+        self.keys = [None] * C            # per cluster: its tracks, sorted, when measured
+        self.evidence = [None] * C        # ... and E over the arrangements on those tracks (max 0)
+        self.stamp = np.zeros(C)
+        self._tables = [None] * C         # max-marginals of E (:meth:`_max_marginal`)
         self._cursor = 0
         self._frame = 0
 
-    def _ranks(self, members: np.ndarray, pts: np.ndarray, point_tracks: np.ndarray):
-        """The cluster's tracks sorted, and each point's rank among them."""
-        tracks = point_tracks[pts]
-        order = np.argsort(tracks)
-        rank = np.empty(members.size, dtype=np.int64)
-        rank[order] = np.arange(members.size)
-        return tracks[order], rank
+    def _ranks(self, c: int, tracks: np.ndarray, began: np.ndarray) -> np.ndarray | None:
+        """The rank of each of ``tracks`` (which began at stream times ``began``) among cluster
+        ``c``'s measured tracks; ``k`` (the cluster's size) for a track begun since the cluster
+        was measured. None when one is neither: a track that was there but held no label of the
+        cluster then -- the labeling moved a label onto another marker (a finger's label onto the
+        other hand's finger), and what the frames said of the arrangement was said of another
+        set of points."""
+        key = self.keys[c]
+        rank = np.searchsorted(key, tracks)
+        hit = (rank < key.size) & (key[np.minimum(rank, key.size - 1)] == tracks)
+        if not (hit | (np.asarray(began) > self.stamp[c])).all():
+            return None
+        return np.where(hit, rank, key.size)
 
-    def measure(self, problem, assignment: np.ndarray, point_tracks: np.ndarray, stamp: float) -> None:
+    def measure(self, problem, assignment: np.ndarray, point_tracks: np.ndarray, point_began: np.ndarray,
+                stamp: float) -> None:
         """Every ``every``-th frame, add this frame's evidence for the next cluster whose labels
         are all on points of ``assignment`` (label -> point, ``problem.n`` = none), in turn;
-        ``point_tracks`` the frame's track id per point."""
+        ``point_tracks`` the frame's track id per point, ``point_began`` when each track began."""
         if not self.active:
             return
         self._frame += 1
@@ -103,82 +114,91 @@ class ClusterEvidence:
         c = seen[self._cursor]
         self._cursor += 1
         members = self.clusters[c]
+        k = members.size
         pts = assignment[members]
-        perms, index = _orders(members.size)
+        perms, index = _orders(k)
+        codes = k ** np.arange(k)
         block = np.repeat(assignment[None], len(perms), 0)
         block[:, members] = pts[perms]
         f = problem.fitness(block)
-        tracks, rank = self._ranks(members, pts, point_tracks)
+        tracks = point_tracks[pts]
+        key = np.sort(tracks)
+        rank = np.searchsorted(key, tracks)
         e = np.empty(len(perms))
-        e[index[rank[perms] @ (members.size ** np.arange(members.size))]] = weight * f
-        old = self.evidence[c]
-        if old is not None and np.array_equal(self.keys[c], tracks):
-            e += np.exp(-max(float(stamp) - self.stamp[c], 0.0) / self.tau_s) * old
+        e[index[rank[perms] @ codes]] = weight * f
+        then = None if self.evidence[c] is None else self._ranks(c, key, point_began[pts][np.argsort(tracks)])
+        if then is not None:
+            # the evidence so far, read on today's tracks: each arrangement at its best over what
+            # it says of the tracks it was measured on (a track new since -- a marker back from a
+            # gap -- is free; one new track among persistent ones is then exactly the one left)
+            old = self._max_marginal(c)[then[perms] @ ((k + 1) ** np.arange(k))]
+            decay = np.exp(-max(float(stamp) - self.stamp[c], 0.0) / self.tau_s)
+            e[index[perms @ codes]] += decay * old
         self.evidence[c] = e - e.max()
-        self.keys[c] = tracks
+        self.keys[c] = key
         self.stamp[c] = float(stamp)
-        self._tables[c] = {}
+        self._tables[c] = None
 
-    def _max_marginal(self, c: int, seen: tuple) -> np.ndarray:
-        """Cluster ``c``'s evidence at its best over every arrangement that gives the labels
-        ``seen`` (positions in the cluster) the given ranks, for every pattern of ranks (base
-        ``k + 1`` codes; digit ``k``: that label is not placed on the cluster's tracks). Kept
-        until the cluster is measured again (decay scales every entry alike)."""
-        cache = self._tables[c]
-        if seen not in cache:
+    def _max_marginal(self, c: int) -> np.ndarray:
+        """Cluster ``c``'s evidence at its best over every arrangement that gives its labels the
+        given ranks, for every pattern of ranks (base ``k + 1`` codes over the cluster's labels;
+        digit ``k``: that label is not placed on the cluster's tracks). Kept until the cluster is
+        measured again (decay scales every entry alike)."""
+        if self._tables[c] is None:
             k = self.clusters[c].size
-            table = _orders(k)[0][:, list(seen)]
-            codes = (k + 1) ** np.arange(len(seen))
-            best = np.full((k + 1) ** len(seen), -np.inf)
-            for mask in itertools.product((False, True), repeat=len(seen)):
+            table = _orders(k)[0]
+            codes = (k + 1) ** np.arange(k)
+            best = np.full((k + 1) ** k, -np.inf)
+            for mask in itertools.product((False, True), repeat=k):
                 np.maximum.at(best, np.where(mask, k, table) @ codes, self.evidence[c])
-            cache[seen] = best
-        return cache[seen]
+            self._tables[c] = best
+        return self._tables[c]
 
-    def cost(self, seed: np.ndarray, n: int, point_tracks: np.ndarray, stamp: float):
+    def cost(self, seed: np.ndarray, n: int, point_tracks: np.ndarray, point_began: np.ndarray, stamp: float):
         """The prior a candidate labeling pays against the carried ``seed`` (label -> point).
         For each cluster whose labels ``seed`` puts on tracks its evidence was measured on (two or
         more of them; the others hidden this frame), a candidate pays what the evidence prefers the
-        carried arrangement by over the candidate's arrangement of the labels it leaves on those
+        carried arrangement by over the candidate's arrangement of the cluster's labels on those
         points, each side read at its best completion over the labels it does not place there
         (max-marginal): ``max(0, max_{pi ~ seed} E_c(pi) - max_{pi ~ cand} E_c(pi))``. A candidate
-        that moves a label of the cluster elsewhere pays only for what it does to the others:
-        the bar's ends exchanged together with the finger's label given to the other hand's
-        finger was the commonest way round the prior before it did. A marker of the cluster
-        hidden for a frame is when the motion mixtures most easily exchange the others (with 2 of
-        41 markers hidden each frame, most of the wrist bar's exchanges began in such a frame).
-        None when nothing applies."""
-        if not self.active or point_tracks.size != n:
+        that moves a label of the cluster elsewhere pays only for what it does to the others
+        (the bar's ends exchanged together with the finger's label given to the other hand's
+        finger was the commonest way round the prior before it did), and one that puts a hidden
+        label on a point of the cluster pays for that. A marker of the cluster hidden for a frame
+        is when the motion mixtures most easily exchange the others (with 2 of 41 markers hidden
+        each frame, most of the wrist bar's exchanges began in such a frame). None when nothing
+        applies."""
+        if not self.active or point_tracks.size != n or point_began.size != n:
             return None
         terms = []
         for c, members in enumerate(self.clusters):
-            e = self.evidence[c]
-            if e is None:
+            if self.evidence[c] is None:
                 continue
-            seen = np.flatnonzero(seed[members] < n)
-            if seen.size < 2:
-                continue
-            pts = seed[members[seen]]
-            rank = np.searchsorted(self.keys[c], point_tracks[pts])
-            if (rank >= self.keys[c].size).any() or not np.array_equal(self.keys[c][rank], point_tracks[pts]):
-                continue                              # a track the evidence was not measured on
             k = members.size
-            codes = (k + 1) ** np.arange(seen.size)   # base k + 1: digit k = the label left the cluster
-            best = self._max_marginal(c, tuple(seen.tolist()))
+            on = seed[members] < n
+            known = self._ranks(c, point_tracks[seed[members[on]]], point_began[seed[members[on]]])
+            if known is None:
+                continue                              # a label on a marker the evidence did not see it on
+            rank = np.full(k, k, dtype=np.int64)
+            rank[on] = known
+            if (rank < k).sum() < 2:
+                continue                              # under two labels on the evidence's tracks
+            codes = (k + 1) ** np.arange(k)
+            best = self._max_marginal(c)
             pay = np.where(np.isfinite(best), np.maximum(best[rank @ codes] - best, 0.0), 0.0)
             if not pay.any():
                 continue                              # nothing the frames preferred less: no prior
             pay *= np.exp(-max(float(stamp) - self.stamp[c], 0.0) / self.tau_s)
             rank_of = np.full(n + 1, k, dtype=np.int64)
-            rank_of[pts] = rank
-            terms.append((members[seen], rank_of, codes, pay))
+            rank_of[seed[members[on]]] = rank[on]
+            terms.append((members, rank_of, codes, pay))
         if not terms:
             return None
 
         def price(cand: np.ndarray) -> np.ndarray:
             out = np.zeros(cand.shape[0])
             for labels, rank_of, codes, pay in terms:
-                out += pay[rank_of[cand[:, labels]] @ codes]            # rank of each label's point, k: out
+                out += pay[rank_of[cand[:, labels]] @ codes]            # rank of each label's point, k: off it
             return out
         return price
 

@@ -99,7 +99,8 @@ class FastPath:
         clusters' arrangements (:meth:`~.cluster_evidence.ClusterEvidence.cost`); None when
         none applies."""
         costs = [c for c in (self._mirror_cost(problem, seed), self._hold_cost(problem, seed),
-                             self.cluster_evidence.cost(seed, problem.n, self._frame_tracks, self.last_stamp))
+                             self.cluster_evidence.cost(seed, problem.n, self._frame_tracks,
+                                                         self.tracker.began(self._frame_tracks), self.last_stamp))
                  if c is not None]
         return (lambda cand: sum(c(cand) for c in costs)) if costs else None
 

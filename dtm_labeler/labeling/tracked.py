@@ -1170,7 +1170,8 @@ class TrackedLabeler(FastPath):
         alt, f_alt = best.neighbourhood or (self._moves(problem, assignment)(assignment), None)
         # an alternative that rearranges a rigid cluster against what its tracks' frames preferred
         # is that much less likely: the published odds carry the arrangement prior too
-        prior = self.cluster_evidence.cost(assignment, n, upd.track_ids, self.last_stamp)
+        began = self.tracker.began(upd.track_ids)
+        prior = self.cluster_evidence.cost(assignment, n, upd.track_ids, began, self.last_stamp)
         post, strict = label_posteriors(problem, assignment, best.fitness, alt, self.settings.confidence_temperature,
                                         f_alt, None if prior is None or not len(alt) else prior(alt))
         post_point, strict_point = np.full(n, np.nan), np.full(n, np.nan)
@@ -1190,7 +1191,7 @@ class TrackedLabeler(FastPath):
         lost = set(int(t) for t in upd.lost)
         self.tenure.update(upd.track_ids, search_labels, upd.lost, self.last_stamp)
         if not doubtful:
-            self.cluster_evidence.measure(problem, assignment, upd.track_ids, self.last_stamp)
+            self.cluster_evidence.measure(problem, assignment, upd.track_ids, began, self.last_stamp)
         self.track_label = {t: lab for t, lab in self.track_label.items()
                             if t not in seen and t not in lost and lab not in taken}
         self.track_label.update(published)
