@@ -63,6 +63,7 @@ class ClusterEvidence:
 
     def __init__(self, clusters, tau_s: float, every: int = MEASURE_EVERY):
         self.clusters = [np.asarray(c, dtype=np.int64) for c in clusters]
+        self._codes = [(c.size + 1) ** np.arange(c.size) for c in self.clusters]   # base k + 1 rank patterns
         self.every = int(every)
         self.set_memory(tau_s)
         self.reset()
@@ -78,6 +79,7 @@ class ClusterEvidence:
         self.evidence = [None] * C        # ... and E over the arrangements on those tracks (max 0)
         self.stamp = np.zeros(C)
         self._tables = [None] * C         # max-marginals of E (:meth:`_max_marginal`)
+        self._pay_cache = [{} for _ in range(C)]   # ... and what each pattern pays (:meth:`_pays`)
         self._cursor = 0
         self._frame = 0
 
@@ -138,6 +140,7 @@ class ClusterEvidence:
         self.keys[c] = key
         self.stamp[c] = float(stamp)
         self._tables[c] = None
+        self._pay_cache[c] = {}
 
     def _max_marginal(self, c: int) -> np.ndarray:
         """Cluster ``c``'s evidence at its best over every arrangement that gives its labels the
@@ -183,24 +186,33 @@ class ClusterEvidence:
             rank[on] = known
             if (rank < k).sum() < 2:
                 continue                              # under two labels on the evidence's tracks
-            codes = (k + 1) ** np.arange(k)
-            best = self._max_marginal(c)
-            pay = np.where(np.isfinite(best), np.maximum(best[rank @ codes] - best, 0.0), 0.0)
-            if not pay.any():
+            codes = self._codes[c]
+            pay = self._pays(c, int(rank @ codes))
+            if pay is None:
                 continue                              # nothing the frames preferred less: no prior
-            pay *= np.exp(-max(float(stamp) - self.stamp[c], 0.0) / self.tau_s)
             rank_of = np.full(n + 1, k, dtype=np.int64)
             rank_of[seed[members[on]]] = rank[on]
-            terms.append((members, rank_of, codes, pay))
+            terms.append((members, rank_of, codes, pay,
+                          np.exp(-max(float(stamp) - self.stamp[c], 0.0) / self.tau_s)))
         if not terms:
             return None
 
         def price(cand: np.ndarray) -> np.ndarray:
             out = np.zeros(cand.shape[0])
-            for labels, rank_of, codes, pay in terms:
-                out += pay[rank_of[cand[:, labels]] @ codes]            # rank of each label's point, k: off it
+            for labels, rank_of, codes, pay, decay in terms:
+                out += decay * pay[rank_of[cand[:, labels]] @ codes]    # rank of each label's point, k: off it
             return out
         return price
+
+    def _pays(self, c: int, now: int) -> np.ndarray | None:
+        """What each pattern of ranks pays against the carried one (code ``now``), before decay;
+        None when none pays. Kept until the cluster is measured again."""
+        cache = self._pay_cache[c]
+        if now not in cache:
+            best = self._max_marginal(c)
+            pay = np.where(np.isfinite(best), np.maximum(best[now] - best, 0.0), 0.0)
+            cache[now] = pay if pay.any() else None
+        return cache[now]
 
 
 __all__ = ["MEASURE_EVERY", "ClusterEvidence"]
