@@ -34,7 +34,14 @@ since (a marker back from a gap, a ghost) is free in it -- each arrangement is r
 over what it gives the new track -- so a marker back among three that stayed gets exactly the
 label left, and the three keep what their frames said. Starting afresh instead left the bar's
 ends to the mixtures after every gap of one of them (41 markers with gaps + ghosts, corruption
-seeds 1-3: 97.99 / 96.37 / 99.09 % against 98.37 / 98.11 / 99.73 %). Pure numpy.
+seeds 1-3, inline: 98.68 / 96.63 / 98.78 % against 98.37 / 98.11 / 99.73 %). A label moved onto
+a track that was there all along is another marker's, and voids the memory: carried over, the
+evidence gathered while a finger's label sat on the other hand's finger held the bar exchanged for
+up to 477 frames (background recovery, flicker; three runs 99.17 / 96.14 / 95.11 % against 98.73 /
+98.34 / 98.42 %). ``bench_stream_latency`` markers41, before / after (``results/stream_latency.md``,
+2026-12-03 afternoon): inline, clean 98.26 -> 99.58 %, gaps + ghosts (corruption seeds 1-3) 96.99
+/ 96.00 / 97.26 -> 98.25 / 97.75 / 99.73 %, flicker + ghosts 97.69 / 97.53 / 97.77 -> 99.82 / 99.55
+/ 99.69 %. Pure numpy.
 """
 from __future__ import annotations
 
