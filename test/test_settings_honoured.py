@@ -164,16 +164,22 @@ def make(kind, models, settings, background=False):
     return lab
 
 
+def frame_after(lab, stream, frames: int):
+    """Label the stream's first ``frames`` frames; the last one's problem and published
+    assignment."""
+    for xyz, t in stream[:frames]:
+        lab.process(xyz, t)
+    problems, _, found = lab.last_frame
+    return problems[found.best_model], found.best.assignment
+
+
 def climb_from(kind, models, settings, stream, start_of) -> tuple:
     """The fast path's hill-climb (:meth:`TrackedLabeler._hill_climb`) of frame 10, started from
     ``start_of(problem, labeler, published assignment)``."""
     lab = make(kind, models, settings)
     with lab:
-        for xyz, t in stream[:10]:
-            lab.process(xyz, t)
-        problems, _, found = lab.last_frame
-        p = problems[found.best_model]
-        ind, f, _ = lab._hill_climb(p, start_of(p, lab, found.best.assignment))
+        p, a = frame_after(lab, stream, 10)
+        ind, f, _ = lab._hill_climb(p, start_of(p, lab, a))
     return ind.tolist(), round(float(f), 6)
 
 
@@ -237,16 +243,13 @@ def arrangement_prices(kind, models, settings, stream) -> list | None:
     nothing to pay)."""
     lab = make(kind, models, settings)
     with lab:
-        for xyz, t in stream[:30]:
-            lab.process(xyz, t)
-        problems, _, found = lab.last_frame
-        p = problems[found.best_model]
-        a = found.best.assignment
+        p, a = frame_after(lab, stream, 30)
         arm = np.array([p.model.labels.index(n) for n in ("rshoulder", "relbow", "rwrist")])
         cand = np.repeat(a[None], 6, 0)
         for row, order in enumerate(itertools.permutations(range(3))):
             cand[row, arm] = a[arm[list(order)]]
-        price = lab.cluster_evidence.cost(a, p.n, lab._frame_tracks, lab.tracker.began(lab._frame_tracks), lab.last_stamp)
+        tracks = lab._frame_tracks
+        price = lab.cluster_evidence.cost(a, p.n, tracks, lab.tracker.began(tracks), lab.last_stamp)
     return None if price is None else np.round(price(cand), 6).tolist()
 
 
