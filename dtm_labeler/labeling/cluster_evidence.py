@@ -140,7 +140,7 @@ class ClusterEvidence:
             # the evidence so far, read on today's tracks: each arrangement at its best over what
             # it says of the tracks it was measured on (a track new since -- a marker back from a
             # gap -- is free; one new track among persistent ones is then exactly the one left)
-            old = self._max_marginal(c)[then[perms] @ ((k + 1) ** np.arange(k))]
+            old = self._max_marginal(c)[then[perms] @ self._codes[c]]
             decay = np.exp(-max(float(stamp) - self.stamp[c], 0.0) / self.tau_s)
             e[index[perms @ codes]] += decay * old
         self.evidence[c] = e - e.max()
@@ -157,10 +157,9 @@ class ClusterEvidence:
         if self._tables[c] is None:
             k = self.clusters[c].size
             table = _orders(k)[0]
-            codes = (k + 1) ** np.arange(k)
             best = np.full((k + 1) ** k, -np.inf)
             for mask in itertools.product((False, True), repeat=k):
-                np.maximum.at(best, np.where(mask, k, table) @ codes, self.evidence[c])
+                np.maximum.at(best, np.where(mask, k, table) @ self._codes[c], self.evidence[c])
             self._tables[c] = best
         return self._tables[c]
 

@@ -46,11 +46,11 @@ from ..search.upright import bent_problems, upright_problems
 from ..search.label_search import GASearch, LabelSearch, SearchOutcome, make_search, polish
 from ..search.problem import FrameProblem
 from .config import LabelerSettings
+from .cluster_evidence import ClusterEvidence
 from .confidence import CONFIRMATION_POWER, label_posteriors, published_confidence
 from .fast_path import FastPath
 from .fit_check import term_floors
 from .label_tenure import LabelTenure
-from .cluster_evidence import ClusterEvidence
 from .recovery import InlineRecovery, ProcessRecovery, Recovery, RecoveryRequest, RecoveryResult
 from . import tracker
 from .tracker import Tracker, TrackUpdate
