@@ -101,7 +101,7 @@ class FastPath:
         none applies."""
         costs = [c for c in (self._mirror_cost(problem, seed), self._hold_cost(problem, seed),
                              self.cluster_evidence.cost(seed, problem.n, self._frame_tracks,
-                                                         self.tracker.began(self._frame_tracks), self.last_stamp))
+                                                         self._frame_track_began(), self.last_stamp))
                  if c is not None]
         return (lambda cand: sum(c(cand) for c in costs)) if costs else None
 
@@ -174,7 +174,7 @@ class FastPath:
             coasting, last_seen, predicted = coasting[keep], last_seen[keep], predicted[keep]
         if coasting.size:
             never = self.tenure.held_for(tids[free][None, :], coasting[:, None], now) <= 0
-            began = self.tracker.began(tids[free])
+            began = self._frame_track_began()[free]
             window = TRACK_BREAK_FRAMES * (self.tracker.frame_dt or 0.0)
             near = np.linalg.norm(problem.states[free, :3][None] - predicted[:, None], axis=-1) <= TRACK_BREAK_M
             broke = near & (began[None, :] > last_seen[:, None]) & (began[None, :] <= last_seen[:, None] + window)
@@ -347,6 +347,13 @@ class FastPath:
             return np.zeros(0, dtype=np.int64)
         return self._on_young_tracks(problem, ind, RELEASE_S)
 
+    def _frame_track_began(self) -> np.ndarray:
+        """When each of this frame's points' tracks began (stream time), read from the tracker
+        once a frame (``_track_began``; the labeler's ``_begin`` clears it)."""
+        if self._track_began is None:
+            self._track_began = self.tracker.began(self._frame_tracks)
+        return self._track_began
+
     def _on_young_tracks(self, problem: FrameProblem, ind: np.ndarray, age_s: float) -> np.ndarray:
         """Labels of ``ind`` on a point whose track began less than ``age_s`` ago, after the
         stream's (or a reset's) first frame -- the tracks it began with are the body's; none for a
@@ -354,10 +361,8 @@ class FastPath:
         n = problem.n
         if problem.model.marker_set or self._frame_tracks.size != n:
             return np.zeros(0, dtype=np.int64)
-        if self._track_began is None:
-            self._track_began = self.tracker.began(self._frame_tracks)
         lab = np.flatnonzero(ind < n)
-        began = self._track_began[ind[lab]]
+        began = self._frame_track_began()[ind[lab]]
         return lab[(began > self._stream_start) & (self.last_stamp - began < age_s)]
 
     def _misfit_centres(self, problem: FrameProblem, ind: np.ndarray) -> list[int]:

@@ -330,7 +330,7 @@ class TrackedLabeler(FastPath):
         self.cluster_evidence.reset()
         self.track_label: dict[int, int] = {}      # label each track carries (also while coasting)
         self._frame_tracks = np.zeros(0, dtype=np.int64)   # this frame's points' track ids
-        self._track_began = None                   # ... and when each began (:meth:`_on_young_tracks`)
+        self._track_began = None                   # ... and when each began (:meth:`_frame_track_began`)
         self._carried = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))  # last published, by track
         self._label_confidence = np.zeros(self.n_labels)     # last published confidence of each label
         self.last_stamp = None
@@ -1170,7 +1170,7 @@ class TrackedLabeler(FastPath):
         alt, f_alt = best.neighbourhood or (self._moves(problem, assignment)(assignment), None)
         # an alternative that rearranges a rigid cluster against what its tracks' frames preferred
         # is that much less likely: the published odds carry the arrangement prior too
-        began = self.tracker.began(upd.track_ids)
+        began = self._frame_track_began()
         prior = self.cluster_evidence.cost(assignment, n, upd.track_ids, began, self.last_stamp)
         post, strict = label_posteriors(problem, assignment, best.fitness, alt, self.settings.confidence_temperature,
                                         f_alt, None if prior is None or not len(alt) else prior(alt))
