@@ -3,7 +3,8 @@ cluster's labels over its tracks gathers the discounted log-likelihood of the fr
 them, and a move of the fast path that rearranges the cluster pays what those frames preferred
 the carried arrangement by -- read at its best over labels a frame does not show, and for the
 labels a move leaves on the cluster's points. On a real FrameProblem of a synthetic walker, the
-right arm taken as the cluster."""
+right arm taken as the cluster. Last, what the fast path's priors charge a true labeling, which the
+metrics count as search errors held rather than missed."""
 import itertools
 import math
 
@@ -162,3 +163,31 @@ def test_a_calibration_labels_its_window_without_the_memory():
     assert used.cluster_memory_s == 0.0
     assert (used.seed, used.hold_nats, used.window) == (3, 7.0, given.window)
     assert calibration_labeling(None).cluster_memory_s == 0.0
+
+
+@pytest.mark.parametrize("mirror_nats", [0.0, 0.5])
+def test_a_true_labeling_the_priors_charge_is_counted_as_held(mirror_nats):
+    """The labeler says what its fast path's priors charge the true labeling beyond what it
+    published (``truth_prior``): given the walker's labels mirrored as the 'truth', the mirror
+    switch's prior (``mirror_switch_nats`` per label moved to its partner's track) -- 0 when
+    off -- and the metrics count a search error whose truth pays more than it gains as held."""
+    from dtm_labeler.evaluation.metrics import MetricsAccumulator
+    model = train_model([synthesize(duration=2.0, seed=s, heading=h, noise_mm=2) for s, h in [(0, 0.0), (1, 1.5)]],
+                        TrainConfig(mixture="fixed", k_fixed=2, structure="given"))[0]
+    clip = synthesize(duration=0.2, seed=9, heading=-1.0, noise_mm=2)
+    names = list(model.labels)
+    partner = np.arange(len(names))
+    for a, b in model.mirror_pairs:
+        partner[a], partner[b] = b, a
+    with StreamLabeler(model, LabelerSettings(mirror_switch_nats=mirror_nats)) as lab:
+        for k in range(12):
+            r = lab.process(clip.positions[k], k / 120, truth=np.arange(len(names)))
+        assert r.truth_prior == 0.0 and not r.full_search                # the truth as published pays nothing
+        r = lab.process(clip.positions[12], 12 / 120, truth=partner)      # the mirror image as 'truth'
+    moved = int((partner != np.arange(len(names))).sum())
+    assert r.truth_prior == pytest.approx(mirror_nats * moved)
+    acc = MetricsAccumulator(names, 120.0)
+    everyone = np.arange(len(names))
+    acc.add(everyone, everyone, log_likelihood=r.log_likelihood, truth_fitness=r.log_likelihood + 1.0,
+            truth_prior=r.truth_prior)                                  # the truth 1 nat better by the model
+    assert acc.metrics().search_errors_held == int(mirror_nats * moved > 1.0)

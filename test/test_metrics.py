@@ -99,6 +99,20 @@ def test_search_errors_latency_fps():
     assert m.full_search_rate == 0.5
 
 
+def test_search_errors_the_priors_held():
+    """Of the frames whose truth fits better, those whose truth the fast path's priors charge more
+    than it gains are held, not missed; merged accumulators add them up."""
+    parts = []
+    for prior in (1.0, 3.0):
+        acc = MetricsAccumulator(LABELS, rate=10.0)
+        acc.add([0], [0], log_likelihood=5.0, truth_fitness=7.0, truth_prior=prior)      # gains 2, pays prior
+        acc.add([0], [0], log_likelihood=5.0, truth_fitness=4.0, truth_prior=-9.0)       # no search error
+        parts.append(acc)
+    assert [(p.metrics().search_errors, p.metrics().search_errors_held) for p in parts] == [(1, 0), (1, 1)]
+    merged = MetricsAccumulator.merge(parts).metrics()
+    assert merged.search_errors == 2 and merged.as_dict()["search_errors_held"] == 1
+
+
 def test_search_accuracy_uses_search_labels():
     acc = MetricsAccumulator(LABELS, rate=10.0)
     acc.add([0, 1], [0, 1], search_labels=[1, 0])

@@ -14,7 +14,12 @@ Definitions (per frame, over the points that were actually in the input and fini
   that marker is visible; counted per minute of recording (frames / rate).
 * **search_errors** -- frames where the true labeling is more likely under the model than
   the chosen one: ``truth_fitness > log_likelihood + 1e-6`` (frames without a finite
-  ``truth_fitness`` are not checked).
+  ``truth_fitness`` are not checked). **search_errors_held**: of them, the frames whose truth
+  the fast path's priors (the trajectories' and the clusters' memory of eq. 32 read as a hidden
+  Markov chain, :meth:`~dtm_labeler.labeling.fast_path.FastPath._move_cost`) charge more than
+  it gains: ``truth_fitness - truth_prior <= log_likelihood + 1e-6`` -- the labeler's objective
+  preferred what it published (the memory held it; whether rightly is the accuracy's question),
+  where the others are labelings the search did not reach.
 * **latency** -- per-frame processing time (p50 / p99 / max, ms); **fps** -- frames per
   second of total processing time (sum of the per-frame latencies unless a wall time is
   given).
@@ -90,13 +95,14 @@ class Metrics:
     confusion: np.ndarray = field(repr=False)
     calibration_error: float | None = None
     reliability: list = field(default_factory=list)     # [lo, hi, labels, mean confidence, fraction right]
+    search_errors_held: int = 0    # of the search errors, frames the fast path's priors held (module doc)
 
     def as_dict(self, confusion: bool = False) -> dict:
         """JSON-ready dict (confusion matrix only when asked: it is (M+1)^2 numbers)."""
         d = {k: getattr(self, k) for k in (
             "frames", "duration_s", "points", "correct", "accuracy", "frame_accuracy", "search_accuracy",
-            "ghosts", "ghost_rejection", "swaps", "swaps_per_min", "search_errors", "search_checked",
-            "search_error_rate", "latency_ms", "fps", "full_search_rate", "calibration_error", "reliability",
+            "ghosts", "ghost_rejection", "swaps", "swaps_per_min", "search_errors", "search_errors_held",
+            "search_checked", "search_error_rate", "latency_ms", "fps", "full_search_rate", "calibration_error", "reliability",
             "per_label")}
         d["labels"] = len(self.labels)
         d["label_names"] = list(self.labels)
@@ -143,6 +149,7 @@ class MetricsAccumulator:
         self.frames_with_points = 0
         self.swaps = 0
         self.search_errors = 0
+        self.search_errors_held = 0
         self.search_checked = 0
         self.full_searches = 0
         self.full_known = 0
@@ -155,10 +162,12 @@ class MetricsAccumulator:
     def add(self, true_labels: np.ndarray, published: np.ndarray, *, latency_ms: float | None = None,
             log_likelihood: float = float("nan"), truth_fitness: float = float("nan"),
             search_labels: np.ndarray | None = None, full_search: bool | None = None,
-            valid: np.ndarray | None = None, confidence: np.ndarray | None = None) -> None:
+            valid: np.ndarray | None = None, confidence: np.ndarray | None = None,
+            truth_prior: float = 0.0) -> None:
         """One frame. ``true_labels`` / ``published`` (n,) label index per input point, -1 =
         clutter / unlabelled; ``valid`` (n,) bool: points that really were in the input
-        (finite); others are ignored."""
+        (finite); others are ignored; ``truth_prior``: nats the fast path's priors charge the
+        true labeling beyond the chosen one (module doc, *search_errors_held*)."""
         t = np.asarray(true_labels, dtype=np.int64).reshape(-1)
         p = np.asarray(published, dtype=np.int64).reshape(-1)
         if t.shape != p.shape:
@@ -201,7 +210,9 @@ class MetricsAccumulator:
         # search errors, latency
         if np.isfinite(truth_fitness):
             self.search_checked += 1
-            self.search_errors += int(is_search_error(truth_fitness, log_likelihood))
+            missed = is_search_error(truth_fitness, log_likelihood)
+            self.search_errors += int(missed)
+            self.search_errors_held += int(missed and not is_search_error(truth_fitness - truth_prior, log_likelihood))
         if latency_ms is not None:
             self.latencies.append(float(latency_ms))
         if full_search is not None:
@@ -215,7 +226,7 @@ class MetricsAccumulator:
         self.add(true_labels, result.labels, latency_ms=result.latency_ms,
                  log_likelihood=result.log_likelihood, truth_fitness=result.truth_fitness,
                  search_labels=result.search_labels, full_search=result.full_search, valid=valid,
-                 confidence=result.confidence)
+                 confidence=result.confidence, truth_prior=getattr(result, "truth_prior", 0.0))
 
     def break_continuity(self) -> None:
         """Forget the last published labels (a new, unrelated stream follows)."""
@@ -233,7 +244,7 @@ class MetricsAccumulator:
             out.confusion += a.confusion
             out.conf_bins += a.conf_bins
             for k in ("search_confusion_diag", "search_points", "frames", "duration_s", "frames_all_correct",
-                      "frames_with_points", "swaps", "search_errors", "search_checked", "full_searches",
+                      "frames_with_points", "swaps", "search_errors", "search_errors_held", "search_checked", "full_searches",
                       "full_known"):
                 setattr(out, k, getattr(out, k) + getattr(a, k))
             out.latencies.extend(a.latencies)
@@ -261,7 +272,8 @@ class MetricsAccumulator:
             search_accuracy=ratio(self.search_confusion_diag, self.search_points),
             ghosts=ghosts, ghost_rejection=ratio(int(c[M, M]), ghosts), swaps=self.swaps,
             swaps_per_min=ratio(self.swaps * 60.0, self.duration_s),
-            search_errors=self.search_errors, search_checked=self.search_checked,
+            search_errors=self.search_errors, search_errors_held=self.search_errors_held,
+            search_checked=self.search_checked,
             search_error_rate=ratio(self.search_errors, self.search_checked),
             latency_ms=percentile_summary(self.latencies), fps=fps,
             full_search_rate=ratio(self.full_searches, self.full_known),

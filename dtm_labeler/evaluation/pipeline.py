@@ -58,6 +58,7 @@ class FrameRecord:
     evaluations: int
     reset: str = ""
     doubtful: bool = False        # published before a search vouched for it
+    truth_prior: float = 0.0      # nats the fast path's priors charge the truth beyond the search's result
 
 
 @dataclass
@@ -128,7 +129,8 @@ def run_labeler(labeler, labels: Sequence[str], stream: CorruptedStream, use_ids
                 confidence=res.confidence, track_ids=res.track_ids, search_labels=res.search_labels,
                 log_likelihood=res.log_likelihood, truth_fitness=res.truth_fitness, latency_ms=res.latency_ms,
                 full_search=res.full_search, generations=res.generations, evaluations=res.evaluations,
-                reset=res.reset, doubtful=bool(getattr(res, "doubtful", False))))
+                reset=res.reset, doubtful=bool(getattr(res, "doubtful", False)),
+                truth_prior=float(getattr(res, "truth_prior", 0.0))))
         if progress is not None:
             progress(done + i + 1, total)
     causal = voted = None
@@ -175,7 +177,7 @@ def _rescored(records, labels, rate, new_labels, new_conf, scored) -> MetricsAcc
         r.labels, r.confidence = lab, conf
         acc.add(r.truth, lab, latency_ms=r.latency_ms, log_likelihood=r.log_likelihood,
                 truth_fitness=r.truth_fitness, search_labels=r.search_labels, full_search=r.full_search,
-                valid=np.isfinite(r.xyz).all(1) & scored, confidence=conf)
+                valid=np.isfinite(r.xyz).all(1) & scored, confidence=conf, truth_prior=r.truth_prior)
     return acc
 
 

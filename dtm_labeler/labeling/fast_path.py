@@ -225,6 +225,7 @@ class FastPath:
         99.50 %)."""
         moves = self._moves(problem, seed)
         cost = self._move_cost(problem, seed)
+        self._frame_priors[id(problem)] = cost          # what the true labeling would pay (evaluation)
         ind, f, evals = polish(problem, seed, None, self.settings.fast_rounds, neighbours=moves, last=last,
                                cost=cost)
         if self.settings.chain_moves > 1:

@@ -160,6 +160,7 @@ class FrameResult:
     reset: str = ""               # why the window was reset this frame, if it was
     heading: float = float("nan")
     truth_fitness: float = float("nan")   # fitness of the true labeling (evaluation only)
+    truth_prior: float = 0.0      # nats the fast path's priors charge the true labeling beyond this one (evaluation only)
     doubtful: bool = False        # published before a search vouched for it (background recovery running)
     recovered: bool = False       # a background search's labeling joined in this frame
     recovering: bool = False      # a background search is running after this frame
@@ -330,6 +331,7 @@ class TrackedLabeler(FastPath):
         self.cluster_evidence.reset()
         self.track_label: dict[int, int] = {}      # label each track carries (also while coasting)
         self._frame_tracks = np.zeros(0, dtype=np.int64)   # this frame's points' track ids
+        self._frame_priors = {}            # id(problem) -> the fast path's move prior this frame (or None)
         self._track_began = None                   # ... and when each began (:meth:`_frame_track_began`)
         self._carried = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))  # last published, by track
         self._label_confidence = np.zeros(self.n_labels)     # last published confidence of each label
@@ -459,6 +461,7 @@ class TrackedLabeler(FastPath):
         t0 = time.perf_counter()
         s = self.settings
         inp = self._begin(xyz, stamp, ids)
+        self._frame_priors = {}
         problems = [FrameProblem(m, inp.upd.states, s.background, self.heading, s.heading_snap_deg, inp.upd.rest_s)
                     for m in self.models]
         found = self._search_frame(problems, inp, self._join(inp))
@@ -467,7 +470,8 @@ class TrackedLabeler(FastPath):
         self._learn(problems, found)
         self._after_frame(problems, found, m_pub, inp)
         best = found.best
-        truth_f = self._truth_fitness(problems[m_pub], truth, inp)
+        truth_f, truth_prior = self._truth_fitness(problems[m_pub], truth, inp, best.assignment,
+                                                   self._frame_priors.get(id(problems[m_pub])))
         assign, search_labels, pub, conf, confirmation, post, share = self._publish(problems[m_pub], best, inp,
                                                                                    found.doubtful)
         keep, n_in = inp.keep, inp.n_in
@@ -479,7 +483,7 @@ class TrackedLabeler(FastPath):
             full_search=found.full, generations=found.generations, evaluations=found.evaluations,
             n_dropped=int((~inp.finite).sum()), n_ignored=inp.n_ignored, reset=inp.reason,
             heading=self.heading if self.heading is not None else float("nan"), truth_fitness=truth_f,
-            doubtful=found.doubtful, recovered=found.recovered, recovering=self.recovery.busy,
+            truth_prior=truth_prior, doubtful=found.doubtful, recovered=found.recovered, recovering=self.recovery.busy,
             posterior=scatter(post, keep, n_in, np.nan), vote_share=scatter(share, keep, n_in, 0.0),
             confirmation=scatter(confirmation, keep, n_in, 0.0),
             **self._result_fields(m_pub))
@@ -1141,15 +1145,25 @@ class TrackedLabeler(FastPath):
 
     # -- output --------------------------------------------------------------------------------
     @staticmethod
-    def _truth_fitness(problem: FrameProblem, truth: np.ndarray | None, inp: FrameInput) -> float:
-        """Fitness of the true labeling (``truth``: input index per label, -1 missing)."""
+    def _truth_fitness(problem: FrameProblem, truth: np.ndarray | None, inp: FrameInput, chosen: np.ndarray,
+                       prior=None) -> tuple[float, float]:
+        """Fitness of the true labeling (``truth``: input index per label, -1 missing), and what
+        the fast path's move ``prior`` (:meth:`~.fast_path.FastPath._move_cost`, None when the
+        frame was not climbed) charges it beyond the ``chosen`` assignment: a frame whose truth
+        fits better (a search error by the model alone) but pays more than that in the priors
+        was held by them, not missed by the search (:mod:`~dtm_labeler.evaluation.metrics`)."""
         if truth is None:
-            return float("nan")
+            return float("nan"), 0.0
         n = problem.n
         pos = np.full(inp.n_in + 1, n, dtype=np.int64)
         pos[inp.keep] = np.arange(inp.keep.size)
         tr = np.asarray(truth, dtype=np.int64)
-        return float(problem.fitness(np.where(tr < 0, n, pos[np.where(tr < 0, inp.n_in, tr)])[None])[0])
+        true = np.where(tr < 0, n, pos[np.where(tr < 0, inp.n_in, tr)])
+        fitness = float(problem.fitness(true[None])[0])
+        if prior is None:
+            return fitness, 0.0
+        paid = prior(np.stack([chosen, true]))
+        return fitness, float(paid[1] - paid[0])
 
     def _publish(self, problem: FrameProblem, best: Candidate, inp: FrameInput, doubtful: bool):
         """Votes (eq. 32), confidences (:mod:`.confidence`) and bookkeeping after the search.
