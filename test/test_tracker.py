@@ -47,15 +47,19 @@ def test_vanishing_coasting_reappearing_and_deletion():
     u = tr.update(np.vstack([p(6), still]), 6 * DT)
     assert int(u.track_ids[0]) == moving_id and not u.new[0]
     np.testing.assert_allclose(u.states[0, 3:], v, atol=1e-6)   # displacement over 4 frames / 4 dt
+    np.testing.assert_allclose(u.unseen_s, [4 * DT, 0.0])         # back after coasting: unseen since frame 2
+    u = tr.update(np.vstack([p(7), still]), 7 * DT)
+    assert (u.unseen_s == 0).all()                                # seen last frame
     # gone for longer than max_misses: deleted (reported once), comes back as a new track
     lost_seen = []
-    for k in range(7, 12):
+    for k in range(8, 13):
         u = tr.update(still[None], k * DT)
         lost_seen += u.lost.tolist()
     assert lost_seen == [moving_id]
-    assert np.isnan(tr.position_of(moving_id, 12 * DT)).all()
-    u = tr.update(np.vstack([p(12), still]), 12 * DT)
+    assert np.isnan(tr.position_of(moving_id, 13 * DT)).all()
+    u = tr.update(np.vstack([p(13), still]), 13 * DT)
     assert u.new[0] and int(u.track_ids[0]) != moving_id and np.isnan(u.states[0, 3:]).all()
+    assert u.unseen_s[0] == 0.0                                   # a new track has no gap behind it
     assert len(set(u.track_ids.tolist())) == 2
 
 
@@ -282,3 +286,33 @@ def test_position_of_is_the_predicted_row():
     for k, tid in enumerate(tr.ids):
         assert np.array_equal(tr.position_of(int(tid), t), pred[k])
     assert np.isnan(tr.position_of(99, t)).all()
+
+
+@pytest.mark.parametrize("hidden_frames, region_size, event", [(1, 3, False), (8, 3, True), (8, 6, False)])
+def test_a_marker_back_from_a_bridged_gap_is_an_event_a_flicker_is_not(hidden_frames, region_size, event):
+    """The fast path checks the region of a point whose track began last frame (a marker back on
+    a new track); a marker back on a track the tracker bridged across its gap is such an event
+    too (``RESUMED_EVENT_S``: the arm's chain shifted by one while its elbow and wrist were hidden
+    stayed so for 40 frames of a 41-marker stream), a marker hidden for a frame (flicker) is not,
+    and neither is one of a body of under ``RESUMED_EVENT_REGIONS`` regions (the walker's 14
+    points in regions of 6; of 3 they are more)."""
+    from dtm_labeler.labeling.fast_path import RESUMED_EVENT_REGIONS, RESUMED_EVENT_S
+    from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
+    from dtm_labeler.motion.synthetic import synthesize
+    from dtm_labeler.training.train import TrainConfig, train_model
+    model = train_model([synthesize(duration=2.0, seed=s, heading=h, noise_mm=2) for s, h in [(0, 0.0), (1, 1.5)]],
+                        TrainConfig(mixture="fixed", k_fixed=2, structure="given"))[0]
+    clip = synthesize(duration=0.5, seed=9, heading=-1.0, noise_mm=2)
+    wrist = list(model.labels).index("rwrist")
+    assert 1 / clip.rate < RESUMED_EVENT_S < 8 / clip.rate
+    assert (model.n_labels >= RESUMED_EVENT_REGIONS * region_size) is (region_size == 3)
+    back = 20 + hidden_frames
+    with StreamLabeler(model, LabelerSettings(region_size=region_size)) as lab:
+        for k in range(back + 1):
+            xyz = clip.positions[k].copy()
+            if 20 <= k < back:
+                xyz[wrist] = np.nan                                  # hidden: its track coasts
+            lab.process(xyz, k / clip.rate)
+            if k == back:
+                assert lab.tracker.misses.max() == 0                 # the wrist is back on its old track
+                assert (wrist in lab._event_points.tolist()) is event

@@ -48,7 +48,7 @@ from ..search.problem import FrameProblem
 from .config import LabelerSettings
 from .cluster_evidence import ClusterEvidence
 from .confidence import CONFIRMATION_POWER, label_posteriors, published_confidence
-from .fast_path import FastPath
+from .fast_path import RESUMED_EVENT_REGIONS, RESUMED_EVENT_S, FastPath
 from .fit_check import term_floors
 from .label_tenure import LabelTenure
 from .recovery import InlineRecovery, ProcessRecovery, Recovery, RecoveryRequest, RecoveryResult
@@ -1058,8 +1058,11 @@ class TrackedLabeler(FastPath):
             keep = np.sort(keep[np.argsort(d)[:max_pts]])
         pts = xyz[keep]
         upd = self.tracker.update(pts, stamp, None if ids is None else np.asarray(ids)[keep])
-        # points whose velocity is first known this frame (their track began last frame)
-        self._event_points = np.flatnonzero((upd.track_ids[:, None] == self._new_tracks[None]).any(1))
+        # points whose velocity is first known this frame (their track began last frame), and
+        # points back on a track that coasted through a gap (:data:`~.fast_path.RESUMED_EVENT_S`)
+        back = (upd.unseen_s is not None and self.n_labels >= RESUMED_EVENT_REGIONS * s.region_size
+                and upd.unseen_s >= RESUMED_EVENT_S)
+        self._event_points = np.flatnonzero((upd.track_ids[:, None] == self._new_tracks[None]).any(1) | back)
         self._new_tracks = upd.track_ids[upd.new]
         self._frame_tracks = upd.track_ids
         self._track_began = None

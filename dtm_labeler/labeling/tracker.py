@@ -123,6 +123,7 @@ class TrackUpdate:
     new: np.ndarray            # (n,) bool, track started this frame
     lost: np.ndarray           # ids of tracks deleted this frame
     rest_s: np.ndarray | None = None   # (n,) seconds each point has stayed put (:class:`.rest_clock.RestClock`)
+    unseen_s: np.ndarray | None = None  # (n,) seconds each point's track coasted unseen before this frame (0: seen last frame, or new)
 
 
 class Tracker:
@@ -188,6 +189,8 @@ class Tracker:
         states[:, :3] = xyz
         mm = match[m]
         dt = t - self.last_t[mm]
+        unseen = np.zeros(n)
+        unseen[m] = np.where(self.misses[mm] > 0, dt, 0.0)     # a coasting track found again
         v = np.divide(xyz[m] - self.pos[mm], dt[:, None], out=np.full((mm.size, 3), np.nan), where=dt[:, None] > 0)
         states[m, 3:] = v
         track_ids = np.empty(n, dtype=np.int64)
@@ -235,7 +238,7 @@ class Tracker:
             self.frame_dt = step if fdt is None else fdt + 0.05 * min(max(step - fdt, -fdt), fdt)
         self.t = t
         rest, _ = self.rest.update(track_ids, xyz, t)
-        return TrackUpdate(track_ids, states, new, lost, rest)
+        return TrackUpdate(track_ids, states, new, lost, rest, unseen)
 
     def _rows(self, track_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rows of the track table holding ``track_ids`` (1-d) and which ids it holds."""
