@@ -160,7 +160,7 @@ class FrameResult:
     reset: str = ""               # why the window was reset this frame, if it was
     heading: float = float("nan")
     truth_fitness: float = float("nan")   # fitness of the true labeling (evaluation only)
-    truth_prior: float = 0.0      # nats the fast path's priors charge the true labeling beyond this one (evaluation only)
+    truth_prior: float = 0.0      # nats the fast path's priors charge the truth beyond this labeling (evaluation)
     doubtful: bool = False        # published before a search vouched for it (background recovery running)
     recovered: bool = False       # a background search's labeling joined in this frame
     recovering: bool = False      # a background search is running after this frame

@@ -123,7 +123,7 @@ class TrackUpdate:
     new: np.ndarray            # (n,) bool, track started this frame
     lost: np.ndarray           # ids of tracks deleted this frame
     rest_s: np.ndarray | None = None   # (n,) seconds each point has stayed put (:class:`.rest_clock.RestClock`)
-    unseen_s: np.ndarray | None = None  # (n,) seconds each point's track coasted unseen before this frame (0: seen last frame, or new)
+    unseen_s: np.ndarray | None = None  # (n,) seconds each point's track coasted unseen (0: seen last frame, or new)
 
 
 class Tracker:
