@@ -113,10 +113,8 @@ class ClusterEvidence:
 
     def reset(self) -> None:
         C = len(self.clusters)
-        self.keys = [None] * C            # per cluster: its tracks, sorted, when measured
-        self._keys = np.full(self._padded[0].shape, -2, dtype=np.int64)      # ... padded (:meth:`cost`)
-        self._measured = np.zeros(C, dtype=bool)
-        self.evidence = [None] * C        # ... and E over the arrangements on those tracks (max 0)
+        self.keys = np.full(self._padded[0].shape, -2, dtype=np.int64)   # per cluster: its tracks, sorted, when
+        self.evidence = [None] * C        # measured (-2 beyond its size); E over their arrangements (max 0)
         self.stamp = np.zeros(C)
         self._tables = [None] * C         # max-marginals of E (:meth:`_max_marginal`)
         self._pay_cache = [{} for _ in range(C)]   # ... and what each pattern pays (:meth:`_pays`)
@@ -131,7 +129,7 @@ class ClusterEvidence:
         cluster then -- the labeling moved a label onto another marker (a finger's label onto the
         other hand's finger), and what the frames said of the arrangement was said of another
         set of points."""
-        key = self.keys[c]
+        key = self.keys[c, :self.clusters[c].size]
         rank = np.searchsorted(key, tracks)
         hit = (rank < key.size) & (key[np.minimum(rank, key.size - 1)] == tracks)
         if not (hit | (np.asarray(began) > self.stamp[c])).all():
@@ -179,10 +177,7 @@ class ClusterEvidence:
             decay = np.exp(-max(float(stamp) - self.stamp[c], 0.0) / self.tau_s)
             e[index[perms @ codes]] += decay * old
         self.evidence[c] = e - e.max()
-        self.keys[c] = key
-        self._keys[c] = -2
-        self._keys[c, :k] = key
-        self._measured[c] = True
+        self.keys[c, :k] = key
         self.stamp[c] = float(stamp)
         self._tables[c] = None
         self._pay_cache[c] = {}
@@ -224,16 +219,16 @@ class ClusterEvidence:
 
     def _cost(self, seed: np.ndarray, n: int, point_tracks: np.ndarray, point_began: np.ndarray, stamp: float):
         """:meth:`cost`, computed."""
-        live = np.flatnonzero(self._measured)
+        live = np.flatnonzero([e is not None for e in self.evidence])
         if not live.size:
             return None
         members, valid, codes, size = (a[live] for a in self._padded)
-        keys = self._keys[live]
-        pts = seed[members]                                                    # (C, 4)
+        keys = self.keys[live]
+        pts = seed[members]                                                    # (C, width)
         on = valid & (pts < n)
         safe = np.where(on, pts, 0)
         tracks = np.where(on, point_tracks[safe], -1)
-        same = tracks[:, :, None] == keys[:, None, :]                          # (C, 4, 4)
+        same = tracks[:, :, None] == keys[:, None, :]                          # (C, width, width)
         hit = on & same.any(2)
         new = point_began[safe] > self.stamp[live][:, None]
         void = (on & ~hit & ~new).any(1)                 # a label on a marker the evidence did not see it on

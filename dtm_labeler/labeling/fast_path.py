@@ -20,9 +20,9 @@ In ``stream`` mode most frames are labelled here and nowhere else (:meth:`FastPa
 stream state the labeler keeps (``settings``, ``tracker``, ``tenure``, ``cluster_evidence``,
 ``engine``, the frame's track ids ``_frame_tracks``, the coasting labels ``_coasting`` /
 ``_coast_track``, ``last_stamp``, ``_stream_start``, ``_since_search``, ``_frame_no``,
-``_event_points``) and keeps its own cursors
-(``_region_cursor``, ``_young_cursor``, ``_misfit_run``, ``_track_began``), which the labeler's
-``reset`` restarts. Whether the result is accepted is the labeler's (its fitness level).
+``_event_points``), notes its move prior per problem in ``_frame_priors`` (what the truth would
+pay, for evaluation) and keeps its own cursors (``_region_cursor``, ``_young_cursor``,
+``_misfit_run``, ``_track_began``), which the labeler's ``reset`` restarts. Whether the result is accepted is the labeler's (its fitness level).
 """
 from __future__ import annotations
 
