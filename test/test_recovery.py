@@ -16,6 +16,7 @@ from dtm_labeler.labeling.recovery import (RECOVERY_NICE, RECOVERY_POLICY, Defer
                                            ProcessRecovery, RecoveryRequest, RecoveryResult, build_spare,
                                            keep_spare_worker)
 from dtm_labeler.labeling.stream import StreamLabeler
+from dtm_labeler.labeling import tracked
 from dtm_labeler.labeling.tracker import Tracker, TrackerSettings
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search.dtm_dp import turned_round
@@ -170,10 +171,12 @@ def _first_request(model, walker) -> RecoveryRequest:
     return req
 
 
-def test_interim_results_report_the_best_so_far(model, walker):
+def test_interim_results_report_the_best_so_far(model, walker, monkeypatch):
     """Anytime recovery: the search sends its best labeling so far at the end of generations in
     which it improved -- flagged interim, fitness rising, never above the final result's -- and
-    sends nothing when not asked to."""
+    sends nothing when not asked to. (Without the fresh starts, which the final result keeps
+    when they beat the GA, the reporter only reads.)"""
+    monkeypatch.setattr(tracked, "FRESH_STARTS", 0)
     req = _first_request(model, walker)
     assert req.kind == "full"
     worker = StreamLabeler(model, LabelerSettings(recovery="inline"))
@@ -215,6 +218,36 @@ def test_the_first_interim_result_is_finished_at_once(model, walker):
     assert np.array_equal(ind, first) and f == pytest.approx(f_first)
     if fa > f_first + 1e-9:                                   # an improvement is sent next
         assert np.array_equal(sent[1].candidates[m][0], a)
+
+
+def test_fresh_starts_are_refined_and_kept_when_better(model, walker, monkeypatch):
+    """A worker's cold search refines, after the first generation's best, ``FRESH_STARTS``
+    bests of fresh model-guided populations (each finished: one more call of the search's
+    finish), drawn from their own random stream: the GA's result is the same with or without
+    them, and the final result is never below anything sent."""
+    req = _first_request(model, walker)
+    runs = {}
+    for fresh in (0, 3):
+        monkeypatch.setattr(tracked, "FRESH_STARTS", fresh)
+        worker = StreamLabeler(model, LabelerSettings(recovery="inline"))
+        calls, sent, gas = [], [], []
+        finish, ga = worker.full_search._finish, worker._ga
+        def spy(problem, ind, f, deadline, finish=finish, calls=calls):
+            calls.append(f)
+            return finish(problem, ind, f, deadline)
+        def ga_spy(*a, ga=ga, gas=gas, **k):
+            out = ga(*a, **k)
+            gas.append({m: c.assignment.copy() for m, c in out.candidates.items()})
+            return out
+        worker.full_search._finish, worker._ga = spy, ga_spy
+        res = worker.recover(req, rng=np.random.default_rng(0), interim=InterimReporter(req, sent.append, period_s=0.0))
+        best_sent = max(max(f for _, f in r.candidates.values()) for r in sent)
+        assert max(f for _, f in res.candidates.values()) >= best_sent - 1e-9
+        runs[fresh] = (len(calls), gas)
+    assert runs[3][0] == runs[0][0] + 3
+    assert len(runs[3][1]) == len(runs[0][1])
+    for a, b in zip(runs[0][1], runs[3][1]):                 # the GA's runs untouched
+        assert all(np.array_equal(a[m], b[m]) for m in a)
 
 
 def test_the_finished_search_is_sent_before_the_turned_round_check(model, walker):

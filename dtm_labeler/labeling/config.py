@@ -109,7 +109,7 @@ class Param:
         return value
 
 
-_FULL = GASettings(population=64, max_generations=80, stagnation=10)
+_FULL = GASettings(population=64, max_generations=80, stagnation=10, wide_sweeps=1)
 _WARM = GASettings(population=24, max_generations=10, stagnation=3, polish=True, polish_rounds=1, p_recreate=0.15,
                    fresh_fraction=0.0, region_sweeps=0)
 
@@ -152,6 +152,13 @@ PARAMS: Tuple[Param, ...] = (
           range=(0.0, 1.0)),
     Param("region_sweeps", _FULL.region_sweeps, "Exact region sweeps over every label at the end "
           "of a full search (0 = none).", range=(0, 16)),
+    Param("wide_sweeps", _FULL.wide_sweeps, "Then sweeps over every label's body neighbourhood (it and "
+          "its 6 nearest labels on the mean body), each relabelled exactly as a whole over the points "
+          "it holds and the nearest free ones: a limb's labels permuted along it, which the label-and-"
+          "partner regions do not hold, are put right (0 = none). Measured on 41 HDM05 markers, 3 gaps + 2 "
+          "ghosts, corruption seed 3, cold searches from 12 random seeds: right at the end 10 -> 12, "
+          "median time to the first right labeling 0.9 -> 0.43 s; single-frame mode 85.3 -> 87.6 % "
+          "(~13 % more time).", range=(0, 16)),
     Param("refit_drop", 60.0, "A warm result this many nats below the running fitness "
           "level triggers a full search.", range=(0.001, 1e9)),
     Param("restarts", 2, "Full GA searches repeated from fresh populations (at most "
@@ -476,7 +483,8 @@ def settings_from_params(values: Mapping[str, Any]) -> LabelerSettings:
     full = replace(_FULL, population=v["population"], max_generations=v["max_generations"],
                    stagnation=v["stagnation"], n_elite=min(_FULL.n_elite, v["population"] - 1),
                    time_budget_s=budget, region_size=v["region_size"], fresh_fraction=v["fresh_fraction"],
-                   region_sweeps=v["region_sweeps"], region_branches=v["sweep_branches"])
+                   region_sweeps=v["region_sweeps"], region_branches=v["sweep_branches"],
+                   wide_sweeps=v["wide_sweeps"])
     warm = replace(_WARM, population=v["warm_population"], max_generations=v["warm_generations"],
                    stagnation=v["warm_stagnation"], n_elite=min(_WARM.n_elite, v["warm_population"] - 1),
                    time_budget_s=budget)
@@ -501,6 +509,7 @@ def params_from_settings(settings: LabelerSettings) -> Dict[str, Any]:
                time_budget_ms=(s.full.time_budget_s or 0.0) * 1e3, warm_population=s.warm.population,
                warm_generations=s.warm.max_generations, warm_stagnation=s.warm.stagnation,
                fresh_fraction=s.full.fresh_fraction, region_sweeps=s.full.region_sweeps,
+               wide_sweeps=s.full.wide_sweeps, sweep_branches=s.full.region_branches,
                gate_m=s.tracker.gate_m, known_gate_m=s.tracker.known_gate_m,
                gate_speed_factor=s.tracker.gate_speed_factor,
                max_misses=s.tracker.max_misses, accel_mps2=s.tracker.accel_mps2,

@@ -93,6 +93,7 @@ class InterimReporter:
         self._sent_f = -np.inf
         self.sent = 0
         self.refined = 0
+        self.best: dict = {}            # model -> (assignment, fitness): the best sent under each model
 
     def hook(self, searched: list[int], inner=None, refine=None):
         """A per-generation hook for :func:`~..search.evolve.evolve` over the islands of
@@ -130,6 +131,9 @@ class InterimReporter:
     def report(self, bests: dict, generations: int, now: float | None = None) -> None:
         """Send ``bests`` (model -> (assignment, fitness)) when it is better than what was sent."""
         top = max((f for _, f in bests.values()), default=-np.inf)
+        for m, (a, f) in bests.items():
+            if m not in self.best or f > self.best[m][1]:
+                self.best[m] = (np.array(a, copy=True), float(f))
         if top > self._sent_f:
             self.send(RecoveryResult(self.request, bests, False, generations, 0, interim=True))
             self._last_t, self._sent_f = time.perf_counter() if now is None else now, top

@@ -246,6 +246,49 @@ def region_candidates(problem: FrameProblem, ind: np.ndarray, free: np.ndarray,
     return Candidates.of(np.concatenate(points), np.concatenate(labels), M)
 
 
+def shared_candidates(problem: FrameProblem, ind: np.ndarray, free: np.ndarray,
+                      max_candidates: int = 12) -> Candidates:
+    """Candidates for relabelling the region ``free`` (M,) bool of ``ind`` as a whole: every
+    free label gets the same ``max_candidates`` points -- those of the pool (the points no kept
+    label holds) nearest to the points the region holds now, its own included -- and
+    "missing"; a kept label its own point. Where :func:`region_candidates` lets each label move
+    only near its current point, here any label of the region may take any of its points: a
+    permutation of a whole limb's labels (a search from scratch that settled on the right arm's
+    six labels scrambled over its markers) is undone in one relabelling. The DP's cost grows
+    with the cube of the candidates per triangle, not with the region's size (the model is
+    triangulated), so a region of 7 labels over 12 points is a few thousand term evaluations."""
+    n, M = problem.n, problem.M
+    ind = np.asarray(ind, dtype=np.int64)
+    kept = np.where(free, n, ind)
+    pool = np.flatnonzero(~ops.used_mask(kept[None], n)[0])
+    held = ind[free & (ind < n)]
+    if held.size and pool.size > max_candidates:
+        near = problem.dist[np.ix_(pool, held)].min(1)
+        pool = np.sort(pool[np.argsort(near, kind="stable")[:max_candidates]])
+    elif pool.size > max_candidates:
+        pool = pool[:max_candidates]
+    fixed, region = np.flatnonzero(~free), np.flatnonzero(free)
+    shared = np.append(pool, n)
+    return Candidates.of(np.concatenate([ind[fixed], np.tile(shared, region.size)]),
+                         np.concatenate([fixed, np.repeat(region, shared.size)]), M)
+
+
+def body_neighbourhoods(model, size: int = 7) -> list[np.ndarray]:
+    """One region per label: the label and the ``size - 1`` labels nearest to it on the
+    model's mean body (:func:`mean_shape`), without its mirror partner unless that is near --
+    a limb's whole chain with its attachment (upper arm to finger) rather than
+    :func:`model_regions`' label-and-partner pairs. For :func:`shared_candidates`. Computed
+    once per model and size."""
+    cache = model.__dict__.setdefault("_neighbourhoods", {})
+    if size not in cache:
+        pos = mean_shape(model)
+        D = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
+        k = min(size, model.n_labels)
+        cache[size] = [np.sort(np.argsort(D[lab], kind="stable")[:k]).astype(np.int64)
+                       for lab in range(model.n_labels)]
+    return cache[size]
+
+
 def model_regions(model, max_size: int = 8) -> list[np.ndarray]:
     """One body region per label: the label, its left/right mirror partner (so that a limb
     swapped with its mirror image is repaired in one relabelling) and the labels nearest to
@@ -289,14 +332,16 @@ def regions_of(model, max_size: int) -> list[np.ndarray]:
 
 
 def relabel_regions(problem: FrameProblem, ind: np.ndarray, fit: float, regions: list[np.ndarray],
-                    centres, refine=None, branches: int = 0) -> tuple[np.ndarray, float, int]:
+                    centres, refine=None, branches: int = 0,
+                    candidates=region_candidates) -> tuple[np.ndarray, float, int]:
     """Region by region (``regions[c]`` for each of ``centres``), the exact best relabelling
     of the region given the rest of ``ind`` (:func:`max_product` over
     :func:`region_candidates`, at the labeling's heading); a relabelling is taken only when
     it raises the fitness, and then handed to ``refine(ind, fit) -> (ind, fit, evals)``
     (e.g. a polish) before the next region; ``branches``: :func:`max_product`'s budget for
     points given to two labels. Returns (ind, fit, term evaluations): never a labeling worse
-    than the start."""
+    than the start. ``candidates(problem, ind, free)``: each region's candidate points
+    (:func:`region_candidates`, or :func:`shared_candidates` for whole-region permutations)."""
     evals = 0
     b = int(problem.candidate_bins(ind[None])[0])
     for c in centres:
@@ -304,7 +349,7 @@ def relabel_regions(problem: FrameProblem, ind: np.ndarray, fit: float, regions:
         free[regions[c]] = True
         e0 = problem.evaluations
         try:
-            cand = max_product(problem, region_candidates(problem, ind, free), b, branches)
+            cand = max_product(problem, candidates(problem, ind, free), b, branches)
         except ValueError:                 # no relabelling within the distance bounds
             continue
         fc = float(problem.fitness(cand[None])[0])

@@ -27,7 +27,8 @@ import numpy as np
 
 from .problem import FrameProblem
 from . import label_ops as ops
-from .dtm_dp import max_product, regions_of, relabel_regions
+from .dtm_dp import (body_neighbourhoods, max_product, region_candidates, regions_of, relabel_regions,
+                     shared_candidates)
 from .evolve import Island, Mating, evolve
 from .ga import Termination
 from .move_kernels import move_rows
@@ -64,6 +65,9 @@ class GASettings:
     region_sweeps: int = 1              # after the polish: sweeps of exact region relabelling (0: none)
     region_size: int = 6                # labels per region of those sweeps
     region_branches: int = 0            # extra DP solves per region on a point given to two labels
+    wide_sweeps: int = 0                # then: sweeps over every label's body neighbourhood, relabelled as a whole
+    wide_size: int = 7                  # labels per neighbourhood of those sweeps
+    wide_candidates: int = 12           # points each neighbourhood's labels share
 
     def __post_init__(self) -> None:
         if self.population < 4:
@@ -76,6 +80,8 @@ class GASettings:
             raise ValueError("n_elite must be in [0, population)")
         if self.region_sweeps < 0 or self.region_size < 2 or self.region_branches < 0:
             raise ValueError("region_sweeps and region_branches must be >= 0 and region_size >= 2")
+        if self.wide_sweeps < 0 or self.wide_size < 2 or self.wide_candidates < 1:
+            raise ValueError("wide_sweeps must be >= 0, wide_size >= 2 and wide_candidates >= 1")
 
 
 class LabelSearch(ABC):
@@ -350,6 +356,11 @@ class GASearch(LabelSearch):
             if fc > f:
                 ind, f = cand, fc
         ind, f, e = self._sweep_regions(problem, ind, f, deadline)
+        s = self.settings
+        if s.wide_sweeps:
+            ind, f, e2 = sweep_regions(problem, ind, f, s.wide_sweeps, s.wide_size, s.polish_rounds, deadline,
+                                       wide=s.wide_candidates)
+            e += e2
         return ind, f, evals + e
 
     def _sweep_regions(self, problem, ind, f, deadline):
@@ -361,7 +372,7 @@ class GASearch(LabelSearch):
 
 def sweep_regions(problem: FrameProblem, ind: np.ndarray, f: float, sweeps: int, region_size: int,
                   polish_rounds: int, deadline: float | None = None,
-                  branches: int = 0) -> tuple[np.ndarray, float, int]:
+                  branches: int = 0, wide: int = 0) -> tuple[np.ndarray, float, int]:
     """``sweeps`` passes of :func:`relabel_regions` over every label's region, each accepted
     relabelling polished; stops early when a pass changes nothing. The GA and polish leave
     labelings that are wrong over a few neighbouring labels at once (a limb shifted along its
@@ -370,7 +381,11 @@ def sweep_regions(problem: FrameProblem, ind: np.ndarray, f: float, sweeps: int,
     evals = 0
     if sweeps <= 0 or problem.M <= 3 or problem.n == 0:
         return ind, f, evals
-    regions = regions_of(problem.model, region_size)
+    if wide:            # each label's body neighbourhood, its labels sharing ``wide`` points
+        regions = body_neighbourhoods(problem.model, region_size)
+        candidates = functools.partial(shared_candidates, max_candidates=wide)
+    else:
+        regions, candidates = regions_of(problem.model, region_size), region_candidates
 
     def refine(x, fx):
         return polish(problem, x, fx, polish_rounds, deadline)
@@ -378,7 +393,7 @@ def sweep_regions(problem: FrameProblem, ind: np.ndarray, f: float, sweeps: int,
         if deadline is not None and time.perf_counter() > deadline:
             break
         f0 = f
-        ind, f, e = relabel_regions(problem, ind, f, regions, range(problem.M), refine, branches)
+        ind, f, e = relabel_regions(problem, ind, f, regions, range(problem.M), refine, branches, candidates)
         evals += e
         if f <= f0 + 1e-9:
             break
