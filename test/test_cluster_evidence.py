@@ -154,8 +154,9 @@ def test_the_published_confidence_counts_the_prior_the_confirmation_does_not(fra
 
 def test_a_calibration_labels_its_window_without_the_memory():
     """A calibration measures the person from what each frame shows: its self-labelling runs
-    without the arrangement memory, every other setting as given (dtm-eval's floor moves under
-    dtm-label's default lost its self-calibration to the memory: 100 -> 97.35 %)."""
+    without the arrangement memory and the wide sweeps, every other setting as given (dtm-eval's
+    floor moves under dtm-label's default lost its self-calibration to the memory: 100 -> 97.35
+    %; subject 9's run left out to the wide sweeps: 100 -> 71.43 %)."""
     from dtm_labeler.training.calibrate import calibration_labeling
     given = LabelerSettings(seed=3, hold_nats=7.0)
     assert given.cluster_memory_s > 0
@@ -163,6 +164,8 @@ def test_a_calibration_labels_its_window_without_the_memory():
     assert used.cluster_memory_s == 0.0
     assert (used.seed, used.hold_nats, used.window) == (3, 7.0, given.window)
     assert calibration_labeling(None).cluster_memory_s == 0.0
+    assert given.full.wide_sweeps > 0 and used.full.wide_sweeps == 0      # nor the wide sweeps
+    assert (used.full.population, used.full.fresh_starts) == (given.full.population, given.full.fresh_starts)
 
 
 @pytest.mark.parametrize("mirror_nats", [0.0, 0.5])

@@ -16,7 +16,6 @@ from dtm_labeler.labeling.recovery import (RECOVERY_NICE, RECOVERY_POLICY, Defer
                                            ProcessRecovery, RecoveryRequest, RecoveryResult, build_spare,
                                            keep_spare_worker)
 from dtm_labeler.labeling.stream import StreamLabeler
-from dtm_labeler.labeling import tracked
 from dtm_labeler.labeling.tracker import Tracker, TrackerSettings
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search.dtm_dp import turned_round
@@ -171,15 +170,15 @@ def _first_request(model, walker) -> RecoveryRequest:
     return req
 
 
-def test_interim_results_report_the_best_so_far(model, walker, monkeypatch):
+def test_interim_results_report_the_best_so_far(model, walker):
     """Anytime recovery: the search sends its best labeling so far at the end of generations in
     which it improved -- flagged interim, fitness rising, never above the final result's -- and
     sends nothing when not asked to. (Without the fresh starts, which the final result keeps
     when they beat the GA, the reporter only reads.)"""
-    monkeypatch.setattr(tracked, "FRESH_STARTS", 0)
     req = _first_request(model, walker)
     assert req.kind == "full"
-    worker = StreamLabeler(model, LabelerSettings(recovery="inline"))
+    no_fresh = LabelerSettings(recovery="inline", full=replace(LabelerSettings().full, fresh_starts=0))
+    worker = StreamLabeler(model, no_fresh)
     sent = []
     rep = InterimReporter(req, sent.append, period_s=0.0)
     res = worker.recover(req, rng=np.random.default_rng(0), interim=rep)
@@ -190,7 +189,7 @@ def test_interim_results_report_the_best_so_far(model, walker, monkeypatch):
     assert all(b > a for a, b in zip(fits, fits[1:]))         # only improvements are sent
     assert not res.interim and fits[-1] <= max(f for _, f in res.candidates.values()) + 1e-9
     # the same search without a reporter gives the same final labeling (the hook only reads)
-    again = StreamLabeler(model, LabelerSettings(recovery="inline")).recover(req, rng=np.random.default_rng(0))
+    again = StreamLabeler(model, no_fresh).recover(req, rng=np.random.default_rng(0))
     for m in res.candidates:
         assert np.array_equal(res.candidates[m][0], again.candidates[m][0])
 
@@ -220,16 +219,17 @@ def test_the_first_interim_result_is_finished_at_once(model, walker):
         assert np.array_equal(sent[1].candidates[m][0], a)
 
 
-def test_fresh_starts_are_refined_and_kept_when_better(model, walker, monkeypatch):
-    """A worker's cold search refines, after the first generation's best, ``FRESH_STARTS``
+def test_fresh_starts_are_refined_and_kept_when_better(model, walker):
+    """A worker's cold search refines, after the first generation's best, ``fresh_starts``
     bests of fresh model-guided populations (each finished: one more call of the search's
     finish), drawn from their own random stream: the GA's result is the same with or without
-    them, and the final result is never below anything sent."""
+    them, and the final result is never below anything sent. Inline (no worker) they run after
+    the first GA, and the result is never below them either."""
     req = _first_request(model, walker)
     runs = {}
     for fresh in (0, 3):
-        monkeypatch.setattr(tracked, "FRESH_STARTS", fresh)
-        worker = StreamLabeler(model, LabelerSettings(recovery="inline"))
+        worker = StreamLabeler(model, LabelerSettings(recovery="inline",
+                                                      full=replace(LabelerSettings().full, fresh_starts=fresh)))
         calls, sent, gas = [], [], []
         finish, ga = worker.full_search._finish, worker._ga
         def spy(problem, ind, f, deadline, finish=finish, calls=calls):
@@ -248,6 +248,16 @@ def test_fresh_starts_are_refined_and_kept_when_better(model, walker, monkeypatc
     assert len(runs[3][1]) == len(runs[0][1])
     for a, b in zip(runs[0][1], runs[3][1]):                 # the GA's runs untouched
         assert all(np.array_equal(a[m], b[m]) for m in a)
+    inline = StreamLabeler(model, LabelerSettings(recovery="inline"))    # inline: after the first GA
+    starts = []
+    fresh = inline._fresh_starts
+    def fresh_spy(search, problem, rng):
+        for a, fa, e in fresh(search, problem, rng):
+            starts.append(fa)
+            yield a, fa, e
+    inline._fresh_starts = fresh_spy
+    res = inline.recover(req)
+    assert len(starts) >= 3 and max(f for _, f in res.candidates.values()) >= max(starts) - 1e-9
 
 
 def test_the_finished_search_is_sent_before_the_turned_round_check(model, walker):

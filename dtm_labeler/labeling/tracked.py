@@ -86,9 +86,6 @@ LOST_NATS = 10.0
 #: 24 nats by changing 18 labels, the truth 39 below the carried labeling; taken, 97.4 -> 91.8 %);
 #: a lost labeling's audit gains far more (bank walk -> dance: 64 nats; 41 markers: 347 nats for 9)
 AUDIT_GAIN_PER_LABEL = 3.0
-#: a worker's cold search: fresh model-guided starts refined after the first generation's best
-#: (:meth:`TrackedLabeler._interim_refine`)
-FRESH_STARTS = 3
 #: inline: the longest wait between audits, in audit periods (it doubles after an audit that
 #: found nothing better, so a take the model fits badly throughout is not searched every period)
 AUDIT_BACKOFF_MAX = 8
@@ -774,8 +771,8 @@ class TrackedLabeler(FastPath):
         """An interim labeling refined, one step after another (each yielded as
         ``(assignment, fitness, evaluations)``, sent as it comes): finished (polish, mirror,
         region sweeps); then, with the turned-round check on, read through the turned-round
-        body and swept (:func:`turned_labels`). Then :data:`FRESH_STARTS` more starts, each the
-        best of a fresh model-guided population, refined the same way.
+        body and swept (:func:`turned_labels`). Then the search's ``fresh_starts`` more starts, each
+        the best of a fresh model-guided population, refined the same way (:meth:`_fresh_starts`).
 
         The first generation's best, refined, is right in most cold starts at 41 markers, and
         its failures are the start's, not the frame's: another population's best refined is
@@ -784,21 +781,28 @@ class TrackedLabeler(FastPath):
         stream labeler's first worker seed ended at 569 nats, 11 labels wrong, after 5 s; the
         truth 638). Drawn from their own random stream (the request's seed), so the GA's is
         untouched."""
-        turn = self.settings.turn_check and self.settings.method == "cbga" and problem.M > 3
+        yield from self._refined(search, problem, ind, f)
+        if self._interim is not None:
+            yield from self._fresh_starts(search, problem, np.random.default_rng([self._interim.request.seed, 1]))
 
-        def refined(x, fx):
-            yield search._finish(problem, x, fx, None)
-            if turn:
-                yield turned_labels(problem, x, fx, lambda y, fy: search._sweep_regions(problem, y, fy, None))
-        yield from refined(ind, f)
-        if self._interim is None or not isinstance(search, CBGASearch):
+    def _refined(self, search: GASearch, problem: FrameProblem, ind: np.ndarray, f: float):
+        """``ind`` finished (polish, mirror, region sweeps), then read through the turned-round
+        body and swept (:func:`turned_labels`) when the turned-round check is on; each step
+        yielded as ``(assignment, fitness, evaluations)``."""
+        yield search._finish(problem, ind, f, None)
+        if self.settings.turn_check and self.settings.method == "cbga" and problem.M > 3:
+            yield turned_labels(problem, ind, f, lambda y, fy: search._sweep_regions(problem, y, fy, None))
+
+    def _fresh_starts(self, search: GASearch, problem: FrameProblem, rng: np.random.Generator):
+        """``fresh_starts`` starts (the search's settings), each the best of a fresh model-guided
+        population drawn from ``rng``, :meth:`_refined` (CBGA only)."""
+        if not isinstance(search, CBGASearch):
             return
-        rng = np.random.default_rng([self._interim.request.seed, 1])
-        for _ in range(FRESH_STARTS):
+        for _ in range(search.settings.fresh_starts):
             pop = search._sample(problem, search.settings.population, rng)
             fit = problem.fitness(pop)
             i = int(np.argmax(fit))
-            a, fa, e = next(steps := refined(pop[i], float(fit[i])))
+            a, fa, e = next(steps := self._refined(search, problem, pop[i], float(fit[i])))
             yield a, fa, e + len(pop)
             yield from steps
 
@@ -839,6 +843,11 @@ class TrackedLabeler(FastPath):
         88.1 %, seed 6 86.6 -> 92.8 %, seed 1 91.8 -> 89.7 %.)"""
         check = turn and self.settings.turn_check and seeds is None and self.settings.method == "cbga"
         found = self._ga(self.full_search, problems, searched, seeds)
+        if self._interim is None and seeds is None and getattr(self.full_search.settings, "fresh_starts", 0):
+            rng = np.random.default_rng(self.rng.integers(2 ** 63))      # inline: the fresh starts now
+            for m in searched:
+                for a, fa, e in self._fresh_starts(self.full_search, problems[m], rng):
+                    found.merge(FrameSearch({m: Candidate(a, fa)}, False, 0, e))
         quick = None
         if check and self._interim is not None:     # a worker: the quick half joins before any restart
             quick = FrameSearch(dict(found.candidates), found.full)

@@ -68,6 +68,7 @@ class GASettings:
     wide_sweeps: int = 0                # then: sweeps over every label's body neighbourhood, relabelled as a whole
     wide_size: int = 7                  # labels per neighbourhood of those sweeps
     wide_candidates: int = 12           # points each neighbourhood's labels share
+    fresh_starts: int = 0               # a labeler's cold search: bests of fresh populations, each finished
 
     def __post_init__(self) -> None:
         if self.population < 4:
@@ -80,8 +81,8 @@ class GASettings:
             raise ValueError("n_elite must be in [0, population)")
         if self.region_sweeps < 0 or self.region_size < 2 or self.region_branches < 0:
             raise ValueError("region_sweeps and region_branches must be >= 0 and region_size >= 2")
-        if self.wide_sweeps < 0 or self.wide_size < 2 or self.wide_candidates < 1:
-            raise ValueError("wide_sweeps must be >= 0, wide_size >= 2 and wide_candidates >= 1")
+        if self.wide_sweeps < 0 or self.wide_size < 2 or self.wide_candidates < 1 or self.fresh_starts < 0:
+            raise ValueError("wide_sweeps and fresh_starts must be >= 0, wide_size >= 2 and wide_candidates >= 1")
 
 
 class LabelSearch(ABC):
