@@ -223,8 +223,8 @@ def test_fresh_starts_are_refined_and_kept_when_better(model, walker):
     """A worker's cold search refines, after the first generation's best, ``fresh_starts``
     bests of fresh model-guided populations (each finished: one more call of the search's
     finish), drawn from their own random stream: the GA's result is the same with or without
-    them, and the final result is never below anything sent. Inline (no worker) they run after
-    the first GA, and the result is never below them either."""
+    them, and the final result is never below anything sent. Single frames (inline) run them after
+    the first GA, and the result is never below them either; an inline stream does not."""
     req = _first_request(model, walker)
     runs = {}
     for fresh in (0, 3):
@@ -248,7 +248,7 @@ def test_fresh_starts_are_refined_and_kept_when_better(model, walker):
     assert len(runs[3][1]) == len(runs[0][1])
     for a, b in zip(runs[0][1], runs[3][1]):                 # the GA's runs untouched
         assert all(np.array_equal(a[m], b[m]) for m in a)
-    inline = StreamLabeler(model, LabelerSettings(recovery="inline"))    # inline: after the first GA
+    inline = StreamLabeler(model, LabelerSettings(recovery="inline", mode="single"))   # single frames: after the first GA
     starts = []
     fresh = inline._fresh_starts
     def fresh_spy(search, problem, rng):
@@ -258,6 +258,11 @@ def test_fresh_starts_are_refined_and_kept_when_better(model, walker):
     inline._fresh_starts = fresh_spy
     res = inline.recover(req)
     assert len(starts) >= 3 and max(f for _, f in res.candidates.values()) >= max(starts) - 1e-9
+    starts.clear()
+    stream = StreamLabeler(model, LabelerSettings(recovery="inline"))
+    stream._fresh_starts = fresh_spy
+    stream.recover(req)
+    assert not starts
 
 
 def test_the_finished_search_is_sent_before_the_turned_round_check(model, walker):
