@@ -9,7 +9,7 @@ from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
 from dtm_labeler.motion.load import load_clip
 from dtm_labeler.model.features import point_states
 from dtm_labeler.search import label_ops as ops
-from dtm_labeler.search.dtm_dp import (Candidates, _conflict, _dp_assignment, body_neighbourhoods, chains_of,
+from dtm_labeler.search.dtm_dp import (Candidates, _conflict, _dp_assignment, chains_of,
                                        max_product, mean_shape, model_chains, regions_of, relabel_regions,
                                        shared_candidates)
 from dtm_labeler.search.label_search import sweep_regions
@@ -225,8 +225,8 @@ def test_shared_candidates_give_a_region_one_pool(model, hdm):
     p, truth = _region_case(model, hdm, 2500)
     ind = truth.copy()
     ind[ARM.index("RELB")] = p.n
-    hoods = body_neighbourhoods(model, 7)
-    assert body_neighbourhoods(model, 7) is hoods and len(hoods) == p.M
+    hoods = regions_of(model, 7, partner=False)
+    assert regions_of(model, 7, partner=False) is hoods and len(hoods) == p.M
     region = hoods[ARM.index("RFRM")]
     assert ARM.index("RFRM") in region and region.size == 7
     free = np.zeros(p.M, dtype=bool)

@@ -845,8 +845,7 @@ class TrackedLabeler(FastPath):
         found = self._ga(self.full_search, problems, searched, seeds)
         # single frames (no worker): the fresh starts now, from their own stream; not in an inline
         # stream, where they moved its few cold starts (12 half-hidden markers: 78 -> 61 % live)
-        if self._interim is None and seeds is None and self.settings.mode == "single" and \
-                isinstance(self.full_search, CBGASearch) and self.full_search.settings.fresh_starts:
+        if self._interim is None and seeds is None and self.settings.mode == "single":
             rng = np.random.default_rng([self.settings.seed, self._frame_no, 1])
             for m in searched:
                 for a, fa, e in self._fresh_starts(self.full_search, problems[m], rng):

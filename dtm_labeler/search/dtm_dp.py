@@ -273,26 +273,12 @@ def shared_candidates(problem: FrameProblem, ind: np.ndarray, free: np.ndarray,
                          np.concatenate([fixed, np.repeat(region, shared.size)]), M)
 
 
-def body_neighbourhoods(model, size: int = 7) -> list[np.ndarray]:
-    """One region per label: the label and the ``size - 1`` labels nearest to it on the
-    model's mean body (:func:`mean_shape`), without its mirror partner unless that is near --
-    a limb's whole chain with its attachment (upper arm to finger) rather than
-    :func:`model_regions`' label-and-partner pairs. For :func:`shared_candidates`. Computed
-    once per model and size."""
-    cache = model.__dict__.setdefault("_neighbourhoods", {})
-    if size not in cache:
-        pos = mean_shape(model)
-        D = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
-        k = min(size, model.n_labels)
-        cache[size] = [np.sort(np.argsort(D[lab], kind="stable")[:k]).astype(np.int64)
-                       for lab in range(model.n_labels)]
-    return cache[size]
-
-
-def model_regions(model, max_size: int = 8) -> list[np.ndarray]:
+def model_regions(model, max_size: int = 8, partner: bool = True) -> list[np.ndarray]:
     """One body region per label: the label, its left/right mirror partner (so that a limb
     swapped with its mirror image is repaired in one relabelling) and the labels nearest to
-    it on the model's mean body (:func:`mean_shape`), up to ``max_size`` labels. A region must
+    it on the model's mean body (:func:`mean_shape`), up to ``max_size`` labels. Without the
+    ``partner`` (the wide sweeps' body neighbourhoods, for :func:`shared_candidates`): the
+    label and its nearest only -- a limb's whole chain with its attachment. A region must
     hold the markers a carried labeling can confuse, which are the close ones on the body:
     a limb's chain (elbow, forearm, wrist bar, finger) whose labels were passed one marker
     along. Nearness along the learned triangles (geodesic over their mean separations, the
@@ -312,23 +298,25 @@ def model_regions(model, max_size: int = 8) -> list[np.ndarray]:
     M = model.n_labels
     pos = mean_shape(model)
     D = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
-    partner = np.full(M, -1, dtype=np.int64)
-    mp = np.asarray(model.mirror_pairs, dtype=np.int64).reshape(-1, 2)
-    partner[mp[:, 0]], partner[mp[:, 1]] = mp[:, 1], mp[:, 0]
+    mirror = np.full(M, -1, dtype=np.int64)
+    if partner:
+        mp = np.asarray(model.mirror_pairs, dtype=np.int64).reshape(-1, 2)
+        mirror[mp[:, 0]], mirror[mp[:, 1]] = mp[:, 1], mp[:, 0]
     regions = []
     for lab in range(M):
-        first = [lab] + ([int(partner[lab])] if partner[lab] >= 0 else [])
+        first = [lab] + ([int(mirror[lab])] if mirror[lab] >= 0 else [])
         rest = [int(x) for x in np.argsort(D[lab], kind="stable") if x not in first]
         regions.append(np.sort(np.array((first + rest)[:max_size], dtype=np.int64)))
     return regions
 
 
-def regions_of(model, max_size: int) -> list[np.ndarray]:
-    """:func:`model_regions` of ``model``, computed once per model and size."""
+def regions_of(model, max_size: int, partner: bool = True) -> list[np.ndarray]:
+    """:func:`model_regions` of ``model``, computed once per model, size and ``partner``."""
     cache = model.__dict__.setdefault("_regions", {})
-    if max_size not in cache:
-        cache[max_size] = model_regions(model, max_size)
-    return cache[max_size]
+    key = (max_size, partner)
+    if key not in cache:
+        cache[key] = model_regions(model, max_size, partner)
+    return cache[key]
 
 
 def relabel_regions(problem: FrameProblem, ind: np.ndarray, fit: float, regions: list[np.ndarray],

@@ -27,8 +27,7 @@ import numpy as np
 
 from .problem import FrameProblem
 from . import label_ops as ops
-from .dtm_dp import (body_neighbourhoods, max_product, region_candidates, regions_of, relabel_regions,
-                     shared_candidates)
+from .dtm_dp import max_product, region_candidates, regions_of, relabel_regions, shared_candidates
 from .evolve import Island, Mating, evolve
 from .ga import Termination
 from .move_kernels import move_rows
@@ -382,11 +381,9 @@ def sweep_regions(problem: FrameProblem, ind: np.ndarray, f: float, sweeps: int,
     evals = 0
     if sweeps <= 0 or problem.M <= 3 or problem.n == 0:
         return ind, f, evals
-    if wide:            # each label's body neighbourhood, its labels sharing ``wide`` points
-        regions = body_neighbourhoods(problem.model, region_size)
-        candidates = functools.partial(shared_candidates, max_candidates=wide)
-    else:
-        regions, candidates = regions_of(problem.model, region_size), region_candidates
+    regions = regions_of(problem.model, region_size, partner=not wide)
+    # wide: each label's body neighbourhood, its labels sharing ``wide`` points
+    candidates = functools.partial(shared_candidates, max_candidates=wide) if wide else region_candidates
 
     def refine(x, fx):
         return polish(problem, x, fx, polish_rounds, deadline)
