@@ -20,7 +20,7 @@ from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search import structure_search as ss
 from dtm_labeler.search.problem import Background, FrameProblem
 from dtm_labeler.training.body_fit import (broad_weight, clip_spread, fit_body, reach_limits, reach_off_edges,
-                                          spans_a_point, unmirrored_crossing)
+                                          midline, mirror_moved, spans_a_point, unmirrored_crossing)
 from dtm_labeler.training.calibrate import (CalibrationError, CalibrationSettings, calibrate, calibrated_body,
                                            fit_per_label, self_calibrate, symmetric_segments, wrong_side)
 from dtm_labeler.training.train import TrainConfig, canonical_states, train_model
@@ -280,6 +280,44 @@ def test_a_bone_across_the_sides_needs_its_mirror_image():
     cand[5, 6] = cand[6, 5] = True                               # the feet's mirror image held too
     keep = unmirrored_crossing(cand[iu, ju], iu, ju, M, mirror)
     assert keep[(iu == 4) & (ju == 7)].all()
+
+
+def test_a_one_sided_bone_needs_its_mirror_image_not_to_move():
+    """A pair on one side (or a side point and the midline) stays a segment unless its mirror
+    image was seen and moved (:func:`mirror_moved`): never seen together, steady, or about as
+    steady keeps it; an unpaired marker off the midline has no mirror image to judge by."""
+    # labels: 0 LSHO, 1 RSHO, 2 LELB, 3 RELB, 4 C7 (midline), 5 RBAC (unpaired, right side)
+    mirror = np.array([[0, 1], [2, 3]])
+    M = 6
+    x = np.array([-0.2, 0.2, -0.25, 0.25, 0.0, 0.1])              # lateral positions
+    length = np.abs(x[:, None] - x[None]) + 0.1
+    np.fill_diagonal(length, 0.0)
+    mid = midline(length, mirror)
+    assert mid.tolist() == [False, False, False, False, True, False]
+    iu, ju = np.triu_indices(M, 1)
+    spread = np.full((M, M), 0.001)
+
+    def moved(sp, steady_mirror=False):
+        steady = sp[iu, ju] <= 0.008
+        if steady_mirror:
+            steady = np.ones_like(steady)
+        return {(int(i), int(j)) for i, j, m in zip(iu, ju, mirror_moved(sp, steady, iu, ju, M, mirror, length)) if m}
+
+    assert moved(spread) == set()                                   # every image as steady
+    sp = spread.copy()
+    sp[4, 1] = sp[1, 4] = 0.018                                     # C7 - RSHO moved ...
+    assert moved(sp) == {(0, 4)}                                    # ... so C7 - LSHO is no bone
+    assert moved(sp, steady_mirror=True) == set()                   # unless the image held steady
+    sp[4, 1] = sp[1, 4] = 0.004                                     # about as steady (within 5 mm)
+    assert moved(sp) == set()
+    sp[4, 1] = sp[1, 4] = np.nan                                    # never seen together: no evidence
+    assert moved(sp) == set()
+    sp = spread.copy()
+    sp[5, 0] = sp[0, 5] = 0.05                                      # RBAC - LSHO is no mirror image
+    assert moved(sp) == set()                                       # of RBAC - RSHO
+    sp = spread.copy()
+    sp[2, 0] = sp[0, 2] = 0.05                                      # LSHO - LELB moved: RSHO - RELB
+    assert moved(sp) == {(1, 3)}                                    # held by its frames only
 
 
 def test_broad_weight_em_recovers_contamination():

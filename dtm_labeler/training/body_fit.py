@@ -18,7 +18,8 @@ Body terms from labelled clips
     may it span a third point (:func:`spans_a_point`: a point on the line between them is the
     joint between two segments -- an elbow the training held at one angle), nor join the body's
     two sides unless its mirror image held as steady (:func:`unmirrored_crossing`: two feet that
-    held still). A
+    held still), nor be a one-sided pair whose mirror image, seen, moved (:func:`mirror_moved`:
+    frames that happened to miss one side's motion). A
     segment's allowed range is the range of its clip
     means (each clip one person, or one marker placement), its within-person spread that
     within-clip sd times ``within_factor`` (floored at ``within_floor_m``), and its
@@ -454,6 +455,66 @@ def reach_off_edges(parents: np.ndarray, segment: np.ndarray, spread: np.ndarray
     return piece[:, None] == piece[None, :]
 
 
+#: an unpaired point is on the midline when its distances to the mirror pairs' two points differ
+#: by at most this share of their mean (median over the pairs; shared marker sets: midline markers
+#: 0.7-2.7 %, the right back / scapula markers 12-15 %)
+MIDLINE_ASYMMETRY = 0.05
+
+
+def midline(length: np.ndarray, mirror_pairs: np.ndarray | None) -> np.ndarray:
+    """(M,) whether each label is a midline point: unpaired (no mirror partner) and about as far
+    from the left point of a mirror pair as from the right one (median over the pairs of the
+    difference of the mean distances ``length`` (M, M), relative to their mean, at most
+    :data:`MIDLINE_ASYMMETRY`). A marker set names some markers without a partner although they
+    sit on one side -- CMU's and HDM05's right back marker (RBAC), placed so that the two sides
+    can be told apart: 10 cm from the right shoulder marker, 30 cm from the left one."""
+    M = length.shape[0]
+    side, mate = sides(M, mirror_pairs)
+    pairs = np.asarray(mirror_pairs if mirror_pairs is not None else np.zeros((0, 2)), dtype=np.int64).reshape(-1, 2)
+    out = side == 0
+    if not len(pairs):
+        return out
+    left, right = length[:, pairs[:, 0]], length[:, pairs[:, 1]]
+    with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        asym = np.nanmedian(np.abs(left - right) / (0.5 * (left + right)), axis=1)
+    return out & (np.nan_to_num(asym, nan=np.inf) <= MIDLINE_ASYMMETRY)
+
+
+def mirror_moved(spread: np.ndarray, steady: np.ndarray, iu: np.ndarray, ju: np.ndarray, M: int,
+                 mirror_pairs: np.ndarray, length: np.ndarray) -> np.ndarray:
+    """For the pairs ``iu``, ``ju``: True where a pair on one side of the body (two points of one
+    side, or one of a side and a :func:`midline` point; ``length`` (M, M) the pairs' mean
+    distances) has a mirror image that was seen and moved: not
+    ``steady`` (the segment tests, per pair of ``iu``, ``ju``) and its distance spread
+    (``spread`` (M, M), within-clip sd; NaN where never seen together) more than
+    :data:`MIRROR_RIGID_RATIO` times the pair's own, or :data:`MIRROR_RIGID_SLACK_M` more.
+
+    The body is left-right symmetric: whether two points lie on one segment is a property of
+    the body, not of one side. A pair that held rigid while its mirror image moved freely was
+    held by the frames it was seen in, not by a bone. A gappy take shows a pair only where both
+    markers happened to be seen, and those frames can miss a side's motion altogether: HDM05's
+    first half with half its samples hidden (gap seed 1) showed C7 and the left shoulder marker
+    together in 177 frames, all before the shrug of the half's last 129, within 0.7 mm (C7 and
+    the right shoulder: 18 mm over 366 frames; the gap-free half 7.9 mm over 51 mm); taken for a
+    segment of 144 mm, calibrated to 5 mm, it charged the true labeling of the second half --
+    the shoulders raised, C7 to the left shoulder 100-107 mm -- 30-39 nats a frame, and the
+    labeler shifted the left arm's labels one along instead (the shoulder's point labelled upper
+    arm). A pair whose mirror image was never seen together keeps the decision its own frames
+    gave."""
+    side, mate = sides(M, mirror_pairs)
+    held = np.zeros((M, M), dtype=bool)
+    held[iu, ju] = held[ju, iu] = steady
+    mi, mj = mate[iu], mate[ju]
+    placed = (side != 0) | midline(length, mirror_pairs)       # a side, or truly the midline
+    one_sided = placed[iu] & placed[ju] & (side[iu] * side[ju] >= 0) & (side[iu] + side[ju] != 0)
+    own = np.nan_to_num(spread[iu, ju], nan=np.inf)
+    image = spread[mi, mj]
+    with np.errstate(invalid="ignore"):
+        moved = np.isfinite(image) & (image > np.maximum(MIRROR_RIGID_RATIO * own, own + MIRROR_RIGID_SLACK_M))
+    return one_sided & moved & ~held[mi, mj]
+
+
 def fit_body(stats: dict[str, np.ndarray], parents: np.ndarray, settings: BodySettings | None = None,
              joint_centres: bool = True, mirror_pairs: np.ndarray | None = None) -> BodyModel:
     """The generic body from :func:`pair_statistics` of the training clips: segments,
@@ -482,6 +543,7 @@ def fit_body(stats: dict[str, np.ndarray], parents: np.ndarray, settings: BodySe
     seg = steady & link[iu, ju] & ~spans_a_point(length)[iu, ju]
     if mirror_pairs is not None and len(mirror_pairs):
         seg &= unmirrored_crossing(steady, iu, ju, M, mirror_pairs)
+        seg &= ~mirror_moved(sd_clip, steady, iu, ju, M, mirror_pairs, length)
     longest = np.where(np.isfinite(longest), longest, 0.0)
     segment = np.zeros((M, M), dtype=bool)
     segment[iu, ju] = segment[ju, iu] = seg
