@@ -10,7 +10,7 @@ import pytest
 from dtm_labeler.cli.evaluate import _merge_saved
 from dtm_labeler.evaluation.plans import make_plan
 from dtm_labeler.evaluation import generalisation as gen
-from dtm_labeler.evaluation.report import write_report
+from dtm_labeler.evaluation.report import reliability_groups, write_report
 from dtm_labeler.training.train import TrainConfig
 
 
@@ -69,6 +69,7 @@ def test_report_section_and_merge(cells, tmp_path):
     assert "## Generalisation" in text and "**same person, other take**" in text
     assert "D2@0:0.14 → D2@0.5:0.55" in text and "fig_generalisation.png" in paths["figures"]
     assert (tmp_path / "fig_generalisation.png").stat().st_size > 1000
+    assert "By part of the report" in text and "| generalisation: body + calibration |" in text
     # --merge keeps the sections of the saved results that this run did not redo
     saved = json.loads((tmp_path / "results.json").read_text())
     saved["results"]["table3"] = {"kept": True}
@@ -100,3 +101,21 @@ def test_generic_cases_leave_the_labelled_person_out(data_dir):
         head, ankles = clip.names.index("head"), [clip.names.index("lankle"), clip.names.index("rankle")]
         rise = np.nanmedian(clip.positions[:, head, 2] - clip.positions[:, ankles, 2].mean(1))
         assert 1.0 < rise < 2.0, (key, rise)
+
+
+def test_reliability_groups_pool_by_section_and_variant():
+    """The confidence section's breakdown: cells pooled by section, the generalisation section by
+    model variant, and everything but its *today* baseline; ECE from the pooled bins."""
+    def cell(n, conf, right):
+        return {"accuracy": right, "reliability": [[0.9, 1.0, n, conf, right]]}
+    cells = [(("markers", "stream", "a"), cell(100, 0.95, 0.95)),
+             (("generalisation", "results", "c1", "today", "stream"), cell(100, 0.60, 0.90)),
+             (("generalisation", "results", "c1", "body", "stream"), cell(300, 0.90, 0.94)),
+             (("generalisation", "results", "c2", "body", "stream"), cell(100, 0.90, 0.98))]
+    rows = {g: (k, n, right, conf, ece) for g, k, n, right, conf, ece in reliability_groups(cells)}
+    assert list(rows) == ["markers", "generalisation: today", "generalisation: body", "all but generalisation: today"]
+    assert rows["generalisation: body"][:2] == (2, 400)
+    assert rows["generalisation: body"][2] == pytest.approx(0.95) and rows["generalisation: body"][4] == pytest.approx(0.05)
+    assert rows["generalisation: today"][4] == pytest.approx(0.30)
+    k, n, right, conf, ece = rows["all but generalisation: today"]
+    assert (k, n) == (3, 500) and conf == pytest.approx(0.91) and ece == pytest.approx(abs(0.91 - 0.95))

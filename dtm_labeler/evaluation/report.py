@@ -613,6 +613,7 @@ def _confidence(results: dict, out: Path, figures: list) -> list[str]:
     name = _save(fig, out / "fig_reliability.png", figures)
     per = sorted(((c["calibration_error"], "/".join(p)) for p, c in cells if c.get("calibration_error") is not None),
                  reverse=True)[:5]
+    groups = reliability_groups(cells)
     return ["## Confidence: can a consumer threshold it?", "",
             "Every label the labeler publishes carries a confidence (`labeling/confidence.py`: the local "
             "posterior of the label among the labelings one move away, the share of the vote window behind "
@@ -623,7 +624,31 @@ def _confidence(results: dict, out: Path, figures: list) -> list[str]:
             md_table(["confidence", "labels", "mean confidence", "fraction right"],
                      [[f"{r[0]:.1f}-{r[1]:.1f}", str(r[2]), f"{r[3]:.3f}", f"{r[4]:.3f}"] for r in rows]), "",
             f"![reliability]({name})", "",
+            "By part of the report (the generalisation section by model variant: *today* is the motion "
+            "mixtures alone, the model format before the body terms, kept as the baseline column):", "",
+            md_table(["part", "cells", "labels", "fraction right", "mean confidence", "ECE"],
+                     [[g, str(k), str(n), f"{right:.3f}", f"{conf:.3f}", pct(e)] for g, k, n, right, conf, e in groups]),
+            "",
             "Least calibrated cells: " + "; ".join(f"{p} {pct(e)}" for e, p in per) + ".", ""]
+
+
+def reliability_groups(cells: list) -> list[tuple]:
+    """(group, cells, labels, fraction right, mean confidence, ECE) of the stream cells ``cells``
+    ((path, cell) pairs) pooled by the report's section -- the generalisation section by model
+    variant (the path's second-to-last part) -- and of all of them but the generalisation
+    section's *today* baseline."""
+    def group(path):
+        return f"{path[0]}: {path[-2]}" if path[0] == "generalisation" and len(path) >= 2 else path[0]
+    keys = list(dict.fromkeys(group(p) for p, _ in cells))
+    sets = [(k, [c for p, c in cells if group(p) == k]) for k in keys]
+    sets.append(("all but generalisation: today", [c for p, c in cells if group(p) != "generalisation: today"]))
+    out = []
+    for k, cs in sets:
+        rows, ece = pooled_reliability(cs)
+        n = sum(r[2] for r in rows)
+        if n:
+            out.append((k, len(cs), n, sum(r[2] * r[4] for r in rows) / n, sum(r[2] * r[3] for r in rows) / n, ece))
+    return out
 
 
 def write_report(out_dir: Path, results: dict, meta: dict) -> dict:
