@@ -22,7 +22,10 @@ Two pieces of evidence, both from the model:
   motion is one the model never saw: then the whole frame fits far worse per labelled point
   than the training frames did (measured on the shared data: 2-6 nats per label below the
   training median where the model holds, 8-30 where it does not). Beyond ``FIT_SLACK`` nats
-  every confidence of the frame is scaled by ``exp(-(deficit - FIT_SLACK) / FIT_SCALE)``.
+  every confidence of the frame is scaled by ``exp(-(deficit - FIT_SLACK) / FIT_SCALE)``. With
+  a known system noise (``noise_mm``) the yardstick is lowered by what the noise costs a right
+  labeling under the widened model
+  (:meth:`~dtm_labeler.model.dtm.TriangulatedModel.noise_fit_drop`: 6 nats per label at 10 mm).
 
 The three factors are multiplied -- ``p_l`` times the vote share (a label carried for one frame
 after a change of mind is worth less than one held for the whole window) times the fit factor
