@@ -34,7 +34,7 @@ import numpy as np
 
 from .body import (SEGMENT, BarOrder, BodyModel, BroadMotion, CrossSegments, EdgeTerms, Handedness, TrunkTwist,
                    segment_clusters, slot_distances)
-from .features import (FEATURE_DIM, FULL, MISSING, N_PATTERNS, STATE_DIM, TRIPLE_DIM, feature_map_for,
+from .features import (FEATURE_DIM, MISSING, N_PATTERNS, PARENTS_MAP, STATE_DIM, TRIPLE_DIM, feature_map_for,
                        observation_state, observed_map, pattern_codes, pattern_id)
 from .mixture import GaussianMixture
 from .structure import Structure
@@ -486,7 +486,7 @@ class TriangulatedModel:
         stream's expected calibration error at 10 / 20 mm 5.7 / 11.1 -> 3.2 / 4.6 %, the labels
         unchanged (the loss checks keep the training level)."""
         D = np.diag(np.asarray(floor, dtype=np.float64))
-        P = feature_map_for(observed_map((MISSING, FULL, FULL)))
+        P = PARENTS_MAP
         total = 0.0
         for t, mix in enumerate(self.mixtures):
             C = np.asarray(mix.covariances, dtype=np.float64)

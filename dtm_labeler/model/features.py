@@ -171,3 +171,8 @@ def feature_map_for(G: np.ndarray) -> np.ndarray:
     M = G @ _F_PINV
     assert np.allclose(M @ FEATURE_MATRIX, G, atol=1e-9), "G must be translation invariant"
     return M
+
+
+#: eq. 12 feature -> the parents' (B, C) part of it: the denominator of a triangle's conditional
+#: (eq. 13), for densities of the full feature's marginal over the parents
+PARENTS_MAP = feature_map_for(observed_map((MISSING, FULL, FULL)))

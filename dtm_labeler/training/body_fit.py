@@ -71,7 +71,7 @@ from ..model.body import (BAR_TOLERANCE_M, HANDEDNESS_SHARE, ORDER_MARGIN_M, ORD
                           RIGID_SPREAD, SEGMENT, TWIST_COS_MIN, TWIST_COS_SD, BodyModel, BroadMotion, Handedness,
                           broad_covariance, segment_clusters)
 from ..model.body_kernel import twist_cosines
-from ..model.features import FULL, MISSING, feature_map_for, observed_map, triangle_features
+from ..model.features import FULL, PARENTS_MAP, triangle_features
 from ..model.mixture import GaussianMixture, logsumexp_rows
 from ..model.structure import Structure
 from ..labeling.rigid_tracks import rigid_pairs, spread_sample
@@ -704,13 +704,12 @@ def moments(X: np.ndarray, floor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return X.mean(0), np.cov(X, rowvar=False, bias=True) + np.diag(floor)
 
 
-_PARENTS = feature_map_for(observed_map((MISSING, FULL, FULL)))          # eq. 12 feature -> (B, C) part
 
 
 def conditional_log_pdf(mix: GaussianMixture, X: np.ndarray, first: bool) -> np.ndarray:
     """``log P(A | B, C)`` of eq. 12 feature rows under ``mix`` (the joint for the first triangle)."""
     out = mix.log_pdf(X)
-    return out if first else out - mix.linear_map(_PARENTS).log_pdf(X @ _PARENTS.T)
+    return out if first else out - mix.linear_map(PARENTS_MAP).log_pdf(X @ PARENTS_MAP.T)
 
 
 def broad_components(structure: Structure, train_states: np.ndarray, train_codes: np.ndarray,
