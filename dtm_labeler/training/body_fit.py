@@ -503,8 +503,7 @@ def mirror_moved(spread: np.ndarray, steady: np.ndarray, iu: np.ndarray, ju: np.
     arm). A pair whose mirror image was never seen together keeps the decision its own frames
     gave."""
     side, mate = sides(M, mirror_pairs)
-    held = np.zeros((M, M), dtype=bool)
-    held[iu, ju] = held[ju, iu] = steady
+    held = _pair_matrix(steady, iu, ju, M)
     mi, mj = mate[iu], mate[ju]
     placed = (side != 0) | midline(length, mirror_pairs)       # a side, or truly the midline
     one_sided = placed[iu] & placed[ju] & (side[iu] * side[ju] >= 0) & (side[iu] + side[ju] != 0)
@@ -600,6 +599,13 @@ def sides(M: int, mirror_pairs: np.ndarray | None) -> tuple[np.ndarray, np.ndarr
     return side, mate
 
 
+def _pair_matrix(values: np.ndarray, iu: np.ndarray, ju: np.ndarray, M: int) -> np.ndarray:
+    """(M, M) bool, symmetric: ``values`` of the pairs ``iu``, ``ju`` at both (i, j) and (j, i)."""
+    out = np.zeros((M, M), dtype=bool)
+    out[iu, ju] = out[ju, iu] = values
+    return out
+
+
 def unmirrored_crossing(steady: np.ndarray, iu: np.ndarray, ju: np.ndarray, M: int,
                         mirror_pairs: np.ndarray) -> np.ndarray:
     """For the pairs ``iu``, ``ju``: False where a pair joins a left and a right point
@@ -614,8 +620,7 @@ def unmirrored_crossing(steady: np.ndarray, iu: np.ndarray, ju: np.ndarray, M: i
     the right foot's labels one along (``dtm-eval``, HDM05 -> CMU 85 jump + twist, calibrated
     stream 96.05 -> 97.74 %, ``dtm-label``'s default 95.86 -> 97.62 %; no other cell moved)."""
     side, mate = sides(M, mirror_pairs)
-    held = np.zeros((M, M), dtype=bool)
-    held[iu, ju] = held[ju, iu] = steady
+    held = _pair_matrix(steady, iu, ju, M)
     crossing = (side[iu] * side[ju] < 0) & (mate[iu] != ju)
     return ~crossing | held[mate[iu], mate[ju]]
 
