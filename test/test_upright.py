@@ -6,7 +6,8 @@ leans: the rotation finds the body's long axis and stands it up, the end nearer 
 CMU 85's breakdance on the floor under a model of standing takes (``dtm-eval``'s floor-moves
 cell): a cold search with the check labels the leaning frames the search alone misreads; the
 same model on the breakdance's stand-up, the trunk bent forward at the hips, labels it with the
-bend check.
+bend check; a model of the breakdance labels the jump + twist's flip, the body upside down, with
+the bend check's second, deeper pitch.
 """
 from __future__ import annotations
 
@@ -15,12 +16,16 @@ import dataclasses
 import numpy as np
 import pytest
 
-from dtm_labeler.evaluation.generalisation import CASES, case_clips, train_case_model, train_config
+from dtm_labeler.evaluation.corruption import corrupt_clip
+from dtm_labeler.evaluation.generalisation import CASES, Plan, calibration_frames, case_clips, train_case_model, train_config
+from dtm_labeler.evaluation.pipeline import model_clip
+import dtm_labeler.labeling.tracked as tracked
 from dtm_labeler.labeling.config import LabelerSettings
 from dtm_labeler.labeling.stream import StreamLabeler
 from dtm_labeler.motion.load import load_clip
 from dtm_labeler.search.problem import FrameProblem
 from dtm_labeler.search.upright import bent_problems, pitch_back, upright_problems, upright_rotation
+from dtm_labeler.training.calibrate import self_calibrate
 from dtm_labeler.training.train import TrainConfig, train_model
 
 WALK = "cmu_skeletal/positions_csv/cmu_07_01_walk_s07.csv"
@@ -200,3 +205,35 @@ def test_a_cold_search_labels_a_body_bent_at_the_hips(floor, data_dir):
         right_off.append(off)
     assert np.mean(right_on) >= 0.85, right_on
     assert np.mean(right_off) <= 0.6, right_off
+
+
+@pytest.fixture(scope="module")
+def flip(data_dir):
+    """``dtm-eval``'s breakdance -> jump + twist cell, calibrated as ``self_calibrate`` does on
+    the test take's first 5 s (its points shuffled as the labeler gets them), and the rest of the
+    jump + twist, whose flip the breakdance never shows."""
+    case = next(c for c in CASES if c.key == "m_85_12_to_85_02")
+    train, test = case_clips(data_dir, case)
+    model, _ = train_case_model(train, train_config(case, "body", 0))
+    n_cal = calibration_frames(test, Plan().calibration_s)
+    window = corrupt_clip(model_clip(model, test.slice(0, n_cal)), seed=0)
+    model, _ = self_calibrate(model, [f.xyz for f in window], window.rate)
+    return model, test.slice(n_cal, None)
+
+
+def test_a_cold_search_labels_a_body_upside_down(flip, monkeypatch):
+    """Two frames of CMU 85's flip (the trunk 116-153 deg from the vertical, the head below the
+    pelvis) under a model of the same person's breakdance: pitched back 60 deg only, the cold
+    search reads the body as an upright one (2-66 % right); the second pitch, 120 deg, labels
+    most of it, and never makes a frame fit worse."""
+    model, clip = flip
+    assert model.marker_set
+    right, fits = {}, {}
+    for pitches in ((60.0,), (60.0, 120.0)):
+        monkeypatch.setattr(tracked, "BEND_PITCHES_DEG", pitches)
+        got = [_cold_bent(model, clip, f, 4) for f in (258, 282)]
+        right[pitches], fits[pitches] = [g[0] for g in got], [g[1] for g in got]
+    one, two = (60.0,), (60.0, 120.0)
+    assert all(b >= a - 1e-6 for a, b in zip(fits[one], fits[two]))
+    assert np.mean(right[two]) >= 0.8, right
+    assert max(b - a for a, b in zip(right[one], right[two])) >= 0.2, right

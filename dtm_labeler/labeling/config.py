@@ -234,7 +234,9 @@ PARAMS: Tuple[Param, ...] = (
           "runs on the frame pitched back 60 deg about this many horizontal axes, spread round the "
           "vertical, and keeps what it finds there when it fits the frame as it is better (a body bent "
           "at the hips under a model that never saw it: trunk read upside down; CMU 85 stand-up, single "
-          "frames 94.5 -> 97.6 %). One more search per axis, only on such frames. 0 = off.", range=(0, 12)),
+          "frames 94.5 -> 97.6 %); when it still fits poorly, again at 120 deg (a body upside down in a flip: CMU 85 "
+          "jump + twist, single frames 92.6 -> 96.7 %). One more search per axis and pitch, only on such frames. "
+          "0 = off.", range=(0, 12)),
     Param("region_checks", 1, "Body regions relabelled exactly (max-product DP "
           "given the rest of the body) per frame while checks are due (one pass over the "
           "regions after a GA search, then every region_every frames); repairs a wrong "
