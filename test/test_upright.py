@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 from dtm_labeler.evaluation.corruption import corrupt_clip
-from dtm_labeler.evaluation.generalisation import CASES, Plan, calibration_frames, case_clips, train_case_model, train_config
+from dtm_labeler.evaluation.generalisation import (CASES, Plan, calibration_frames, case_clips, train_case_model,
+                                                   train_config)
 from dtm_labeler.evaluation.pipeline import model_clip
 import dtm_labeler.labeling.tracked as tracked
 from dtm_labeler.labeling.config import LabelerSettings

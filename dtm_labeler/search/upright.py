@@ -62,8 +62,8 @@ MIN_POINTS = 4
 BEND_PITCHES_DEG = (60.0, 120.0)
 BEND_PITCH_DEG = BEND_PITCHES_DEG[0]
 
-__all__ = ["MIN_TILT_DEG", "BEND_PITCH_DEG", "BEND_PITCHES_DEG", "long_axis", "leaning_axis", "rotation_to_up", "upright_rotation",
-           "upright_problems", "turned_problem", "pitch_back", "bent_problems"]
+__all__ = ["MIN_TILT_DEG", "BEND_PITCH_DEG", "BEND_PITCHES_DEG", "long_axis", "leaning_axis", "rotation_to_up",
+           "upright_rotation", "upright_problems", "turned_problem", "pitch_back", "bent_problems"]
 
 
 def long_axis(xyz: np.ndarray) -> np.ndarray | None:
