@@ -34,7 +34,7 @@ that stands neither half up. The trunk's triangles then meet their mixtures at a
 have hardly seen, and cold searches read the trunk upside down (CMU 85's breakdance stand-up
 under a model of the jump + twist, 41 markers, trunk bent 57-101 deg: 39-71 % right, the truth
 46-125 nats better). So a search that still fits poorly after its other starts also runs on the
-frame pitched back by ``BEND_PITCH_DEG`` about a few horizontal axes (:func:`bent_problems`):
+frame pitched back by ``BEND_PITCHES_DEG[0]`` (60 deg) about a few horizontal axes (:func:`bent_problems`):
 which way the trunk leans the points alone do not say, and the right turn need not be exact --
 the result is swept on the frame as it is, where the legs come back. One of four azimuths
 (90 deg apart) comes within 45 deg of any facing. A body whose trunk is past horizontal -- the
@@ -60,10 +60,9 @@ MIN_POINTS = 4
 #: its facing, was read 83-98 % right; a body upside down in a flip (the trunk 116-153 deg from
 #: the vertical, the head below the pelvis) needs the second
 BEND_PITCHES_DEG = (60.0, 120.0)
-BEND_PITCH_DEG = BEND_PITCHES_DEG[0]
 
-__all__ = ["MIN_TILT_DEG", "BEND_PITCH_DEG", "BEND_PITCHES_DEG", "long_axis", "leaning_axis", "rotation_to_up",
-           "upright_rotation", "upright_problems", "turned_problem", "pitch_back", "bent_problems"]
+__all__ = ["MIN_TILT_DEG", "BEND_PITCHES_DEG", "long_axis", "leaning_axis", "rotation_to_up", "upright_rotation",
+           "upright_problems", "turned_problem", "pitch_back", "bent_problems"]
 
 
 def long_axis(xyz: np.ndarray) -> np.ndarray | None:
@@ -154,7 +153,7 @@ def pitch_back(azimuth: float, pitch_deg: float) -> np.ndarray:
     return np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * K @ K
 
 
-def bent_problems(problem: FrameProblem, starts: int, pitch_deg: float = BEND_PITCH_DEG) -> list[FrameProblem]:
+def bent_problems(problem: FrameProblem, starts: int, pitch_deg: float = BEND_PITCHES_DEG[0]) -> list[FrameProblem]:
     """``problem``'s frame pitched back by ``pitch_deg`` about the centroid of its points, once
     for each of ``starts`` azimuths spread evenly round the vertical (module doc: a body bent at
     the hips, its trunk's facing unknown). Empty with fewer than ``MIN_POINTS`` points."""
