@@ -66,6 +66,18 @@ before a search vouched for it (background recovery running) has its confidences
 that, and a label the window disagrees with gets ``(1 - p)`` of the labels the search gave
 instead. Thresholds on the published scale: 0.5 means as likely right as wrong.
 
+**A cold start's interim labeling the model scores as lost** is published at confidence 0. Until a
+search has vouched for a frame since the stream began (or was reset), a background search's interim
+result -- its best so far, the GA's first generation refined -- labels the frames; when that labeling
+fits more than ``LOST_NATS`` (10) per label below the model's fit reference, the labeler's own loss
+threshold, its labels are published with confidence 0 (the labels themselves unchanged). The fit factor
+cannot say this for a calibrated body, whose confidence leaves it out, and the local posterior and the
+votes read a labeling against its own neighbours. Measured on the 41-marker demo stream (HDM05, its
+calibrated model, 3 flickering + 2 ghosts, background recovery at 120 Hz, corruption seeds 1-8, first 150
+frames): seed 1's 22 such frames, 687 labels fitting 14-30 nats per label below the reference, were 3 %
+right at confidence 0.33; seeds 2, 5 and 7's interim labels, 7-8 below it, 68-79 % right at 0.16-0.20,
+are not touched; seeds 3, 4, 6 and 8 published no label before the first search joined.
+
 What is left at 41 markers is not the temperature (2026-11-26, the HDM05 bench streams of
 ``benchmarks/bench_stream_latency.py``, gaps and flicker seeds 1-3 and the clean one, inline,
 labels unchanged): pooled ECE at tau 1.5 / 2 / 3 / 4.5 / 6 = 3.01 / 2.78 / 2.39 / 2.51 / 3.69 %
@@ -158,11 +170,14 @@ def _weight(f: np.ndarray, fit: float, temperature: float) -> np.ndarray:
 
 def published_confidence(posterior_of_point: np.ndarray, search_labels: np.ndarray, published: np.ndarray,
                          vote_share: np.ndarray, doubtful: bool, fit_deficit: float = 0.0,
-                         power: float = CONFIDENCE_POWER) -> np.ndarray:
+                         power: float = CONFIDENCE_POWER, lost: bool = False) -> np.ndarray:
     """(n,) confidence of each point's published label (module doc): ``posterior_of_point``
     the search's local posterior for the label it gave the point (NaN if none);
     ``fit_deficit`` nats per labelled point below the model's training fit; ``power`` the
-    tempering (:data:`CONFIDENCE_POWER`; :data:`CONFIRMATION_POWER` for the confirmation)."""
+    tempering (:data:`CONFIDENCE_POWER`; :data:`CONFIRMATION_POWER` for the confirmation);
+    ``lost``: a cold start's unvouched labeling the model scores as lost (module doc) -- 0."""
+    if lost:
+        return np.zeros(len(published))
     p = np.where(np.isnan(posterior_of_point), 0.0, posterior_of_point)
     agree = published == search_labels
     fit = float(np.exp(-max(fit_deficit - FIT_SLACK, 0.0) / FIT_SCALE)) if np.isfinite(fit_deficit) else 1.0

@@ -189,11 +189,15 @@ class InlineRecovery(Recovery):
 class DeferredRecovery(Recovery):
     """Background recovery made deterministic, for evaluation: the search runs at once in this
     process (on its own random stream, as a worker would), its result is handed out
-    ``delay_frames`` polls later -- the frames a worker would take."""
+    ``delay_frames`` polls later -- the frames a worker would take. With ``interim_frames``
+    the search's first interim result (what a worker's :class:`InterimReporter` sends first)
+    is handed out that many polls after the request, before the final one."""
 
-    def __init__(self, labeler, delay_frames: int = 12):
+    def __init__(self, labeler, delay_frames: int = 12, interim_frames: int | None = None):
         self.labeler, self.delay = labeler, int(delay_frames)
+        self.interim_frames = interim_frames
         self._result: RecoveryResult | None = None
+        self._interim: RecoveryResult | None = None
         self._wait = 0
 
     @property
@@ -207,7 +211,11 @@ class DeferredRecovery(Recovery):
     def submit(self, request: RecoveryRequest) -> None:
         state = self.labeler._search_state()
         rng = self.labeler.rng
-        self._result = self.labeler.recover(request, rng=np.random.default_rng(request.seed))
+        sent: list[RecoveryResult] = []
+        reporter = InterimReporter(request, sent.append) if self.interim_frames is not None and \
+            request.kind in INTERIM_KINDS else None
+        self._result = self.labeler.recover(request, rng=np.random.default_rng(request.seed), interim=reporter)
+        self._interim = sent[0] if sent else None
         self.labeler._set_search_state(state)
         self.labeler.rng = rng
         self._wait = self.delay
@@ -216,6 +224,9 @@ class DeferredRecovery(Recovery):
         if self._result is None:
             return None
         self._wait -= 1
+        if self._interim is not None and self.delay - self._wait >= self.interim_frames:
+            out, self._interim = self._interim, None
+            return out
         if self._wait > 0:
             return None
         out, self._result = self._result, None

@@ -348,6 +348,7 @@ class TrackedLabeler(FastPath):
         self._young_cursor = -1
         self._stream_start = None                  # stamp of the first frame since the reset (its tracks are not young)
         self._provisional = False
+        self._vouched = False                      # a frame published since the reset that a search vouched for
         self._epoch = getattr(self, "_epoch", 0) + 1   # results of searches asked before are dropped
         self._last_search_stamp = None
         self._last_audit_stamp = None              # inline: the last misfit audit (its rate limit)
@@ -1247,7 +1248,9 @@ class TrackedLabeler(FastPath):
         strict_point[assign[present]] = strict[present]
         deficit = self._fit_deficit(problem, best)
         calibrated = problem.model.body is not None and bool(problem.model.body.calibration)
-        conf = published_confidence(post_point, search_labels, pub, share, doubtful, 0.0 if calibrated else deficit)
+        unvouched_lost = doubtful and not self._vouched and deficit > LOST_NATS
+        conf = published_confidence(post_point, search_labels, pub, share, doubtful, 0.0 if calibrated else deficit,
+                                    lost=unvouched_lost)
         confirmation = published_confidence(strict_point, search_labels, pub, share, doubtful, deficit,
                                             CONFIRMATION_POWER)
         # the next frame starts from this frame's search result, not from the votes: a
@@ -1259,6 +1262,7 @@ class TrackedLabeler(FastPath):
         lost = set(int(t) for t in upd.lost)
         self.tenure.update(upd.track_ids, search_labels, upd.lost, self.last_stamp)
         if not doubtful:
+            self._vouched = True
             self.cluster_evidence.measure(problem, assignment, upd.track_ids, began, self.last_stamp)
         self.track_label = {t: lab for t, lab in self.track_label.items()
                             if t not in seen and t not in lost and lab not in taken}

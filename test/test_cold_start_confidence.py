@@ -1,0 +1,72 @@
+"""A cold start's interim labeling that the model scores as lost is published at confidence 0.
+
+Background recovery made deterministic (``DeferredRecovery`` handing out the search's first interim
+result two frames after the request, the final one later), on real HDM05 frames (41 markers, 3
+flickering + 2 ghosts) under a model of the take's first 2000 frames calibrated to its person -- the
+demo's kind of model, whose confidence leaves the fit factor out."""
+import numpy as np
+import pytest
+
+from dtm_labeler.evaluation.corruption import corrupt_clip
+from dtm_labeler.evaluation.pipeline import model_clip
+from dtm_labeler.labeling import tracked
+from dtm_labeler.labeling.recovery import DeferredRecovery
+from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
+from dtm_labeler.motion.load import load_clip
+from dtm_labeler.training.calibrate import calibrate_on_takes
+from dtm_labeler.training.train import TrainConfig, train_model
+
+HDM = "markers_c3d/hdm05_bd_05-01_01_120.c3d"
+
+
+@pytest.fixture(scope="module")
+def hdm(data_dir):
+    return load_clip(data_dir / HDM, points="all")
+
+
+@pytest.fixture(scope="module")
+def model(hdm):
+    train = hdm.slice(0, 2000)
+    m, _ = train_model([train], TrainConfig(seed=0, k_max=2, structure="cbga"))
+    return calibrate_on_takes(m, [train])
+
+
+def _stream(model, hdm, seed: int) -> list[tuple[float, float, bool]]:
+    """(share right, mean confidence, doubtful) of each labelled frame before the first one a
+    search vouched for, then the same of the frames after it."""
+    frames = corrupt_clip(model_clip(model, hdm.slice(4144, 4184)), occlude=3, clutter=2, noise_mm=1.0,
+                          gap_frames=1, seed=seed)
+    lab = StreamLabeler(model, LabelerSettings(recovery="background", audit_period_s=0))
+    lab.recovery.close()
+    lab.recovery = DeferredRecovery(lab, delay_frames=25, interim_frames=2)
+    cold, warm, vouched = [], [], False
+    for fr in frames:
+        r = lab.process(fr.xyz, fr.stamp)
+        vouched = vouched or not r.doubtful
+        m = r.labels >= 0
+        if m.any():
+            (warm if vouched else cold).append((float(np.mean(r.labels[m] == fr.truth[m])),
+                                                float(np.mean(r.confidence[m])), bool(r.doubtful)))
+    lab.close()
+    return cold, warm
+
+
+def test_a_lost_interim_labeling_is_published_at_confidence_zero(model, hdm, monkeypatch):
+    cold, warm = _stream(model, hdm, seed=1)
+    assert len(cold) >= 5                                       # the interim result labelled the cold start
+    assert all(d for _, _, d in cold)
+    assert np.mean([a for a, _, _ in cold]) < 0.5               # ... mostly wrong
+    assert all(c == 0.0 for _, c, _ in cold)                    # ... and not vouched for at all
+    assert np.mean([a for a, _, _ in warm]) >= 0.9              # the final result: right, and said so
+    assert np.mean([c for _, c, _ in warm]) >= 0.8
+    monkeypatch.setattr(tracked, "LOST_NATS", np.inf)           # without the rule the same labels ...
+    cold_before, _ = _stream(model, hdm, seed=1)
+    assert [a for a, _, _ in cold_before] == [a for a, _, _ in cold]
+    assert np.mean([c for _, c, _ in cold_before]) > 0.2        # ... went out at a third of certainty
+
+
+def test_an_interim_labeling_that_fits_keeps_its_confidence(model, hdm):
+    cold, _ = _stream(model, hdm, seed=2)
+    assert cold and all(d for _, _, d in cold)
+    assert np.mean([a for a, _, _ in cold]) > 0.5
+    assert all(c > 0.1 for _, c, _ in cold)
