@@ -3,8 +3,11 @@ RViz marker building (no node), descriptors and start-up overrides (in-process n
 worker), and runtime changes on a running node process over real DDS."""
 from __future__ import annotations
 
+import os
 import py_compile
 import signal
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -13,6 +16,7 @@ import node_helpers as H
 from dtm_labeler.labeling.config import params_from_settings
 from dtm_labeler.labeling.stream import LabelerSettings
 from dtm_labeler.ros import params as P
+from dtm_labeler.ros.node import GIL_SWITCH_S
 
 # ----------------------------------------------------------------------------- pure mapping
 
@@ -381,3 +385,23 @@ def test_sigint_exits_cleanly(running):
     proc, cl, feed, wm = running
     assert proc.stop(signal.SIGINT) == 0
     assert "Traceback" not in proc.log()
+
+
+def test_node_process_shortens_the_gil_switch_interval():
+    """``run`` (every node entry point) sets the interpreter's switch interval before the node
+    exists: a frame waits at most that long for the GIL behind the loader or the executor thread
+    (node.GIL_SWITCH_S), not Python's 5 ms. The node here is a stand-in that reports what it
+    sees and stops at once (the real node's start-up is the other tests')."""
+    code = ("import sys\n"
+            "from dtm_labeler.ros import node\n"
+            "node._exit_now = lambda code: None\n"
+            "def make():\n"
+            "    print('interval', sys.getswitchinterval(), flush=True)\n"
+            "    raise KeyboardInterrupt\n"
+            "print('code', node.run(make), flush=True)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                         env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
+    assert out.returncode == 0, out.stderr
+    seen = dict(line.split() for line in out.stdout.splitlines())
+    assert float(seen["interval"]) == pytest.approx(GIL_SWITCH_S) and GIL_SWITCH_S < 0.005
+    assert seen["code"] == "0"

@@ -45,7 +45,19 @@ from . import params as P
 from .core import CoreOwner, LabelerCore
 from .messages import NO_TRACK
 
-__all__ = ["LabelerNode", "main", "run", "NO_TRACK"]
+__all__ = ["LabelerNode", "main", "run", "NO_TRACK", "GIL_SWITCH_S"]
+
+#: the interpreter's thread switch interval in a node process (s; Python's default 0.005). The
+#: labelling thread shares the GIL with the executor and the loader thread, which runs seconds of
+#: Python when a model is loaded or calibrated (``auto_calibrate``: unpickling, the calibrated
+#: model's terms); a thread that wants the GIL waits until the holder reaches this interval, so the
+#: default let a frame wait 5 ms per hand-over. Measured (``bench_node_latency.py``, 120 Hz,
+#: 2 flickering + 2 ghosts, 2026-12-04, before and after side by side in each run): with
+#: ``auto_calibrate`` (14 points, a generic body) e2e p99 56.7 / 13.8 -> 11.5 / 9.4 ms (seconds
+#: 5-9, where the loader works, maxima 10-31 -> 10-18 ms);
+#: without it, where nothing but the labelling runs Python, within the runs' spread (14 points
+#: 9.9 / 7.4 / 10.4 / 12.3 -> 8.1 / 7.6 / 9.2 / 15.6 ms, 41 markers 18.8 / 22.3 -> 16.4 / 20.6 ms).
+GIL_SWITCH_S = 0.0005
 
 
 class LabelerNode(CoreOwner, Node):
@@ -62,15 +74,17 @@ class LabelerNode(CoreOwner, Node):
 
 def run(make_node, args: Optional[List[str]] = None) -> int:
     """Spin the node ``make_node()`` until SIGINT/SIGTERM (rclpy shuts the context down on
-    both), stop its threads (a worker inside a long search is not waited for) and leave with
-    status 0 -- at once, without interpreter finalization: tearing numba, llvmlite, scipy and
-    rclpy down takes most of a second, and shutdown must stay under one. An exception that is
-    not the shutdown itself is printed and exits 1."""
+    both; the process's GIL switch interval set to :data:`GIL_SWITCH_S` first), stop its
+    threads (a worker inside a long search is not waited for) and leave with status 0 -- at
+    once, without interpreter finalization: tearing numba, llvmlite, scipy and rclpy down takes
+    most of a second, and shutdown must stay under one. An exception that is not the shutdown
+    itself is printed and exits 1."""
     # rclpy's handler shuts the context down and then calls Python's own SIGINT handler; the
     # default one raises KeyboardInterrupt wherever the main thread is, and inside a __del__
     # (rclpy's Future) that printed "Exception ignored ... Traceback" into the log of a clean
     # exit (CI, test_sigint_exits_cleanly, 1 run in many). The context's shutdown ends the spin.
     signal.signal(signal.SIGINT, lambda signum, frame: None)
+    sys.setswitchinterval(GIL_SWITCH_S)
     rclpy.init(args=args)
     node, code = None, 0
     try:
