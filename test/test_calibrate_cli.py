@@ -169,6 +169,28 @@ def test_dtm_label_sets_a_training_calibration_aside_for_someone_else(models, da
     assert np.array_equal(again.generic_body.hi, generic.body.hi)
 
 
+def test_a_live_stream_calibrates_what_dtm_label_would_for_an_unknown_person(models, data_dir):
+    """The node's ``auto_calibrate`` target (:func:`stream_calibration_target`): a generic body
+    itself; a body ``dtm-train`` calibrated to its training takes' person, seen as generic again
+    (a stream is nobody's capture); nothing for a person's own calibration, a model whose takes
+    the user said are the person (``why`` "asked"), or one without body terms."""
+    from dtm_labeler.training.calibrate import calibratable, calibrate, calibrate_on_takes, stream_calibration_target
+    model_path, v1_path, _ = models
+    generic = load_model(model_path)
+    assert stream_calibration_target(generic) is generic
+    clip = load_clip(data_dir / LAMBADA, points="body14").slice(0, 360)
+    person = calibrate_on_takes(generic, [clip])
+    assert not calibratable(person)
+    target = stream_calibration_target(person)
+    assert target is not None and calibratable(target) and not target.provenance.get("calibration")
+    assert np.array_equal(target.body.hi, generic.body.hi) and np.array_equal(target.body.lo, generic.body.lo)
+    person.provenance["calibration"]["why"] = "asked"
+    assert stream_calibration_target(person) is None
+    s5 = load_clip(data_dir / PIROUETTE, points="body14").slice(0, 240)
+    assert stream_calibration_target(calibrate(generic, s5, check_labels=False)) is None
+    assert stream_calibration_target(load_model(v1_path)) is None
+
+
 def test_dtm_label_self_calibrates_a_generic_body_by_default(models, data_dir, run):
     """Another person (subject 5's pirouette) under a generic body of subject 55: by default
     dtm-label self-calibrates the body on the take's first frames (of a take this short: its

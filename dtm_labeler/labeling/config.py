@@ -401,8 +401,10 @@ PARAMS: Tuple[Param, ...] = (
           "subject's body terms (segment lengths, reach scale; training/calibrate.py), then the calibrated model replaces the "
           "running one without a reset. Any motion; the model must have body terms.", "node",
           range=(0.5, 120.0)),
-    Param("auto_calibrate", False, "Self-calibrate a generic body (not yet calibrated to a person) on "
-          "the first calibration_s seconds of stream after each model load, as dtm-label does by default: "
+    Param("auto_calibrate", False, "Self-calibrate a generic body (not yet calibrated to a person; a body "
+          "dtm-train calibrated to its training takes' person counts as generic again: the streaming "
+          "person is not known) on the first calibration_s seconds of stream after each model load, as "
+          "dtm-label does by default: "
           "the model's own confirmed labels set the segment lengths (in a process of its own, at idle "
           "priority), and the calibrated model replaces the running one without a reset only when it keeps "
           ">= 90 % of those labels on the same frames (training/calibrate.py auto_calibrate); /diagnostics "

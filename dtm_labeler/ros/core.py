@@ -33,7 +33,7 @@ from rclpy.parameter import Parameter
 from ..labeling.bank_labeler import bank_settings_from_params
 from ..labeling.recovery import keep_spare_worker
 from ..model.dtm import TriangulatedModel
-from ..training.calibrate import calibratable
+from ..training.calibrate import stream_calibration_target
 from . import params as P
 from .calibration import CalibrationWindow
 from .diagnostics import DiagnosticsBuilder, NodeState, NodeStats
@@ -571,10 +571,12 @@ class LabelerCore:
 
     def _open_auto_window(self, prepared=None) -> None:
         """``auto_calibrate``: a window that keeps its clouds, opened on a freshly loaded generic
-        body (not a bank, not a model already calibrated to a person)."""
+        body or one ``dtm-train`` calibrated to its training takes' person (the stream's person
+        is not known: :func:`~dtm_labeler.training.calibrate.stream_calibration_target`); not a
+        bank, not a model calibrated to a person by the user."""
         p = prepared if prepared is not None else (self.worker.engine.prepared if self.worker.engine else None)
         if not self.values["auto_calibrate"] or p is None or not isinstance(p.base, TriangulatedModel) \
-                or not calibratable(p.base):                  # (a bank's base is a ModelBank)
+                or stream_calibration_target(p.base) is None:        # (a bank's base is a ModelBank)
             return
         window = CalibrationWindow(self.values["calibration_s"], p.labels, keep_clouds=True)
         self.handler.calibration = window

@@ -23,7 +23,7 @@ from typing import Any, Callable, Optional
 from ..labeling.bank_labeler import BankSettings
 from ..model.bank import ModelBank
 from ..model.io import model_from_bytes, model_to_bytes
-from ..training.calibrate import auto_calibration_process, calibrate, idle_priority
+from ..training.calibrate import auto_calibration_process, calibrate, idle_priority, stream_calibration_target
 from .engine import Prepared, Source, load, prepare
 
 __all__ = ["LoadRequest", "LoadResult", "EngineLoader"]
@@ -194,7 +194,14 @@ class EngineLoader:
         """``model`` self-calibrated on the window's clouds by
         :func:`~dtm_labeler.training.calibrate.auto_calibrate` in a spawned process at idle
         priority (seconds of Python that would hold the labelling thread's GIL here); dropped
-        (the process ended) when a newer request supersedes it; ValueError when not applied."""
+        (the process ended) when a newer request supersedes it; ValueError when not applied (the
+        running model stays). A model calibrated to its training takes' person is calibrated from
+        its generic body (:func:`~dtm_labeler.training.calibrate.stream_calibration_target`)."""
+        target = stream_calibration_target(model)
+        if target is None:
+            raise ValueError("auto calibration not applied: the model's body is calibrated to a person already "
+                             "(or has no body terms)")
+        model = target
         ctx = multiprocessing.get_context("spawn")
         parent, child = ctx.Pipe(duplex=False)
         proc = ctx.Process(target=auto_calibration_process, name="dtm_labeler_calibration", daemon=True,

@@ -685,6 +685,27 @@ def calibratable(model: TriangulatedModel) -> bool:
     return model.body is not None and not model.body.calibration and bool((model.body.kind == SEGMENT).any())
 
 
+def stream_calibration_target(model: TriangulatedModel) -> TriangulatedModel | None:
+    """What a self-calibration on a live stream of an unknown person calibrates (the node's
+    ``auto_calibrate``): a generic body as it is (:func:`calibratable`); a body ``dtm-train``
+    calibrated to its training takes' person (:func:`calibrate_on_takes`, unless the user said
+    the takes are the person to label: ``why`` "asked") seen as generic again
+    (:func:`generic_view`) -- a stream is not known to be that person's, and another person's
+    lengths and placement cost right labelings (``dtm-label --calibrate auto``'s rule for a
+    capture not known to be theirs). Measured, stream mode as ``dtm-eval`` feeds it: CMU 85's two
+    takes -> HDM05 97.2 % generic, 66.0 % under subject 85's calibration; HDM05 -> CMU 85 20.7 %
+    generic, 0.8 % under the HDM05 person's (self-calibrated on the stream: 100 / 99.0 %). None:
+    nothing to calibrate (no body terms, a person's own calibration, a file without the generic
+    body)."""
+    if calibratable(model):
+        return model
+    cal = (model.provenance.get("calibration") or {}) if model.body is not None else {}
+    if cal.get("source") != "training takes" or cal.get("why") == "asked":
+        return None
+    generic = generic_view(model)
+    return generic if generic is not None and calibratable(generic) else None
+
+
 def kept_share(before: np.ndarray, after: np.ndarray) -> float:
     """Of the labels confirmed in ``before`` (F, M, 3; NaN = not confirmed), the share that
     ``after`` confirms on the same point (1.0 when ``before`` confirmed none)."""
@@ -882,5 +903,5 @@ def calibrate_from_clip(model: TriangulatedModel, clip: MotionClip, labels: str 
     return out, dict(out.provenance["calibration"])
 
 
-__all__ = ["LABEL_SOURCES", "auto_calibrate", "auto_calibrate_bytes", "auto_calibration_process", "idle_priority", "calibratable", "generic_view", "kept_share", "calibrate_from_clip", "calibrate_on_takes", "calibration_labeling", "confirmed_positions", "confirmation_of", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "mirror_rows", "wrong_side", "self_label",
+__all__ = ["LABEL_SOURCES", "auto_calibrate", "auto_calibrate_bytes", "auto_calibration_process", "idle_priority", "calibratable", "stream_calibration_target", "generic_view", "kept_share", "calibrate_from_clip", "calibrate_on_takes", "calibration_labeling", "confirmed_positions", "confirmation_of", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "mirror_rows", "wrong_side", "self_label",
            "self_calibrate", "labelled_positions"]
