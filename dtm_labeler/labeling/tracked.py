@@ -47,7 +47,7 @@ from ..search.label_search import CBGASearch, GASearch, LabelSearch, SearchOutco
 from ..search.problem import FrameProblem
 from .config import LabelerSettings
 from .cluster_evidence import ClusterEvidence
-from .confidence import CONFIRMATION_POWER, label_posteriors, published_confidence
+from .confidence import CONFIRMATION_POWER, label_posteriors, published_confidence, unlabelled_posteriors
 from .fast_path import RESUMED_EVENT_REGIONS, RESUMED_EVENT_S, FastPath
 from .fit_check import term_floors
 from .label_tenure import LabelTenure
@@ -1249,7 +1249,17 @@ class TrackedLabeler(FastPath):
         deficit = self._fit_deficit(problem, best)
         calibrated = problem.model.body is not None and bool(problem.model.body.calibration)
         unvouched_lost = doubtful and not self._vouched and deficit > LOST_NATS
-        conf = published_confidence(post_point, search_labels, pub, share, doubtful, 0.0 if calibrated else deficit,
+        # a label the votes publish on a point this frame's search left unlabelled: what the search
+        # says of that point is how likely it is to stay unlabelled (not a certainty of the label)
+        # (rare: a few frames in a hundred of a stream with gaps and ghosts)
+        if ((pub >= 0) & (search_labels < 0)).any():
+            p_free = unlabelled_posteriors(problem, assignment, best.fitness, alt,
+                                           self.settings.confidence_temperature, f_alt,
+                                           None if prior is None or not len(alt) else prior(alt))
+            post_pub = np.where(np.isnan(post_point), p_free, post_point)
+        else:
+            post_pub = post_point
+        conf = published_confidence(post_pub, search_labels, pub, share, doubtful, 0.0 if calibrated else deficit,
                                     lost=unvouched_lost)
         confirmation = published_confidence(strict_point, search_labels, pub, share, doubtful, deficit,
                                             CONFIRMATION_POWER)
