@@ -39,7 +39,8 @@ from ..motion.clip import frame_range
 from ..motion.load import load_clip
 from ..motion.naming import one_subject
 from ..motion.unlabelled import model_input
-from ..training.calibrate import KEPT_AS_IT_IS, CalibrationError, calibrate_from_clip, generic_view
+from ..training.calibrate import (KEPT_AS_IT_IS, CalibrationError, calibrate_from_clip, generic_view,
+                                  takes_calibration)
 from .labelled_capture import CaptureFormat, from_records
 from .metrics import MetricsAccumulator
 from .pipeline import label_clip_run
@@ -214,8 +215,8 @@ def of_training_person(model, source: str) -> str | None:
     calibrated on its training takes). ``--calibrate auto`` keeps such a model's calibration for
     its person and sets it aside for anyone else (:func:`generic_view`): another person's
     segment lengths cost right labelings more than they save (:mod:`dtm_labeler.model.body`)."""
-    cal = model.provenance.get("calibration") or {}
-    if cal.get("source") != "training takes":
+    cal = takes_calibration(model)
+    if cal is None:
         return None
     if cal.get("why") == "asked":
         return "the person dtm-train --calibrate was told the takes are"

@@ -478,13 +478,25 @@ def generic_view(model: TriangulatedModel) -> TriangulatedModel | None:
     return out
 
 
+#: the provenance ``source`` of a calibration on a model's own training takes (:func:`calibrate_on_takes`)
+TAKES_SOURCE = "training takes"
+
+
+def takes_calibration(model: TriangulatedModel) -> dict | None:
+    """The provenance of ``model``'s calibration when it was calibrated on its own training takes
+    (:func:`calibrate_on_takes`; ``why`` says why they were taken for one person, "asked" when the
+    user said so), else None."""
+    cal = model.provenance.get("calibration") or {}
+    return cal if model.body is not None and cal.get("source") == TAKES_SOURCE else None
+
+
 def calibrate_on_takes(model: TriangulatedModel, clips: Sequence[MotionClip]) -> TriangulatedModel:
     """``model`` calibrated to the one person of its labelled training ``clips`` (``dtm-train
     --calibrate``): :func:`calibrate` on all their frames, the labels trusted as an operator's."""
     P = np.concatenate([labelled_positions(model, c) for c in clips])
     rates = {float(c.rate) for c in clips}
     out = calibrate(model, P, check_labels=False, rate=rates.pop() if len(rates) == 1 else None)
-    out.provenance["calibration"] = dict(out.provenance["calibration"], source="training takes",
+    out.provenance["calibration"] = dict(out.provenance["calibration"], source=TAKES_SOURCE,
                                          captures=[c.source for c in clips])
     return out
 
@@ -699,8 +711,8 @@ def stream_calibration_target(model: TriangulatedModel) -> TriangulatedModel | N
     body)."""
     if calibratable(model):
         return model
-    cal = (model.provenance.get("calibration") or {}) if model.body is not None else {}
-    if cal.get("source") != "training takes" or cal.get("why") == "asked":
+    cal = takes_calibration(model)
+    if cal is None or cal.get("why") == "asked":
         return None
     generic = generic_view(model)
     return generic if generic is not None and calibratable(generic) else None
@@ -903,5 +915,5 @@ def calibrate_from_clip(model: TriangulatedModel, clip: MotionClip, labels: str 
     return out, dict(out.provenance["calibration"])
 
 
-__all__ = ["LABEL_SOURCES", "auto_calibrate", "auto_calibrate_bytes", "auto_calibration_process", "idle_priority", "calibratable", "stream_calibration_target", "generic_view", "kept_share", "calibrate_from_clip", "calibrate_on_takes", "calibration_labeling", "confirmed_positions", "confirmation_of", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "mirror_rows", "wrong_side", "self_label",
+__all__ = ["LABEL_SOURCES", "auto_calibrate", "auto_calibrate_bytes", "auto_calibration_process", "idle_priority", "calibratable", "stream_calibration_target", "takes_calibration", "TAKES_SOURCE", "generic_view", "kept_share", "calibrate_from_clip", "calibrate_on_takes", "calibration_labeling", "confirmed_positions", "confirmation_of", "clip_clouds", "CalibrationSettings", "CalibrationError", "calibrate", "calibrated_body", "mirror_rows", "wrong_side", "self_label",
            "self_calibrate", "labelled_positions"]
