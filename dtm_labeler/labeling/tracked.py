@@ -1237,6 +1237,8 @@ class TrackedLabeler(FastPath):
         else:
             pub, share = search_labels.copy(), (search_labels >= 0).astype(float)
         alt, f_alt = best.neighbourhood or (self._moves(problem, assignment)(assignment), None)
+        if f_alt is None and len(alt):       # scored once: the labels' and the free points' posteriors read them
+            f_alt = problem.fitness(alt)
         # an alternative that rearranges a rigid cluster against what its tracks' frames preferred
         # is that much less likely: the published odds carry the arrangement prior too
         began = self._frame_track_began()
