@@ -3,7 +3,8 @@ model of the take's first 2000 frames calibrated to its person -- the demo's kin
 confidence leaves the fit factor out:
 
 * a cold start's interim labeling that the model scores as lost is published at confidence 0;
-* a label the votes keep on a point the frame's own search left unlabelled is not published as sure.
+* a label the votes keep on a point the frame's own search left unlabelled is not published as sure;
+* a label the model would rather leave unseen is weighed by how much clutter the stream shows.
 
 For the cold start, background recovery is made deterministic (``DeferredRecovery`` handing out the
 search's first interim result two frames after the request, the final one later; 3 flickering + 2
@@ -13,7 +14,7 @@ import pytest
 
 from dtm_labeler.evaluation.corruption import corrupt_clip
 from dtm_labeler.evaluation.pipeline import model_clip
-from dtm_labeler.labeling import tracked
+from dtm_labeler.labeling import confidence, tracked
 from dtm_labeler.labeling.recovery import DeferredRecovery
 from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
 from dtm_labeler.motion.load import load_clip
@@ -106,3 +107,37 @@ def test_a_label_the_votes_keep_where_the_search_gave_none_is_not_published_as_s
     conf_before, right_before, labels_before = _carried_by_votes(model, hdm)
     assert labels_before == labels and right_before == right
     assert np.mean(conf_before) > 0.8
+
+
+def _clean_or_ghosts(model, hdm, clutter: int) -> tuple[np.ndarray, np.ndarray, list, float]:
+    """(confidence, right) of every published label, every frame's labels and the labeler's
+    clutter share at the end: 200 frames, nothing hidden, ``clutter`` ghosts, inline."""
+    frames = corrupt_clip(model_clip(model, hdm.slice(4144, 4344)), clutter=clutter, seed=1)
+    lab = StreamLabeler(model, LabelerSettings(recovery="inline"))
+    conf, right, labels = [], [], []
+    for fr in frames:
+        r = lab.process(fr.xyz, fr.stamp)
+        m = r.labels >= 0
+        conf += r.confidence[m].tolist()
+        right += (r.labels == fr.truth)[m].tolist()
+        labels.append(r.labels.tolist())
+    lab.close()
+    return np.array(conf), np.array(right, dtype=bool), labels, lab.clutter.share
+
+
+@pytest.mark.parametrize("clutter", [0, 2])
+def test_a_release_is_weighed_by_the_clutter_the_stream_shows(model, hdm, monkeypatch, clutter):
+    """labeling/confidence.py ClutterShare: the published posterior weighs a label's release (the
+    point left unlabelled) by the stream's prior odds that a point is clutter -- the share of its
+    points the searches leave unlabelled -- instead of even odds. Nothing hidden, with or without
+    two ghosts among the 41 markers: the share settles near the ghosts' (0 / 2 in 43), the labels
+    are the same, and the labels whose confidence rises (the model would rather have left them
+    unseen: at a tie before) are right."""
+    conf, right, labels, share = _clean_or_ghosts(model, hdm, clutter)
+    assert share < 0.02 if clutter == 0 else 0.03 < share < 0.1
+    monkeypatch.setattr(confidence.ClutterShare, "odds", property(lambda self: 1.0))   # the fitness's even odds
+    conf_before, right_before, labels_before, _ = _clean_or_ghosts(model, hdm, clutter)
+    assert labels_before == labels
+    rose = conf > conf_before + 0.01
+    assert rose.sum() >= 100 and right[rose].mean() >= 0.9
+    assert conf[right].mean() > conf_before[right].mean()

@@ -290,6 +290,13 @@ def test_confirmation_counts_the_release_the_published_confidence_caps(model, wa
     assert below.sum() >= model.n_labels // 2 and not below[5]
     np.testing.assert_allclose(published[below], strict[below])
     assert (published >= strict).all()
+    # weighed by the stream's prior odds of clutter: none seen, the release all but drops out
+    # of the published posterior; the strict one still counts it in full
+    pub_clean, strict_clean = label_posteriors(problem, truth, fit, np.empty((0, model.n_labels), np.int64), 3.0,
+                                               clutter_odds=1e-30)
+    assert pub_clean[5] > 0.99
+    np.testing.assert_allclose(strict_clean, strict)
+    assert (pub_clean >= published - 1e-12).all()
 
 
 def test_inline_audit_when_frames_fit_far_below_the_models_reference(model):

@@ -47,7 +47,7 @@ from ..search.label_search import CBGASearch, GASearch, LabelSearch, SearchOutco
 from ..search.problem import FrameProblem
 from .config import LabelerSettings
 from .cluster_evidence import ClusterEvidence
-from .confidence import CONFIRMATION_POWER, label_posteriors, published_confidence, unlabelled_posteriors
+from .confidence import CONFIRMATION_POWER, ClutterShare, label_posteriors, published_confidence, unlabelled_posteriors
 from .fast_path import RESUMED_EVENT_REGIONS, RESUMED_EVENT_S, FastPath
 from .fit_check import term_floors
 from .label_tenure import LabelTenure
@@ -349,6 +349,7 @@ class TrackedLabeler(FastPath):
         self._stream_start = None                  # stamp of the first frame since the reset (its tracks are not young)
         self._provisional = False
         self._vouched = False                      # a frame published since the reset that a search vouched for
+        self.clutter = ClutterShare()              # the share of points the searches leave unlabelled (confidence)
         self._epoch = getattr(self, "_epoch", 0) + 1   # results of searches asked before are dropped
         self._last_search_stamp = None
         self._last_audit_stamp = None              # inline: the last misfit audit (its rate limit)
@@ -1243,8 +1244,11 @@ class TrackedLabeler(FastPath):
         # is that much less likely: the published odds carry the arrangement prior too
         began = self._frame_track_began()
         prior = self.cluster_evidence.cost(assignment, n, upd.track_ids, began, self.last_stamp)
+        if not doubtful:
+            self.clutter.update(search_labels)
         post, strict = label_posteriors(problem, assignment, best.fitness, alt, self.settings.confidence_temperature,
-                                        f_alt, None if prior is None or not len(alt) else prior(alt))
+                                        f_alt, None if prior is None or not len(alt) else prior(alt),
+                                        self.clutter.odds)
         post_point, strict_point = np.full(n, np.nan), np.full(n, np.nan)
         post_point[assign[present]] = post[present]
         strict_point[assign[present]] = strict[present]
