@@ -135,10 +135,11 @@ worse than clutter) no longer goes out at a tie, and where ghosts are many a rel
 before. The strict posterior (the calibration's confirmation) counts the release in full, as
 before. What those tied labels were (inline streams, before): 99.6 % right in the calibrated HDM05 ->
 CMU 85 cell (18 % of its labels), 90-100 % in the generalisation cells, 96 % in a clean 41-marker
-stream, 74-82 % with 3 gaps + 2 ghosts at 41 markers. Measured (``dtm-eval``, markers and
-generalisation sections rerun side by side, every one of the 315 stream cells' labels the same):
-pooled ECE 2.70 -> 1.74 % (the format-1 baseline left out: 2.04 -> 1.15 %); calibrated cells 1.3 -> 0.3 %,
-``dtm-label``'s default 1.6 -> 0.3 %, the generic body 4.5 -> 3.9 %; the markers section 0.25 -> 0.31 %.
+stream, 74-82 % with 3 gaps + 2 ghosts at 41 markers. Measured (``dtm-eval``, every section with stream
+cells rerun before and after, every one of the 315 stream cells' labels the same): pooled ECE 2.72 ->
+1.72 % (the format-1 baseline left out: 2.07 -> 1.14 %); calibrated cells 1.3 -> 0.3 %, ``dtm-label``'s
+default 1.6 -> 0.3 %, the generic body 4.5 -> 3.9 %; markers 0.25 -> 0.31 %, cross-subject 2.01 -> 1.86 %,
+Table 3 0.36 -> 0.41 %, noise 0.85 -> 0.57 %.
 ``bench_stream_latency``'s streams (inline, seeds 1-2, same labels): pooled 0.78 -> 0.67 %; clean and
 flicker + 2 ghosts 0.04-1.12 -> 0.01-0.85 %, 3 gaps + 2 ghosts 0.65-0.85 -> 0.86-1.21 % (their shares of
 clutter 0.05 at 41 markers, 0.11-0.15 at 14 points).
