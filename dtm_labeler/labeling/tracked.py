@@ -1244,11 +1244,11 @@ class TrackedLabeler(FastPath):
         # is that much less likely: the published odds carry the arrangement prior too
         began = self._frame_track_began()
         prior = self.cluster_evidence.cost(assignment, n, upd.track_ids, began, self.last_stamp)
+        alt_prior = None if prior is None or not len(alt) else prior(alt)
         if not doubtful:
             self.clutter.update(search_labels)
         post, strict = label_posteriors(problem, assignment, best.fitness, alt, self.settings.confidence_temperature,
-                                        f_alt, None if prior is None or not len(alt) else prior(alt),
-                                        self.clutter.odds)
+                                        f_alt, alt_prior, self.clutter.odds)
         post_point, strict_point = np.full(n, np.nan), np.full(n, np.nan)
         post_point[assign[present]] = post[present]
         strict_point[assign[present]] = strict[present]
@@ -1260,8 +1260,7 @@ class TrackedLabeler(FastPath):
         # (rare: a few frames in a hundred of a stream with gaps and ghosts)
         if ((pub >= 0) & (search_labels < 0)).any():
             p_free = unlabelled_posteriors(problem, assignment, best.fitness, alt,
-                                           self.settings.confidence_temperature, f_alt,
-                                           None if prior is None or not len(alt) else prior(alt))
+                                           self.settings.confidence_temperature, f_alt, alt_prior)
             post_pub = np.where(np.isnan(post_point), p_free, post_point)
         else:
             post_pub = post_point
