@@ -4,7 +4,8 @@ confidence leaves the fit factor out:
 
 * a cold start's interim labeling that the model scores as lost is published at confidence 0;
 * a label the votes keep on a point the frame's own search left unlabelled is not published as sure;
-* a label the model would rather leave unseen is weighed by how much clutter the stream shows.
+* a label the model would rather leave unseen is weighed by how much clutter the stream shows;
+* a frame doubted for the markers it cannot show (half of them hidden) keeps the confidence its labels earn.
 
 For the cold start, background recovery is made deterministic (``DeferredRecovery`` handing out the
 search's first interim result two frames after the request, the final one later; 3 flickering + 2
@@ -20,6 +21,7 @@ from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
 from dtm_labeler.motion.load import load_clip
 from dtm_labeler.training.calibrate import calibrate_on_takes
 from dtm_labeler.training.train import TrainConfig, train_model
+from test_gappy_training import _gapped
 
 HDM = "markers_c3d/hdm05_bd_05-01_01_120.c3d"
 
@@ -141,3 +143,47 @@ def test_a_release_is_weighed_by_the_clutter_the_stream_shows(model, hdm, monkey
     rose = conf > conf_before + 0.01
     assert rose.sum() >= 100 and right[rose].mean() >= 0.9
     assert conf[right].mean() > conf_before[right].mean()
+
+
+def _half_hidden(model, hdm) -> tuple[list, np.ndarray, np.ndarray]:
+    """A stream of HDM05 frames with half of the samples hidden as a capture's occlusions hide
+    them (gaps of ~0.25 s), background recovery made deterministic as above: every frame's
+    labels, and each published label's confidence and whether it is right (after the first
+    search's result joined)."""
+    clip = _gapped(hdm, 0.5, seed=1, gap_s=0.25).slice(4144, 4384)
+    frames = corrupt_clip(model_clip(model, clip), noise_mm=1.0, seed=1)
+    lab = StreamLabeler(model, LabelerSettings(recovery="background", audit_period_s=0))
+    lab.recovery.close()
+    lab.recovery = DeferredRecovery(lab, delay_frames=25, interim_frames=2)
+    labels, conf, right = [], [], []
+    for k, fr in enumerate(frames):
+        r = lab.process(fr.xyz, fr.stamp)
+        labels.append(r.labels.tolist())
+        m = r.labels >= 0
+        if k >= 30:
+            conf += r.confidence[m].tolist()
+            right += (r.labels[m] == fr.truth[m]).tolist()
+    lab.close()
+    return labels, np.array(conf), np.array(right, dtype=float)
+
+
+def test_a_frame_doubted_for_its_hidden_markers_keeps_the_confidence_its_labels_earn(model, hdm, monkeypatch):
+    """Half of the markers hidden: per labelled point a right labeling fits far below a fully
+    seen frame's level, so the fast path doubts nearly every frame; judged on what a right
+    labeling with the frame's observation pattern fits, a doubted frame's labels are no longer
+    halved (or zeroed as lost at the start) for the markers it cannot show. Labels unchanged."""
+    labels, conf, right = _half_hidden(model, hdm)
+    assert right.mean() > 0.6
+    monkeypatch.setattr(tracked, "pattern_weight", tracked.label_weight)      # the count, as before
+    labels_count, conf_count, right_count = _half_hidden(model, hdm)
+    assert labels_count == labels and np.array_equal(right_count, right)
+    assert conf_count.mean() < right.mean() - 0.15                           # under-confident by the count
+    assert abs(conf.mean() - right.mean()) < 0.6 * abs(conf_count.mean() - right.mean())
+    assert _ece(conf, right) < 0.7 * _ece(conf_count, right)
+
+
+def _ece(conf: np.ndarray, right: np.ndarray, bins: int = 10) -> float:
+    """Expected calibration error over ``bins`` equal bins of confidence."""
+    b = np.minimum((conf * bins).astype(int), bins - 1)
+    return float(sum(abs(conf[b == k].mean() - right[b == k].mean()) * (b == k).sum()
+                     for k in range(bins) if (b == k).any()) / len(conf))

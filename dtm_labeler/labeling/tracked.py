@@ -49,7 +49,7 @@ from .config import LabelerSettings
 from .cluster_evidence import ClusterEvidence
 from .confidence import CONFIRMATION_POWER, ClutterShare, label_posteriors, published_confidence, unlabelled_posteriors
 from .fast_path import RESUMED_EVENT_REGIONS, RESUMED_EVENT_S, FastPath
-from .fit_check import term_floors
+from .fit_check import expected_share, pattern_means, term_floors
 from .label_tenure import LabelTenure
 from .recovery import InlineRecovery, ProcessRecovery, Recovery, RecoveryRequest, RecoveryResult
 from . import tracker
@@ -117,6 +117,8 @@ class Engine:
         dp_kernels.warm_up()
         move_kernels.warm_up()
         tracker.warm_up()
+        for m in models:
+            pattern_means(m)                          # drawn here, not on a stream's frame
         return cls(names, base, models, float(noise_mm), tuple(term_floors(m) for m in models))
 
     def with_noise(self, noise_mm: float) -> "Engine":
@@ -247,6 +249,16 @@ def label_weight(assignment: np.ndarray, problem: FrameProblem) -> float:
     it carries 3 observed dimensions instead of 6, and about half the fitness."""
     codes = problem.codes[assignment[assignment < problem.n]]
     return max(float((codes == FULL).sum() + POSITION_ONLY_WEIGHT * (codes == POSITION_ONLY).sum()), 1.0)
+
+
+def pattern_weight(assignment: np.ndarray, problem: FrameProblem) -> float:
+    """How many fully seen labels' worth of fitness a right labeling with ``assignment``'s
+    observation pattern is expected to show: the model's count of labels times the share
+    :func:`~.fit_check.expected_share` reads from its own mean terms per pattern (a label whose
+    triangle neighbours are hidden weighs what its marginal terms, eq. 30-31, are worth);
+    :func:`label_weight` for a model whose fully seen expectation is not positive."""
+    share = expected_share(problem, assignment)
+    return max(problem.M * share, 1.0) if np.isfinite(share) else label_weight(assignment, problem)
 
 
 def frame_weight(problem: FrameProblem) -> float:
@@ -1077,6 +1089,21 @@ class TrackedLabeler(FastPath):
         """Running fitness level of model ``m`` scaled to this frame's labelled points."""
         return self.level[m] * label_weight(assignment, problem)
 
+    def _fits_its_pattern(self, c: Candidate, problem: FrameProblem, m: int) -> bool:
+        """Whether ``c`` fits within the accept margin of what a right labeling with its
+        observation pattern is expected to: the running level times :func:`pattern_weight`, the
+        labels it leaves missing beyond those the frame cannot show counted in at the pattern's
+        mean missing label. The frame shows about ``n (1 - s)`` body points, ``s`` the stream's
+        clutter share (:class:`ClutterShare`), so a right labeling leaves about ``M`` minus that
+        missing; one that leaves more is expected to fit as if it had labelled them (the pattern
+        alone would forgive a label left out its neighbours' terms as well as its own)."""
+        w = pattern_weight(c.assignment, problem)
+        missing = int((c.assignment >= problem.n).sum())
+        if missing and w < problem.M:
+            hidden = max(problem.M - problem.n * (1.0 - self.clutter.share), 0.0)
+            w += max(missing - hidden, 0.0) * (problem.M - w) / missing
+        return c.fitness >= self.level[m] * w - self._accept_margin(m)
+
     def _falls_short(self, c: Candidate, problem: FrameProblem, m: int) -> bool:
         """The labeling fits ``refit_drop`` nats (or 8 x the running scatter) worse than the
         running level predicts for its labelled points: a search should look further."""
@@ -1254,7 +1281,16 @@ class TrackedLabeler(FastPath):
         strict_point[assign[present]] = strict[present]
         deficit = self._fit_deficit(problem, best)
         calibrated = problem.model.body is not None and bool(problem.model.body.calibration)
-        unvouched_lost = doubtful and not self._vouched and deficit > LOST_NATS
+        # a doubted frame (background: a search asked for, the best labeling known published) is
+        # judged on what a right labeling with its observation pattern fits (:func:`pattern_weight`)
+        # before its confidence is halved or, at a cold start, zeroed as lost: per labelled point a
+        # right labeling of a half-hidden frame fits far below a fully seen one's, and the doubt and
+        # the loss then come from the hidden markers, not from the labels
+        unvouched_lost = doubtful and not self._vouched and deficit > LOST_NATS and \
+            self._initial_level(problem, "fit_reference_per_label") - \
+            best.fitness / pattern_weight(best.assignment, problem) > LOST_NATS
+        pattern_fit = doubtful and self._vouched and \
+            self._fits_its_pattern(best, problem, self.models.index(problem.model))
         # a label the votes publish on a point this frame's search left unlabelled: what the search
         # says of that point is how likely it is to stay unlabelled (not a certainty of the label)
         # (rare: a few frames in a hundred of a stream with gaps and ghosts)
@@ -1264,8 +1300,8 @@ class TrackedLabeler(FastPath):
             post_pub = np.where(np.isnan(post_point), p_free, post_point)
         else:
             post_pub = post_point
-        conf = published_confidence(post_pub, search_labels, pub, share, doubtful, 0.0 if calibrated else deficit,
-                                    lost=unvouched_lost)
+        conf = published_confidence(post_pub, search_labels, pub, share, doubtful and not pattern_fit,
+                                    0.0 if calibrated else deficit, lost=unvouched_lost)
         confirmation = published_confidence(strict_point, search_labels, pub, share, doubtful, deficit,
                                             CONFIRMATION_POWER)
         # the next frame starts from this frame's search result, not from the votes: a
@@ -1303,4 +1339,4 @@ def _input_index(assign: np.ndarray, keep: np.ndarray) -> np.ndarray:
 
 
 __all__ = ["TrackedLabeler", "Engine", "FrameResult", "CarriedFrame", "FrameInput", "FrameSearch", "Candidate", "scatter",
-           "label_weight", "frame_weight"]
+           "label_weight", "pattern_weight", "frame_weight"]
