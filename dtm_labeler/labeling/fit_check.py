@@ -70,13 +70,17 @@ def term_floors(model: TriangulatedModel, quantile: float = FLOOR_QUANTILE, samp
     return cache[key]
 
 
-def _draw_floors(model: TriangulatedModel, quantile: float, samples: int, seed: int) -> np.ndarray:
+def _sampled_states(model: TriangulatedModel, samples: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(T s, 18) triple states drawn from each triangle's own mixture (eq. 12 features pushed
+    back to point states), and (T s,) the triangle of each row."""
     rng = np.random.default_rng(seed)
-    T = model.structure.n_triangles
     X = np.concatenate([m.sample(samples, rng) for m in model.mixtures])            # (T s, 15)
-    s = X @ _F_PINV.T                                                                  # (T s, 18): F s = X
-    tri = np.repeat(np.arange(T), samples)
-    terms = model.batched(FULL_PATTERN)(s, tri).reshape(T, samples)
+    return X @ _F_PINV.T, np.repeat(np.arange(model.structure.n_triangles), samples)    # F s = X
+
+
+def _draw_floors(model: TriangulatedModel, quantile: float, samples: int, seed: int) -> np.ndarray:
+    s, tri = _sampled_states(model, samples, seed)
+    terms = model.batched(FULL_PATTERN)(s, tri).reshape(-1, samples)
     return np.quantile(terms, quantile, axis=1)
 
 
@@ -91,10 +95,8 @@ def pattern_means(model: TriangulatedModel, samples: int = PATTERN_SAMPLES, seed
     cache = model.__dict__.setdefault("_pattern_means", {})
     key = (int(samples), int(seed))
     if key not in cache:
-        rng = np.random.default_rng(seed)
         T = model.structure.n_triangles
-        s = np.concatenate([m.sample(samples, rng) for m in model.mixtures]) @ _F_PINV.T     # (T s, 18)
-        tri = np.repeat(np.arange(T), samples)
+        s, tri = _sampled_states(model, samples, seed)
         mean, root = np.zeros((T, N_PATTERNS)), np.zeros((T, N_PATTERNS), dtype=bool)
         for pid in range(N_PATTERNS):
             sp = s.copy()
