@@ -1,0 +1,98 @@
+"""A background search's result joins a stream whose markers keep disappearing
+(:meth:`~dtm_labeler.labeling.tracked.TrackedLabeler._join`).
+
+HDM05's 41 markers with half of the samples hidden as a capture's occlusions hide them (gaps of
+~0.25 s): few of the tracks a search was asked about outlive it. Background recovery is made
+deterministic (``DeferredRecovery``: the search's first interim result two frames after the
+request, the final one 25 frames after)."""
+import numpy as np
+import pytest
+
+from dtm_labeler.evaluation.corruption import corrupt_clip
+from dtm_labeler.evaluation.pipeline import model_clip
+from dtm_labeler.labeling.recovery import DeferredRecovery
+from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
+from dtm_labeler.labeling.tracked import TrackedLabeler
+from dtm_labeler.motion.load import load_clip
+from dtm_labeler.training.calibrate import calibrate_on_takes
+from dtm_labeler.training.train import TrainConfig, train_model
+from test_gappy_training import _gapped
+
+HDM = "markers_c3d/hdm05_bd_05-01_01_120.c3d"
+
+
+@pytest.fixture(scope="module")
+def hdm(data_dir):
+    return load_clip(data_dir / HDM, points="all")
+
+
+@pytest.fixture(scope="module")
+def model(hdm):
+    train = hdm.slice(0, 2000)
+    m, _ = train_model([train], TrainConfig(seed=0, k_max=2, structure="cbga"))
+    return calibrate_on_takes(m, [train])
+
+
+@pytest.fixture(scope="module")
+def stream(model, hdm):
+    """240 frames after the training part, half hidden, 1 mm of noise."""
+    clip = _gapped(hdm, 0.5, seed=1, gap_s=0.25).slice(2400, 2640)
+    return list(corrupt_clip(model_clip(model, clip), noise_mm=1.0, seed=1))
+
+
+def _run(model, frames) -> tuple[float, list[int], list[list[int]]]:
+    """Share of the visible markers labelled right, the number of readings each join offered,
+    and every frame's labels."""
+    lab = StreamLabeler(model, LabelerSettings(recovery="background", audit_period_s=0))
+    lab.recovery.close()
+    lab.recovery = DeferredRecovery(lab, delay_frames=25, interim_frames=2)
+    join, offered = lab._join, []
+
+    def counted(inp):
+        out = join(inp)
+        if out is not None:
+            offered.append(len(out[0]))
+        return out
+    lab._join = counted
+    right = seen = 0
+    labels = []
+    for fr in frames:
+        r = lab.process(fr.xyz, fr.stamp)
+        labels.append(r.labels.tolist())
+        v = fr.truth >= 0
+        right += int((r.labels[v] == fr.truth[v]).sum())
+        seen += int(v.sum())
+    lab.close()
+    return right / seen, offered, labels
+
+
+def test_a_search_few_of_whose_tracks_outlive_it_joins_on_its_own_labels(model, stream, monkeypatch):
+    """The carried labeling filling the labels of the search's gone tracks made the joined
+    labeling fit worse than the (wrong) carried one, so the search never joined; its labels
+    alone, the rest placed by the fast path, do."""
+    acc, offered, _ = _run(model, stream)
+    assert offered and max(offered) == 2             # the bare reading was offered beside the filled one
+    assert acc > 0.5
+    _filled_only(monkeypatch)
+    before, _, _ = _run(model, stream)
+    assert before < acc - 0.2
+
+
+def _filled_only(monkeypatch) -> None:
+    """The join as it was before the bare reading: the filled reading only."""
+    join = TrackedLabeler._join
+
+    def filled_only(self, inp):
+        out = join(self, inp)
+        return None if out is None else (out[0][:1], out[1])
+    monkeypatch.setattr(TrackedLabeler, "_join", filled_only)
+
+
+def test_a_join_onto_tracks_that_all_survive_offers_one_reading(model, hdm, monkeypatch):
+    """A stream without gaps: every track the search labelled is still there, nothing to fill,
+    so each join offers one reading and the labels are those of the join before."""
+    frames = list(corrupt_clip(model_clip(model, hdm.slice(2400, 2480)), noise_mm=1.0, seed=1))
+    _, offered, labels = _run(model, frames)
+    assert offered and set(offered) == {1}
+    _filled_only(monkeypatch)
+    assert _run(model, frames)[2] == labels
