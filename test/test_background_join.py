@@ -5,7 +5,6 @@ HDM05's 41 markers with half of the samples hidden as a capture's occlusions hid
 ~0.25 s): few of the tracks a search was asked about outlive it. Background recovery is made
 deterministic (``DeferredRecovery``: the search's first interim result two frames after the
 request, the final one 25 frames after)."""
-import numpy as np
 import pytest
 
 from dtm_labeler.evaluation.corruption import corrupt_clip
