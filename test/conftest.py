@@ -94,3 +94,24 @@ LONG_FIRST = ("test_calibrate_cli.py", "test_archive.py", "test_accuracy_floors.
 def pytest_collection_modifyitems(session, config, items):
     rank = {name: i for i, name in enumerate(LONG_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(LONG_FIRST)))
+
+
+HDM05 = "markers_c3d/hdm05_bd_05-01_01_120.c3d"
+
+
+@pytest.fixture(scope="session")
+def hdm05_take(data_dir):
+    """HDM05's 41-marker take (its unlabelled copies as loaded with ``points="all"``)."""
+    from dtm_labeler.motion.load import load_clip
+    return load_clip(data_dir / HDM05, points="all")
+
+
+@pytest.fixture(scope="session")
+def hdm05_calibrated(hdm05_take):
+    """A model of the take's first 2000 frames (CBGA, K <= 2) calibrated to its person -- the
+    demo's kind of model."""
+    from dtm_labeler.training.calibrate import calibrate_on_takes
+    from dtm_labeler.training.train import TrainConfig, train_model
+    train = hdm05_take.slice(0, 2000)
+    m, _ = train_model([train], TrainConfig(seed=0, k_max=2, structure="cbga"))
+    return calibrate_on_takes(m, [train])

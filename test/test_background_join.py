@@ -12,31 +12,13 @@ from dtm_labeler.evaluation.pipeline import model_clip
 from dtm_labeler.labeling.recovery import DeferredRecovery
 from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
 from dtm_labeler.labeling.tracked import TrackedLabeler
-from dtm_labeler.motion.load import load_clip
-from dtm_labeler.training.calibrate import calibrate_on_takes
-from dtm_labeler.training.train import TrainConfig, train_model
 from test_gappy_training import _gapped
 
-HDM = "markers_c3d/hdm05_bd_05-01_01_120.c3d"
-
-
 @pytest.fixture(scope="module")
-def hdm(data_dir):
-    return load_clip(data_dir / HDM, points="all")
-
-
-@pytest.fixture(scope="module")
-def model(hdm):
-    train = hdm.slice(0, 2000)
-    m, _ = train_model([train], TrainConfig(seed=0, k_max=2, structure="cbga"))
-    return calibrate_on_takes(m, [train])
-
-
-@pytest.fixture(scope="module")
-def stream(model, hdm):
+def stream(hdm05_calibrated, hdm05_take):
     """240 frames after the training part, half hidden, 1 mm of noise."""
-    clip = _gapped(hdm, 0.5, seed=1, gap_s=0.25).slice(2400, 2640)
-    return list(corrupt_clip(model_clip(model, clip), noise_mm=1.0, seed=1))
+    clip = _gapped(hdm05_take, 0.5, seed=1, gap_s=0.25).slice(2400, 2640)
+    return list(corrupt_clip(model_clip(hdm05_calibrated, clip), noise_mm=1.0, seed=1))
 
 
 def _run(model, frames) -> tuple[float, list[int], list[list[int]]]:
@@ -66,25 +48,26 @@ def _run(model, frames) -> tuple[float, list[int], list[list[int]]]:
     return right / seen, offered, labels
 
 
-def test_a_search_few_of_whose_tracks_outlive_it_joins_on_its_own_labels(model, stream, monkeypatch):
+def test_a_search_few_of_whose_tracks_outlive_it_joins_on_its_own_labels(hdm05_calibrated, stream, monkeypatch):
     """At the start of the stream the carried labeling filling the labels of the search's gone
     tracks made the joined labeling fit worse than the (wrong) carried one, so the search never
     joined; its labels alone, the rest placed by the fast path, do. (No frame of this stream is
     vouched for: a right labeling of half the markers fits below the running level.)"""
-    acc, offered, _ = _run(model, stream)
+    acc, offered, _ = _run(hdm05_calibrated, stream)
     assert max(k for k, _ in offered) == 2           # the bare reading was offered beside the filled one
     assert acc > 0.5
     _filled_only(monkeypatch)
-    before, _, _ = _run(model, stream)
+    before, _, _ = _run(hdm05_calibrated, stream)
     assert before < acc - 0.2
 
 
-def test_after_a_vouched_frame_the_carried_labeling_fills_a_join(model, hdm):
+def test_after_a_vouched_frame_the_carried_labeling_fills_a_join(hdm05_calibrated, hdm05_take):
     """A quarter of the samples hidden: searches vouch for frames after the first ones. Before
     that, joins offer the search's bare labels too; after it, the carried labeling -- now one a
     search vouched for -- fills the labels of the search's gone tracks, one reading."""
-    clip = _gapped(hdm, 0.25, seed=1, gap_s=0.25).slice(2400, 2640)
-    acc, offered, _ = _run(model, list(corrupt_clip(model_clip(model, clip), noise_mm=1.0, seed=1)))
+    clip = _gapped(hdm05_take, 0.25, seed=1, gap_s=0.25).slice(2400, 2640)
+    frames = list(corrupt_clip(model_clip(hdm05_calibrated, clip), noise_mm=1.0, seed=1))
+    acc, offered, _ = _run(hdm05_calibrated, frames)
     assert any(k == 2 for k, v in offered if not v)
     assert sum(v for _, v in offered) >= 5
     assert all(k == 1 for k, v in offered if v)
@@ -101,11 +84,11 @@ def _filled_only(monkeypatch) -> None:
     monkeypatch.setattr(TrackedLabeler, "_join", filled_only)
 
 
-def test_a_join_onto_tracks_that_all_survive_offers_one_reading(model, hdm, monkeypatch):
+def test_a_join_onto_tracks_that_all_survive_offers_one_reading(hdm05_calibrated, hdm05_take, monkeypatch):
     """A stream without gaps: every track the search labelled is still there, nothing to fill,
     so each join offers one reading and the labels are those of the join before."""
-    frames = list(corrupt_clip(model_clip(model, hdm.slice(2400, 2480)), noise_mm=1.0, seed=1))
-    _, offered, labels = _run(model, frames)
+    frames = list(corrupt_clip(model_clip(hdm05_calibrated, hdm05_take.slice(2400, 2480)), noise_mm=1.0, seed=1))
+    _, offered, labels = _run(hdm05_calibrated, frames)
     assert offered and {k for k, _ in offered} == {1}
     _filled_only(monkeypatch)
-    assert _run(model, frames)[2] == labels
+    assert _run(hdm05_calibrated, frames)[2] == labels

@@ -11,22 +11,14 @@ from dtm_labeler.evaluation.pipeline import label_clip_run
 from dtm_labeler.labeling.stream import LabelerSettings
 from dtm_labeler.model.body import SEGMENT
 from dtm_labeler.model.features import FEATURE_DIM
-from dtm_labeler.motion import load_clip
 from dtm_labeler.training.calibrate import CalibrationSettings, calibrate, completed_labels
 from dtm_labeler.training.placement import POSITION_DIMS, adapted_mixtures
 from dtm_labeler.training.train import TrainConfig, train_model
 
-HDM = "markers_c3d/hdm05_bd_05-01_01_120.c3d"
-
 
 @pytest.fixture(scope="module")
-def hdm(data_dir):
-    return load_clip(data_dir / HDM, points="all")
-
-
-@pytest.fixture(scope="module")
-def model(hdm):
-    m, _ = train_model([hdm.slice(1200, 1900)], TrainConfig(seed=0, k_max=2, structure="greedy"))
+def model(hdm05_take):
+    m, _ = train_model([hdm05_take.slice(1200, 1900)], TrainConfig(seed=0, k_max=2, structure="greedy"))
     return m
 
 
@@ -38,10 +30,10 @@ def moved(clip, marker: str, towards: str, fraction: float):
     return clip._replace(positions=P)
 
 
-def test_a_moved_marker_is_labelled_after_calibration(model, hdm):
+def test_a_moved_marker_is_labelled_after_calibration(model, hdm05_take):
     """Measured: body only 96.5 %, the shank marker unlabelled in 240 of 240 frames; with the
     placement 100 %."""
-    take = moved(hdm, "RSHN", "RANK", 0.4).slice(2400, 2880)
+    take = moved(hdm05_take, "RSHN", "RANK", 0.4).slice(2400, 2880)
     window, rest = take.slice(0, 240), take.slice(240, None)
     acc = {}
     for relevance in (0.0, 20.0):
@@ -53,10 +45,10 @@ def test_a_moved_marker_is_labelled_after_calibration(model, hdm):
     assert acc[20.0][1] > 0.95 and acc[20.0][0] > 0.98 and acc[20.0][0] > acc[0.0][0]
 
 
-def test_only_position_means_move_and_only_where_frames_reach(model, hdm):
+def test_only_position_means_move_and_only_where_frames_reach(model, hdm05_take):
     """Weights, covariances and the velocity means are kept; a triangle no frame shows whole is
     left as it is; a component's move is the MAP step n/(n + r) of the way to its frames' mean."""
-    P = hdm.slice(2400, 2640).positions.copy()
+    P = hdm05_take.slice(2400, 2640).positions.copy()
     tri0 = model.triangles[0]
     P[:, tri0[0]] = np.nan                         # the first triangle never seen whole
     mixtures, summary = adapted_mixtures(model, P, relevance=20.0)
@@ -79,12 +71,12 @@ def test_only_position_means_move_and_only_where_frames_reach(model, hdm):
     assert all(a is b for a, b in zip(none, model.mixtures)) and s0["triangles_adapted"] == 0
 
 
-def test_a_label_never_confirmed_is_taken_from_the_points_left_out(model, hdm):
+def test_a_label_never_confirmed_is_taken_from_the_points_left_out(model, hdm05_take):
     """``completed_labels``: RSHN never confirmed, every other label confirmed; the one point per
     frame left out stays rigid to RSHN's segment partners and is taken, exactly; a second such
     point on the same segment makes it a guess, and nothing is taken; a label confirmed often
     enough is left as it is."""
-    clip = hdm.select(model.labels).slice(2400, 2640)
+    clip = hdm05_take.select(model.labels).slice(2400, 2640)
     P = clip.positions
     m = model.labels.index("RSHN")
     assert np.isfinite(P).all()

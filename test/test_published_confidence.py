@@ -18,25 +18,7 @@ from dtm_labeler.evaluation.pipeline import model_clip
 from dtm_labeler.labeling import confidence, tracked
 from dtm_labeler.labeling.recovery import DeferredRecovery
 from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
-from dtm_labeler.motion.load import load_clip
-from dtm_labeler.training.calibrate import calibrate_on_takes
-from dtm_labeler.training.train import TrainConfig, train_model
 from test_gappy_training import _gapped
-
-HDM = "markers_c3d/hdm05_bd_05-01_01_120.c3d"
-
-
-@pytest.fixture(scope="module")
-def hdm(data_dir):
-    return load_clip(data_dir / HDM, points="all")
-
-
-@pytest.fixture(scope="module")
-def model(hdm):
-    train = hdm.slice(0, 2000)
-    m, _ = train_model([train], TrainConfig(seed=0, k_max=2, structure="cbga"))
-    return calibrate_on_takes(m, [train])
-
 
 def _stream(model, hdm, seed: int) -> list[tuple[float, float, bool]]:
     """(share right, mean confidence, doubtful) of each labelled frame before the first one a
@@ -58,8 +40,8 @@ def _stream(model, hdm, seed: int) -> list[tuple[float, float, bool]]:
     return cold, warm
 
 
-def test_a_lost_interim_labeling_is_published_at_confidence_zero(model, hdm, monkeypatch):
-    cold, warm = _stream(model, hdm, seed=1)
+def test_a_lost_interim_labeling_is_published_at_confidence_zero(hdm05_calibrated, hdm05_take, monkeypatch):
+    cold, warm = _stream(hdm05_calibrated, hdm05_take, seed=1)
     assert len(cold) >= 5                                       # the interim result labelled the cold start
     assert all(d for _, _, d in cold)
     assert np.mean([a for a, _, _ in cold]) < 0.5               # ... mostly wrong
@@ -67,13 +49,13 @@ def test_a_lost_interim_labeling_is_published_at_confidence_zero(model, hdm, mon
     assert np.mean([a for a, _, _ in warm]) >= 0.9              # the final result: right, and said so
     assert np.mean([c for _, c, _ in warm]) >= 0.8
     monkeypatch.setattr(tracked, "LOST_NATS", np.inf)           # without the rule the same labels ...
-    cold_before, _ = _stream(model, hdm, seed=1)
+    cold_before, _ = _stream(hdm05_calibrated, hdm05_take, seed=1)
     assert [a for a, _, _ in cold_before] == [a for a, _, _ in cold]
     assert np.mean([c for _, c, _ in cold_before]) > 0.2        # ... went out at a third of certainty
 
 
-def test_an_interim_labeling_that_fits_keeps_its_confidence(model, hdm):
-    cold, _ = _stream(model, hdm, seed=2)
+def test_an_interim_labeling_that_fits_keeps_its_confidence(hdm05_calibrated, hdm05_take):
+    cold, _ = _stream(hdm05_calibrated, hdm05_take, seed=2)
     assert cold and all(d for _, _, d in cold)
     assert np.mean([a for a, _, _ in cold]) > 0.5
     assert all(c > 0.1 for _, c, _ in cold)
@@ -97,16 +79,17 @@ def _carried_by_votes(model, hdm) -> tuple[list, list, list]:
     return conf, right, labels
 
 
-def test_a_label_the_votes_keep_where_the_search_gave_none_is_not_published_as_sure(model, hdm, monkeypatch):
+def test_a_label_the_votes_keep_where_the_search_gave_none_is_not_published_as_sure(hdm05_calibrated, hdm05_take,
+                                                                                   monkeypatch):
     """Where the frame's search leaves a point unlabelled and the votes still publish the label
     its track had, the search's word on the point is how likely it is to stay unlabelled, not
     nothing: such labels (about two thirds right here) went out at 0.84 on average, now near
     what they are worth; every label the same."""
-    conf, right, labels = _carried_by_votes(model, hdm)
+    conf, right, labels = _carried_by_votes(hdm05_calibrated, hdm05_take)
     assert len(conf) >= 10
     assert np.mean(conf) < 0.75 and abs(np.mean(conf) - np.mean(right)) < 0.2
     monkeypatch.setattr(tracked, "unlabelled_posteriors", lambda problem, *a, **k: np.full(problem.n, np.nan))
-    conf_before, right_before, labels_before = _carried_by_votes(model, hdm)
+    conf_before, right_before, labels_before = _carried_by_votes(hdm05_calibrated, hdm05_take)
     assert labels_before == labels and right_before == right
     assert np.mean(conf_before) > 0.8
 
@@ -128,17 +111,17 @@ def _clean_or_ghosts(model, hdm, clutter: int) -> tuple[np.ndarray, np.ndarray, 
 
 
 @pytest.mark.parametrize("clutter", [0, 2])
-def test_a_release_is_weighed_by_the_clutter_the_stream_shows(model, hdm, monkeypatch, clutter):
+def test_a_release_is_weighed_by_the_clutter_the_stream_shows(hdm05_calibrated, hdm05_take, monkeypatch, clutter):
     """labeling/confidence.py ClutterShare: the published posterior weighs a label's release (the
     point left unlabelled) by the stream's prior odds that a point is clutter -- the share of its
     points the searches leave unlabelled -- instead of even odds. Nothing hidden, with or without
     two ghosts among the 41 markers: the share settles near the ghosts' (0 / 2 in 43), the labels
     are the same, and the labels whose confidence rises (the model would rather have left them
     unseen: at a tie before) are right."""
-    conf, right, labels, share = _clean_or_ghosts(model, hdm, clutter)
+    conf, right, labels, share = _clean_or_ghosts(hdm05_calibrated, hdm05_take, clutter)
     assert share < 0.02 if clutter == 0 else 0.03 < share < 0.1
     monkeypatch.setattr(confidence.ClutterShare, "odds", property(lambda self: 1.0))   # the fitness's even odds
-    conf_before, right_before, labels_before, _ = _clean_or_ghosts(model, hdm, clutter)
+    conf_before, right_before, labels_before, _ = _clean_or_ghosts(hdm05_calibrated, hdm05_take, clutter)
     assert labels_before == labels
     rose = conf > conf_before + 0.01
     assert rose.sum() >= 100 and right[rose].mean() >= 0.9
@@ -167,15 +150,16 @@ def _half_hidden(model, hdm) -> tuple[list, np.ndarray, np.ndarray]:
     return labels, np.array(conf), np.array(right, dtype=float)
 
 
-def test_a_frame_doubted_for_its_hidden_markers_keeps_the_confidence_its_labels_earn(model, hdm, monkeypatch):
+def test_a_frame_doubted_for_its_hidden_markers_keeps_the_confidence_its_labels_earn(hdm05_calibrated, hdm05_take,
+                                                                                    monkeypatch):
     """Half of the markers hidden: per labelled point a right labeling fits far below a fully
     seen frame's level, so the fast path doubts nearly every frame; judged on what a right
     labeling with the frame's observation pattern fits, a doubted frame's labels are no longer
     halved (or zeroed as lost at the start) for the markers it cannot show. Labels unchanged."""
-    labels, conf, right = _half_hidden(model, hdm)
+    labels, conf, right = _half_hidden(hdm05_calibrated, hdm05_take)
     assert right.mean() > 0.6
     monkeypatch.setattr(tracked, "pattern_weight", tracked.label_weight)      # the count, as before
-    labels_count, conf_count, right_count = _half_hidden(model, hdm)
+    labels_count, conf_count, right_count = _half_hidden(hdm05_calibrated, hdm05_take)
     assert labels_count == labels and np.array_equal(right_count, right)
     assert conf_count.mean() < right.mean() - 0.15                           # under-confident by the count
     assert abs(conf.mean() - right.mean()) < 0.7 * abs(conf_count.mean() - right.mean())   # 0.14 against 0.22
