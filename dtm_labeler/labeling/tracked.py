@@ -747,8 +747,8 @@ class TrackedLabeler(FastPath):
         worker on the gapped half's model 46 -> 62 % (4-5 runs, its first second 13 -> 45 %);
         ``bench_stream_latency``'s half-hidden stream within its spread (runs vary 20 points).
         Offered after a vouched frame as well, that stream's seed 1 fell 66.9 -> 54.5 % and its
-        seed 3 rose 50.6 -> 61.5 % (8 runs each); before a vouched frame only, 67.3 / 58.6 %
-        (3 runs): the start-up gains without displacing a carried labeling a search vouched for."""
+        seed 3 rose 50.6 -> 61.5 % (8 runs each); before a vouched frame only, 62.3 / 61.1 %
+        (5 runs): the start-up gains without displacing a carried labeling a search vouched for."""
         res = self.recovery.poll()
         if res is None or res.request.epoch != self._epoch or self.recovery.inline:
             return None
