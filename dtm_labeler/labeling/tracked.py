@@ -562,9 +562,11 @@ class TrackedLabeler(FastPath):
         labeling. A sweep takes 10-20 ms there: results join every few frames, each a local
         repair of the carried labeling, and a lost labeling still gets the GA and the full search
         once per period. Measured, ``bench_stream_latency``'s 41 markers with half of the samples
-        hidden (HDM05, gaps of 0.25 s), the worker on a real-time feed, seeds 1-3 and 2-4 runs
-        each: 57.0 % (every doubted frame a warm GA) -> 71.5 % (this); sweeps only, no GA:
-        67.4 %. ``audit_period_s`` 0 (audits off) asks for the warm GA every time, as before."""
+        hidden (HDM05, gaps of 0.25 s), the worker on a real-time feed, seeds 1-3, 10 runs each
+        way: 57.0 % (every doubted frame a warm GA) -> 70.5 % (this); sweeps only, no GA: 67.4 %;
+        the gapped second half under the gapped first half's model 73.2 -> 80.5 %
+        (``results/stream_latency.md``, 2026-12-05 later). ``audit_period_s`` 0 (audits off)
+        asks for the warm GA every time, as before."""
         if seeds is None:
             return "full"
         if self._fresh_search:
