@@ -276,7 +276,9 @@ PARAMS: Tuple[Param, ...] = (
     Param("audit_period_s", 1.0, "Background recovery: while the labeling looks fine, the worker "
           "checks it four times per this many stream seconds -- exact region sweeps, the fourth a full "
           "search from scratch -- and a better labeling replaces it. Catches a wrong labeling the "
-          "running level has adapted to. Inline (offline), with a bank: a labeling that stays lost (a frame "
+          "running level has adapted to. A doubted frame asks for a warm search (then a full one) at most "
+          "once per this, and for an exact region sweep from the carried labeling between them (half of "
+          "41 markers hidden: 57 -> 70 % right). Inline (offline), with a bank: a labeling that stays lost (a frame "
           "10 nats per label below the model's fit reference for 3 frames) gets a full search from scratch, at "
           "most once per this, the wait doubling up to 8x while such searches find nothing better. "
           "0 = off.", range=(0.0, 3600.0)),
