@@ -115,3 +115,15 @@ def hdm05_calibrated(hdm05_take):
     train = hdm05_take.slice(0, 2000)
     m, _ = train_model([train], TrainConfig(seed=0, k_max=2, structure="cbga"))
     return calibrate_on_takes(m, [train])
+
+
+@pytest.fixture(scope="session")
+def hdm05_half_hidden(hdm05_calibrated, hdm05_take):
+    """240 frames (2 s) after :func:`hdm05_calibrated`'s training part with half of the samples
+    hidden as a capture's occlusions hide them (gaps of ~0.25 s), 1 mm of noise: the frames
+    the labeler gets."""
+    from dtm_labeler.evaluation.corruption import corrupt_clip
+    from dtm_labeler.evaluation.pipeline import model_clip
+    from test_gappy_training import _gapped
+    clip = _gapped(hdm05_take, 0.5, seed=1, gap_s=0.25).slice(2400, 2640)
+    return list(corrupt_clip(model_clip(hdm05_calibrated, clip), noise_mm=1.0, seed=1))

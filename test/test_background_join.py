@@ -15,10 +15,8 @@ from dtm_labeler.labeling.tracked import TrackedLabeler
 from test_gappy_training import _gapped
 
 @pytest.fixture(scope="module")
-def stream(hdm05_calibrated, hdm05_take):
-    """240 frames after the training part, half hidden, 1 mm of noise."""
-    clip = _gapped(hdm05_take, 0.5, seed=1, gap_s=0.25).slice(2400, 2640)
-    return list(corrupt_clip(model_clip(hdm05_calibrated, clip), noise_mm=1.0, seed=1))
+def stream(hdm05_half_hidden):
+    return hdm05_half_hidden
 
 
 def _run(model, frames) -> tuple[float, list[int], list[list[int]]]:

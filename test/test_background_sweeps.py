@@ -9,18 +9,13 @@ for a sweep at 41 markers."""
 import numpy as np
 import pytest
 
-from dtm_labeler.evaluation.corruption import corrupt_clip
-from dtm_labeler.evaluation.pipeline import model_clip
 from dtm_labeler.labeling.recovery import DeferredRecovery
 from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
-from test_gappy_training import _gapped
 
 
 @pytest.fixture(scope="module")
-def stream(hdm05_calibrated, hdm05_take):
-    """240 frames (2 s) after the training part, half hidden, 1 mm of noise."""
-    clip = _gapped(hdm05_take, 0.5, seed=1, gap_s=0.25).slice(2400, 2640)
-    return list(corrupt_clip(model_clip(hdm05_calibrated, clip), noise_mm=1.0, seed=1))
+def stream(hdm05_half_hidden):
+    return hdm05_half_hidden
 
 
 def _run(model, frames, period: float):
