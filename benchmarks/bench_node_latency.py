@@ -220,7 +220,8 @@ def run_once(mon, bag: Path, env: dict, n_frames: int, rate: float) -> dict:
                 # frames sent without a labelled output, per second of the stream: where the skips are
                 skipped_by_second=[int(((truth - t0) // 10 ** 9 == k)[~done].sum())
                                    for k in range(int((truth.max() - t0) // 10 ** 9) + 1)] if truth.size else [],
-                player_lateness_ms=play["lateness_ms"], node_labeling_p50_ms=float(d1.get("labeling_p50_ms", "nan")),
+                player_lateness_ms=play["lateness_ms"], player_start_held_ms=play.get("start_held_ms", 0.0),
+                node_labeling_p50_ms=float(d1.get("labeling_p50_ms", "nan")),
                 # the node's own split of a frame's time (its last 500 frames): labelling, decode + build
                 # + publish, waiting for the labelling thread, and receive -> published
                 node_ms={k: float(d1.get(k, "nan")) for k in ("labeling_p50_ms", "labeling_p99_ms", "overhead_p50_ms",

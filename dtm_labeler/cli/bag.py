@@ -210,6 +210,8 @@ def _play(args) -> int:
     say(f"sent {sum(stats.sent.values())} messages (" + ", ".join(f"{t} {n}" for t, n in stats.sent.items())
         + f") in {stats.duration_s:.2f} s; lateness p50 {lat.get('p50', float('nan')):.2f} ms, "
           f"p99 {lat.get('p99', float('nan')):.2f} ms, max {lat.get('max', float('nan')):.2f} ms"
+        + (f"; the first send was held {stats.start_held_ms:.0f} ms, the timeline starts after it"
+           if stats.start_held_ms else "")
         + (" (stopped)" if stats.stopped else ""))
     return 0
 

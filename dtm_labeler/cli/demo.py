@@ -431,6 +431,7 @@ def _main(argv=None) -> int:
                    ghost_rejection=s["ghost_rejection"], frames_with_errors=_frames_with_errors(per_frame),
                    latency_ms=s["latency_ms"],
                    node_latency_ms=s["node_latency_ms"], player_lateness_ms=play.get("lateness_ms", {}),
+                   player_start_held_ms=play.get("start_held_ms", 0.0),
                    node_resets=int(final.get("resets_gap", 0) or 0) + int(final.get("resets_time_backwards", 0) or 0),
                    node_exit_status=node_rc, node_ok=not node_failed, node_log_tail=node_log or None, domain_id=int(env["ROS_DOMAIN_ID"]),
                    seconds=time.perf_counter() - t_start, work_dir=str(work) if args.keep else None)

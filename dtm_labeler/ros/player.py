@@ -5,6 +5,8 @@ The messages are read with ``rosbags`` and published as the recorded CDR bytes
 topic's message type, reliable QoS (matches reliable and best-effort subscribers). Timing:
 message ``k`` is sent at ``start + (t_k - t_0) / rate`` on ``time.perf_counter``; the lateness
 of every send is measured and reported (typically well under a millisecond here).
+The timeline starts when the first message is out (a writer's first send can be held in
+Fast DDS for ~0.2 s; ``PlayStats.start_held_ms``).
 
 Options beyond ``ros2 bag play``:
 
@@ -48,10 +50,12 @@ class PlayStats:
     matched: dict = field(default_factory=dict)       # topic -> subscribers when starting
     duration_s: float = 0.0                           # first to last send
     stopped: bool = False                             # stopped early (stop event / interrupt)
+    start_held_ms: float = 0.0                        # the first send held in DDS; the timeline starts after it
 
     def as_dict(self) -> dict:
         return dict(sent=self.sent, loops=self.loops, lateness_ms=self.lateness_ms, waited_s=self.waited_s,
-                    matched=self.matched, duration_s=self.duration_s, stopped=self.stopped)
+                    matched=self.matched, duration_s=self.duration_s, stopped=self.stopped,
+                    start_held_ms=self.start_held_ms)
 
 
 def message_class(msgtype: str):
@@ -161,7 +165,15 @@ def _wait_for_subscribers(pubs: dict, wait_for: Sequence[str], timeout: float, s
 def _send(msgs: Sequence[RawMessage], pubs: dict, clock_pub, header_topics: set, stats: PlayStats,
           stop: threading.Event, *, rate: float, loop: bool, restamp: bool,
           on_start: Callable[[float], None] | None) -> tuple:
-    """Publish ``msgs`` on their timeline (looping when asked); (lateness list, first, last send)."""
+    """Publish ``msgs`` on their timeline (looping when asked); (lateness list, first, last send).
+
+    The timeline starts when the first message is out: a writer's first send can be held in
+    Fast DDS for ~0.2 s (seen once in ~15 benchmark runs: ``publish`` itself took 193 ms), and
+    catching up would send the next 0.2 s of frames in one burst -- late on arrival, so the
+    labeler drops them as stale (7 of 1776 frames at 120 Hz, 54 of 3600 at 360 Hz, the stream's
+    end-to-end maximum 196-208 ms). When the first send is late by more than a frame period,
+    every later message keeps its place on the timeline from there (``start_held_ms``): on the
+    wire the stream starts that much later, as a mocap system's would."""
     clock_msg = None
     if clock_pub is not None:
         from rosgraph_msgs.msg import Clock
@@ -177,8 +189,15 @@ def _send(msgs: Sequence[RawMessage], pubs: dict, clock_pub, header_topics: set,
         on_start(wall0)
     first_send = last_send = None
     offset_ns = 0                     # recorded-time offset of this loop pass
+    started = False                   # the first recorded time's messages are out
     while not stop.is_set():
         for m in msgs:
+            if not started and m.t_ns != t0:
+                started = True
+                held = lateness[0] if lateness else 0.0
+                if held * rate > max(period_ns, 1) * 1e-9:
+                    perf0, wall0 = perf0 + held, wall0 + held
+                    stats.start_held_ms = held * 1e3
             rel_ns = m.t_ns - t0 + offset_ns
             target = perf0 + rel_ns / rate * 1e-9
             while (d := target - time.perf_counter()) > 0 and not stop.is_set():
