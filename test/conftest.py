@@ -81,14 +81,16 @@ def pytest_runtest_makereport(item, call):
             report.sections.append((f"node {proc.fqn} ({state}, log {proc.log_path})", tail))
 
 
-#: Modules whose tests take longest (tens of seconds each, measured with ``--durations``), run first
+#: Modules whose tests take longest (6-44 s each, measured with ``--durations=0`` on 2026-12-05), run first
 #: so that under ``pytest -n 2`` the workers end together instead of one finishing a long test
 #: alone. pytest.ini's ``--no-loadscope-reorder`` makes xdist keep this order: by default it hands
 #: out the files with the most tests first, which put the single 30-s colcon test last.
-LONG_FIRST = ("test_calibrate_cli.py", "test_archive.py", "test_accuracy_floors.py", "test_label_cli.py",
-              "test_node_colcon.py", "test_training_augment.py", "test_e2e_replay.py", "test_placement.py",
-              "test_take_votes.py", "test_recovery.py", "test_settings_honoured.py", "test_take_pass.py",
-              "test_node_reload.py", "test_structure_search.py", "test_generalisation.py", "test_evaluate.py")
+LONG_FIRST = ("test_calibrate_cli.py", "test_upright.py", "test_background_join.py", "test_bar_order.py",
+              "test_archive.py", "test_published_confidence.py", "test_accuracy_floors.py",
+              "test_background_sweeps.py", "test_node_colcon.py", "test_label_cli.py", "test_e2e_replay.py",
+              "test_node_reload.py", "test_cluster_turns.py", "test_training_augment.py", "test_recovery.py",
+              "test_young_checks.py", "test_release_moves.py", "test_settings_honoured.py",
+              "test_node_bad_input.py", "test_node_params.py")
 
 
 def pytest_collection_modifyitems(session, config, items):
@@ -99,6 +101,47 @@ def pytest_collection_modifyitems(session, config, items):
 HDM05 = "markers_c3d/hdm05_bd_05-01_01_120.c3d"
 
 
+def trained_once(tmp_path_factory, worker_id: str, name: str, build):
+    """A model ``build()`` trains, shared by the workers of one ``pytest -n N`` run: a worker
+    that asks after another has trained it loads that worker's file (``save_model``); the
+    first trains it and saves it; one that asks while another is training it trains its own
+    (waiting would cost as much). Saving and loading keep the model exactly (fitness equal to
+    the last bit on the floor cell's frames), so a test does not depend on which worker
+    trained it. Alone (``worker_id`` "master") the model is trained here."""
+    import fcntl
+    from dtm_labeler.model.io import load_model, save_model
+    if worker_id == "master":
+        return build()
+    root = tmp_path_factory.getbasetemp().parent              # this run's, shared by its workers
+    path = root / f"trained_{name}.npz"
+    with open(root / f"trained_{name}.lock", "w") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:                                # another worker is training it now
+            return build()
+        if path.is_file():
+            return load_model(path)
+        model = build()
+        save_model(model, path)
+        return model
+
+
+@pytest.fixture(scope="session")
+def case_model(data_dir, tmp_path_factory, worker_id):
+    """``case_model(key)``: the generic body ``dtm-eval``'s cell ``key`` trains
+    (``train_case_model`` on its training takes, seed 0), trained once per test run."""
+    from dtm_labeler.evaluation.generalisation import CASES, case_clips, train_case_model, train_config
+    models = {}
+
+    def get(key: str):
+        if key not in models:
+            case = next(c for c in CASES if c.key == key)
+            models[key] = trained_once(tmp_path_factory, worker_id, f"case_{key}", lambda: train_case_model(
+                case_clips(data_dir, case)[0], train_config(case, "body", 0))[0])
+        return models[key]
+    return get
+
+
 @pytest.fixture(scope="session")
 def hdm05_take(data_dir):
     """HDM05's 41-marker take (its unlabelled copies as loaded with ``points="all"``)."""
@@ -107,14 +150,17 @@ def hdm05_take(data_dir):
 
 
 @pytest.fixture(scope="session")
-def hdm05_calibrated(hdm05_take):
+def hdm05_calibrated(hdm05_take, tmp_path_factory, worker_id):
     """A model of the take's first 2000 frames (CBGA, K <= 2) calibrated to its person -- the
-    demo's kind of model."""
+    demo's kind of model (trained once per test run)."""
     from dtm_labeler.training.calibrate import calibrate_on_takes
     from dtm_labeler.training.train import TrainConfig, train_model
     train = hdm05_take.slice(0, 2000)
-    m, _ = train_model([train], TrainConfig(seed=0, k_max=2, structure="cbga"))
-    return calibrate_on_takes(m, [train])
+
+    def build():
+        m, _ = train_model([train], TrainConfig(seed=0, k_max=2, structure="cbga"))
+        return calibrate_on_takes(m, [train])
+    return trained_once(tmp_path_factory, worker_id, "hdm05_calibrated", build)
 
 
 @pytest.fixture(scope="session")
