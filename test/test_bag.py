@@ -306,3 +306,48 @@ def test_a_first_send_on_time_keeps_the_timeline():
     s = np.array([B.stamp_ns_of(ts.deserialize_cdr(d, B.PC2)) for _, d in pubs[B.TOPIC_UNLABELED].sent])
     assert stats.start_held_ms == 0.0
     np.testing.assert_allclose(np.diff(s) * 1e-9, 1 / 120, atol=2e-6)
+
+
+def test_the_monitor_times_delivery_not_its_own_callbacks():
+    """ReplayMonitor's latency is the DDS reception time minus the stamp: a labelled message
+    that arrives while the monitor's own thread is held (here its lock, 0.4 s; in dtm-demo a
+    garbage collection of 35-75 ms) counts its delivery, not the hold."""
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rclpy.signals import SignalHandlerOptions
+    from dtm_labeler.ros.player import ReplayMonitor
+    from dtm_labeler_msgs.msg import LabeledMarkerArray
+
+    ts = B.typestore()
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node("test_monitor_source", context=ctx)
+    pub = node.create_publisher(LabeledMarkerArray, "markers/labeled",
+                                QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+
+    def send():
+        stamp = time.time_ns()
+        pub.publish(bytes(ts.serialize_cdr(B.marker_array_message(stamp, "f", 0, np.zeros((1, 3)), np.array([0]),
+                                                                  ["a"]), B.LMA)))
+    try:
+        with ReplayMonitor(known_labels=["a"]) as mon:
+            deadline = time.monotonic() + 20
+            while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            send()                                   # a first one, delivered as usual
+            while mon.n_labeled < 1 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            with mon.lock:                           # the monitor's thread is held from here ...
+                send()                               # ... in this message's callback
+                time.sleep(0.1)
+                send()                               # arrives while it is held
+                time.sleep(0.3)
+            while mon.n_labeled < 3 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            with mon.lock:
+                lat = list(mon.latency_ms)
+    finally:
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
+    assert len(lat) == 3
+    assert lat[2] < 100, lat                         # held 0.3 s after it arrived: not counted

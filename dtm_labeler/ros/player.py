@@ -234,8 +234,9 @@ def _diag_values(status) -> dict:
 class ReplayMonitor:
     """Listens to a replay: ``markers/labeled`` (the node's output), ``markers/ground_truth``
     (the player's) and ``/diagnostics``; scores output against truth (matched by stamp and
-    position) and measures end-to-end latency = reception wall time - header stamp (meaningful
-    when the player restamps with wall-clock times). Runs its own rclpy context and executor
+    position) and measures end-to-end latency = DDS reception time of the labelled message
+    (rclpy's message info, wall clock) - header stamp (meaningful when the player restamps with
+    wall-clock times). Runs its own rclpy context and executor
     thread; use as a context manager or call :meth:`start` / :meth:`close`.
 
     ``labeled_qos``: 'reliable' (default, matches the node's default output) or 'sensor_data'.
@@ -254,7 +255,7 @@ class ReplayMonitor:
         self.latency_ms: list[float] = []       # reception - stamp, per labelled frame
         self.node_latency_ms: list[float] = []  # the node's own latency_ms field
         self.stamps: list[int] = []             # labelled stamps in arrival order
-        self.recv_times: list[float] = []       # wall reception time per labelled frame
+        self.recv_times: list[float] = []       # DDS reception time (wall clock) per labelled frame
         self.truth_stamps: list[int] = []       # ground-truth stamps in arrival order
         self.out_of_order = 0
         self._pending: list = []                # (kind, stamp, serialised message) not scored yet
@@ -321,8 +322,12 @@ class ReplayMonitor:
         self.close()
 
     # -- callbacks (executor thread)
-    def _on_labeled(self, raw: bytes) -> None:
-        now = time.time()
+    def _on_labeled(self, raw: bytes, info: dict) -> None:
+        # when DDS received it, not when this callback ran: a garbage collection in this process
+        # (35-75 ms, every ~11 s in dtm-demo's: 110 k objects) or its scoring holding the GIL
+        # would otherwise count as the node's latency
+        ns = info.get("received_timestamp") if info else None
+        now = int(ns) * 1e-9 if ns else time.time()
         st = _cdr_stamp_ns(raw)
         with self.lock:
             if self.stamps and st <= self.stamps[-1]:
