@@ -7,9 +7,10 @@ recording (the whole walk / the C3D's last 30 %; 1 mm noise, shuffled, track ids
 the rate under test, the node (``dtm-labeler-node``, default parameters) in its own process,
 the player (``dtm-bag play --restamp``) in another, and this process listening.
 
-Latency = reception of ``markers/labeled`` here - the cloud's header stamp (the player's
-wall-clock send schedule): DDS both ways + decoding + labeling + publishing. Skipped = frames
-sent without a labelled output (the node labels the newest cloud and drops stale ones).
+Latency = DDS reception of ``markers/labeled`` here (the message info's time, so this process's
+own pauses do not count) - the cloud's header stamp (the player's wall-clock send schedule):
+DDS both ways + decoding + labeling + publishing. Skipped = frames sent without a labelled
+output (the node labels the newest cloud and drops stale ones).
 
 Rate ramp: the same streams at increasing rates; "sustained" = the highest rate at which no
 frame was skipped after the first 0.5 s of a run (the start has a cold search).
@@ -308,7 +309,7 @@ def _resets(r: dict) -> str:
 def markdown(res: dict) -> str:
     lines = ["# Node end-to-end latency", "",
              f"{res['when']}, {res['machine']}; load average at start {res['load_average']}.", "",
-             "Latency = reception of `markers/labeled` in a listener process - the cloud's header stamp "
+             "Latency = DDS reception of `markers/labeled` in a listener process - the cloud's header stamp "
              f"(the player's send schedule); node parameters {res['node_params'] or 'default'}, player and listener in "
              "their own processes, DDS on loopback. Labelled = frames with a labelled output, after the first "
              "0.5 s; accuracy over all labelled frames / those after the first 0.5 s (the start-up search's "

@@ -13,9 +13,9 @@ With no arguments (the embedded default, no files needed):
    line a second (frames, accuracy, end-to-end latency) and a final summary, then stops both
    processes (SIGINT, then SIGTERM/SIGKILL if needed). Exit status 1 if the node failed.
 
-End-to-end latency = reception of the labelled frame in this process - the header stamp the
-player put on the cloud (its wall-clock send schedule); it includes DDS both ways, decoding,
-labeling and publishing.
+End-to-end latency = DDS reception of the labelled frame in this process (the message info's
+time: this process's own pauses do not count) - the header stamp the player put on the cloud
+(its wall-clock send schedule); it includes DDS both ways, decoding, labeling and publishing.
 
 ``--data PATH`` replays a real recording instead: the model is trained on its first 70 %
 (``--train-frames``; cached too) and the rest (``--test-frames``) is replayed, so the labelled
