@@ -350,4 +350,4 @@ def test_the_monitor_times_delivery_not_its_own_callbacks():
         node.destroy_node()
         rclpy.shutdown(context=ctx)
     assert len(lat) == 3
-    assert lat[2] < 100, lat                         # held 0.3 s after it arrived: not counted
+    assert lat[2] < 150, lat                         # held 0.3 s after it arrived: not counted (~300 before)
