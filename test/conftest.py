@@ -106,8 +106,8 @@ def trained_once(tmp_path_factory, worker_id: str, name: str, build):
     that asks after another has trained it loads that worker's file (``save_model``); the
     first trains it and saves it; one that asks while another is training it trains its own
     (waiting would cost as much). Saving and loading keep the model exactly (fitness equal to
-    the last bit on the floor cell's frames), so a test does not depend on which worker
-    trained it. Alone (``worker_id`` "master") the model is trained here."""
+    the last bit on the floor cell's and HDM05's frames, the same labels over 60 frames of a
+    stream), so a test does not depend on which worker trained it. Alone (``worker_id`` "master") the model is trained here."""
     import fcntl
     from dtm_labeler.model.io import load_model, save_model
     if worker_id == "master":
