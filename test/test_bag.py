@@ -269,22 +269,29 @@ class _HeldSink:
         self.sent.append((time.perf_counter(), data))
 
 
+def _play_to_sinks(pubs: dict, n: int) -> tuple:
+    """``_send`` of ``n`` frames at 120 Hz, restamped, one cloud per frame on each topic of
+    ``pubs`` (publisher stand-ins); (stats, lateness, {topic: the stamps sent})."""
+    from dtm_labeler.ros.player import PlayStats, _send
+    ts = B.typestore()
+    raw = bytes(ts.serialize_cdr(B.cloud_message(np.zeros((2, 3)), 0, "f"), B.PC2))
+    msgs = [B.RawMessage(t, B.PC2, k * round(1e9 / 120), raw) for k in range(n) for t in pubs]
+    stats = PlayStats(sent={t: 0 for t in pubs})
+    lateness, _, _ = _send(msgs, pubs, None, set(pubs), stats, threading.Event(), rate=1.0, loop=False,
+                           restamp=True, on_start=None)
+    stamps = {t: np.array([B.stamp_ns_of(ts.deserialize_cdr(d, B.PC2)) for _, d in p.sent]) for t, p in pubs.items()}
+    return stats, lateness, stamps
+
+
 def test_a_first_send_held_in_dds_starts_the_timeline_after_it():
     """A first send held 0.15 s: the later frames keep their spacing from where the stream
     started (not sent in one burst to catch up), their stamps stay a frame period apart and
     clouds and truth keep one stamp per frame; the hold is reported."""
-    from dtm_labeler.ros.player import PlayStats, _send
-    ts = B.typestore()
-    raw = bytes(ts.serialize_cdr(B.cloud_message(np.zeros((2, 3)), 0, "f"), B.PC2))
-    n, step = 20, round(1e9 / 120)
-    msgs = [B.RawMessage(t, B.PC2, k * step, raw) for k in range(n) for t in (B.TOPIC_UNLABELED, "/truth")]
+    n = 20
     pubs = {B.TOPIC_UNLABELED: _HeldSink(0.15), "/truth": _HeldSink()}
-    stats = PlayStats(sent={t: 0 for t in pubs})
-    lateness, _, _ = _send(msgs, pubs, None, set(pubs), stats, threading.Event(), rate=1.0, loop=False,
-                           restamp=True, on_start=None)
+    stats, lateness, stamps = _play_to_sinks(pubs, n)
     assert stats.sent == {B.TOPIC_UNLABELED: n, "/truth": n}
     assert stats.start_held_ms >= 140
-    stamps = {t: np.array([B.stamp_ns_of(ts.deserialize_cdr(d, B.PC2)) for _, d in p.sent]) for t, p in pubs.items()}
     np.testing.assert_array_equal(stamps[B.TOPIC_UNLABELED], stamps["/truth"])
     s = stamps["/truth"]
     assert (s[1] - s[0]) * 1e-9 >= 1 / 120 + 0.14                   # the stream starts after the hold
@@ -296,16 +303,9 @@ def test_a_first_send_held_in_dds_starts_the_timeline_after_it():
 
 
 def test_a_first_send_on_time_keeps_the_timeline():
-    from dtm_labeler.ros.player import PlayStats, _send
-    ts = B.typestore()
-    raw = bytes(ts.serialize_cdr(B.cloud_message(np.zeros((2, 3)), 0, "f"), B.PC2))
-    msgs = [B.RawMessage(B.TOPIC_UNLABELED, B.PC2, k * round(1e9 / 120), raw) for k in range(6)]
-    pubs = {B.TOPIC_UNLABELED: _HeldSink()}
-    stats = PlayStats(sent={B.TOPIC_UNLABELED: 0})
-    _send(msgs, pubs, None, set(pubs), stats, threading.Event(), rate=1.0, loop=False, restamp=True, on_start=None)
-    s = np.array([B.stamp_ns_of(ts.deserialize_cdr(d, B.PC2)) for _, d in pubs[B.TOPIC_UNLABELED].sent])
+    stats, _, stamps = _play_to_sinks({B.TOPIC_UNLABELED: _HeldSink()}, 6)
     assert stats.start_held_ms == 0.0
-    np.testing.assert_allclose(np.diff(s) * 1e-9, 1 / 120, atol=2e-6)
+    np.testing.assert_allclose(np.diff(stamps[B.TOPIC_UNLABELED]) * 1e-9, 1 / 120, atol=2e-6)
 
 
 def test_the_monitor_times_delivery_not_its_own_callbacks():
