@@ -127,18 +127,20 @@ def trained_once(tmp_path_factory, worker_id: str, name: str, build):
 
 
 @pytest.fixture(scope="session")
-def case_model(data_dir, tmp_path_factory, worker_id):
-    """``case_model(key)``: the generic body ``dtm-eval``'s cell ``key`` trains
-    (``train_case_model`` on its training takes, seed 0), trained once per test run."""
+def case_cell(data_dir, tmp_path_factory, worker_id):
+    """``case_cell(key)``: (the generic body ``dtm-eval``'s cell ``key`` trains -- ``train_case_model``
+    on its training takes, seed 0, trained once per test run --, the cell's test clip)."""
     from dtm_labeler.evaluation.generalisation import CASES, case_clips, train_case_model, train_config
-    models = {}
+    cells = {}
 
     def get(key: str):
-        if key not in models:
+        if key not in cells:
             case = next(c for c in CASES if c.key == key)
-            models[key] = trained_once(tmp_path_factory, worker_id, f"case_{key}", lambda: train_case_model(
-                case_clips(data_dir, case)[0], train_config(case, "body", 0))[0])
-        return models[key]
+            train, test = case_clips(data_dir, case)
+            model = trained_once(tmp_path_factory, worker_id, f"case_{key}",
+                                 lambda: train_case_model(train, train_config(case, "body", 0))[0])
+            cells[key] = (model, test)
+        return cells[key]
     return get
 
 

@@ -167,11 +167,10 @@ def test_calibrated_body_applies_the_order_to_a_real_exchange(hdm_case, tmp_path
     assert np.allclose(FrameProblem(v5, states, Background()).fitness(pop), without)
 
 
-def test_floor_moves_self_calibrated_keep_the_wrist_bars(data_dir, case_model):
+def test_floor_moves_self_calibrated_keep_the_wrist_bars(case_cell):
     """``dtm-eval``'s floor-moves cell, self-calibrated on the first 225 frames: the labels of
     the next 120 frames (the wrist bars exchanged in 65 of 360 frames before the order)."""
-    _, test = case_clips(data_dir, next(c for c in CASES if c.key == "m_floor"))
-    model = case_model("m_floor")
+    model, test = case_cell("m_floor")
     n_cal = calibration_frames(test, 5.0)
     window = model_clip(model, test.slice(0, n_cal))
     cal, _ = self_calibrate(model, window.positions, window.rate)

@@ -5,7 +5,6 @@ turned by 90 degrees -- four labels each one along, which no single swap undoes 
 import numpy as np
 import pytest
 
-from dtm_labeler.evaluation.generalisation import CASES, case_clips
 from dtm_labeler.evaluation.pipeline import model_clip
 from dtm_labeler.labeling.config import LabelerSettings
 from dtm_labeler.labeling.stream import StreamLabeler
@@ -31,11 +30,10 @@ def test_every_other_arrangement_of_each_fully_seen_cluster():
 
 
 @pytest.fixture(scope="module")
-def floor(data_dir, case_model):
+def floor(case_cell):
     """``dtm-eval``'s floor-moves cell: a generic body of CMU 85's jump + twist and HDM05's
     standing take, and the breakdance on the floor (its first 130 frames)."""
-    _, test = case_clips(data_dir, next(c for c in CASES if c.key == "m_floor"))
-    model = case_model("m_floor")
+    model, test = case_cell("m_floor")
     return model, model_clip(model, test.slice(0, 130))
 
 

@@ -111,11 +111,10 @@ def _cold(model, xyz, upright_deg: float, seed: int) -> tuple[np.ndarray, float]
 
 
 @pytest.fixture(scope="module")
-def floor(data_dir, case_model):
+def floor(case_cell):
     """``dtm-eval``'s floor-moves cell: a model of CMU 85's jump + twist and HDM05's standing
     take (41 markers, the generic body), and the breakdance on the floor it labels."""
-    _, test = case_clips(data_dir, next(c for c in CASES if c.key == "m_floor"))
-    return case_model("m_floor"), test
+    return case_cell("m_floor")
 
 
 def test_a_cold_search_labels_a_leaning_body(floor):
