@@ -64,6 +64,7 @@ BIN = Path(sys.executable).parent
 from dtm_labeler.evaluation.archive import LabelJob, label_take  # noqa: E402
 from dtm_labeler.evaluation.corruption import realistic_gaps, static_ghosts  # noqa: E402
 from dtm_labeler.labeling.stream import LabelerSettings  # noqa: E402
+from dtm_labeler.labeling.take_restarts import RESTART_S  # noqa: E402
 from dtm_labeler.model.io import model_to_bytes, save_model  # noqa: E402
 from dtm_labeler.motion.c3d_write import write_c3d  # noqa: E402
 from dtm_labeler.motion.load import load_clip  # noqa: E402
@@ -142,6 +143,7 @@ def label(model, path: Path, **kw):
     half); dtm-label's default self-calibration is for a model of other people
     (``results/captures.md``, "dtm-label's own default on the gapped halves")."""
     kw.setdefault("settings", LabelerSettings())
+    kw.setdefault("restart_s", RESTART_S)          # dtm-label's default --restarts (takes over 10 s only)
     job = LabelJob(index=0, source=str(path), **kw)
     r = label_take(job, model_to_bytes(model))
     if r.error:

@@ -27,6 +27,7 @@ from ..evaluation.metrics import Metrics, MetricsAccumulator
 from ..labeling import config
 from ..labeling.bank_labeler import BankSettings, bank_settings_from_params
 from ..labeling.config import LabelerSettings
+from ..labeling.take_restarts import RESTART_S
 from ..model.bank import BankFileError, load_bank
 from ..model.io import load_model
 from ..motion.load import load_clip
@@ -111,6 +112,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="skip the second pass over the take (with --take-votes > 0, single model): every frame "
                         "searched again at the facing the whole take gives it, from the voted labels, and voted "
                         "again; takes one to two times as long again as the first pass")
+    p.add_argument("--restarts", type=float, default=RESTART_S, metavar="SECONDS",
+                   help="offline (with --take-votes > 0, single model): the take is labelled again from a fresh "
+                        "start every SECONDS of it, each kept from its restart point to the next where its labels "
+                        "fit the model better summed over those frames, so a labeling lost for good (many markers "
+                        "hidden at once) is not carried to the end of the take; a fresh start that agrees with the "
+                        "carried labels is stopped at once (0: none; the JSON's 'restarts' says what each did)")
     p.add_argument("--json", action="store_true", help="print one JSON object with the scores")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -282,7 +289,8 @@ def _jobs(args, settings, takes) -> list[LabelJob]:
                      use_ids=args.track_ids, keep_unlabelled=not args.drop_unlabelled,
                      ignore_names=args.ignore_names, out=out, keep_records=args.out_points is not None, load=load,
                      calibrate=args.calibrate, calibrate_labels=args.calibrate_labels,
-                     take_votes_s=_take_votes(args, settings), take_pass=args.take_pass)
+                     take_votes_s=_take_votes(args, settings), take_pass=args.take_pass,
+                     restart_s=_restarts(args))
             for i, (f, out) in enumerate(takes)]
 
 
@@ -290,6 +298,12 @@ def _take_votes(args, settings) -> float:
     if args.take_votes < 0:
         raise CliError("--take-votes must be >= 0 seconds")
     return args.take_votes if settings.mode == "stream" else 0.0
+
+
+def _restarts(args) -> float:
+    if args.restarts < 0:
+        raise CliError("--restarts must be >= 0 seconds")
+    return 0.0 if args.bank else args.restarts
 
 
 def _run_takes(args, jobs: list[LabelJob], model_bytes: bytes) -> list[TakeResult]:

@@ -72,6 +72,7 @@ class LabelJob:
     calibrate_labels: str = "model"    # labels of those frames: "model" (self-labelled) or "capture"
     take_votes_s: float = 0.0          # votes again over +- this many seconds around each frame (0: as live)
     take_pass: bool = True             # with take votes: each frame searched again at the take's heading
+    restart_s: float = 0.0             # with take votes: fresh starts every this many seconds (0: none)
 
 
 #: ``LabelJob.calibrate`` values: self-calibrate a generic body on each take's first
@@ -103,6 +104,7 @@ class TakeResult:
     rate: float = 0.0
     worker: str = ""                   # host:pid of the process that labelled the take
     calibration: dict | None = None    # the subject calibration used (``--calibrate``)
+    restarts: list = field(default_factory=list)    # fresh starts over the take (``--restarts``), one dict each
 
     @property
     def metrics(self):
@@ -125,6 +127,8 @@ class TakeResult:
             d["note"] = self.note
         if self.calibration is not None:
             d["calibration"] = self.calibration
+        if self.restarts:
+            d["restarts"] = self.restarts
         if self.error:
             d["error"] = self.error
         return d
@@ -170,7 +174,7 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
                              noise_mm=job.noise_mm, seed=job.seed, progress=progress, use_ids=job.use_ids,
                              gap_frames=job.gap_frames, keep_records=job.keep_records or job.out is not None,
                              extra=mi.extra, named=mi.named, take_votes_s=job.take_votes_s,
-                             take_pass=job.take_pass, calibrate_s=AUTO_CALIBRATION_S if auto else 0.0,
+                             take_pass=job.take_pass, restart_s=job.restart_s, calibrate_s=AUTO_CALIBRATION_S if auto else 0.0,
                              calibration_progress=calibration_progress, fallback=person)
         if auto:
             res.calibration = run.settings["calibration"]
@@ -190,6 +194,7 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
         res.up_axis = f"{clip.meta.get('up_axis', 'Z')} ({clip.meta.get('up_axis_source', 'format')})"
         res.accumulator, res.causal, res.voted, res.rate = run.accumulator, run.causal, run.voted, clip.rate
         res.records = run.records if job.keep_records else []
+        res.restarts = run.settings.get("restarts", [])
     except (ValueError, KeyError, OSError, CalibrationError) as e:
         res.error = str(e).strip("'\"")
     res.wall_s = time.perf_counter() - t0

@@ -29,6 +29,7 @@ from .corruption import CorruptedStream, corrupt_clip
 from .metrics import Metrics, MetricsAccumulator
 from ..labeling.stream import LabelerSettings, StreamLabeler
 from ..labeling.take_pass import take_pass as second_pass
+from ..labeling.take_restarts import MIN_GAIN_PER_FRAME, REJOIN_FRAMES, agrees, fits_better, restart_windows
 from ..labeling.take_votes import take_votes
 from ..model.dtm import TriangulatedModel
 from ..motion.clip import MotionClip
@@ -88,20 +89,22 @@ def model_clip(model: TriangulatedModel | Sequence[str], clip: MotionClip) -> Mo
 def run_stream(model: TriangulatedModel, stream: CorruptedStream, settings: LabelerSettings | None = None,
                use_ids: bool = False, keep_records: bool = True, progress: Progress | None = None,
                done: int = 0, total: int | None = None, scored: bool = True, take_votes_s: float = 0.0,
-               take_pass: bool = False) -> ClipRun:
+               take_pass: bool = False, restart_s: float = 0.0) -> ClipRun:
     """Feed a corrupted stream (label index = model label index) to a fresh labeler
-    (``take_votes_s``, ``take_pass``: see :func:`run_labeler`)."""
+    (``take_votes_s``, ``take_pass``, ``restart_s``: see :func:`run_labeler`)."""
     if tuple(stream.names) != tuple(model.labels):
         raise ValueError("stream label names differ from the model's labels")
-    return run_labeler(StreamLabeler(model, settings or LabelerSettings()), model.labels, stream, use_ids,
+    settings = settings or LabelerSettings()
+    return run_labeler(StreamLabeler(model, settings), model.labels, stream, use_ids,
                        keep_records, progress, done, total, scored=scored, take_votes_s=take_votes_s,
-                       take_pass=take_pass)
+                       take_pass=take_pass, restart_s=restart_s, fresh=lambda: StreamLabeler(model, settings))
 
 
 def run_labeler(labeler, labels: Sequence[str], stream: CorruptedStream, use_ids: bool = False,
                 keep_records: bool = True, progress: Progress | None = None, done: int = 0,
                 total: int | None = None, on_frame=None, scored: bool = True,
-                take_votes_s: float = 0.0, take_pass: bool = False) -> ClipRun:
+                take_votes_s: float = 0.0, take_pass: bool = False, restart_s: float = 0.0,
+                fresh: Callable[[], object] | None = None) -> ClipRun:
     """Run any labeler with the ``process`` interface (StreamLabeler, BankLabeler) over a
     corrupted stream and score it (``scored=False``: a take without names, nothing to score
     against; frames and latencies are still counted); ``on_frame(result)`` sees every frame's
@@ -110,12 +113,19 @@ def run_labeler(labeler, labels: Sequence[str], stream: CorruptedStream, use_ids
     the run's metrics score those, :attr:`ClipRun.causal` the labels as published live.
     ``take_pass`` (with take votes, single-model labelers): then every frame searched again at
     the take's heading and voted again (:mod:`~dtm_labeler.labeling.take_pass`); progress
-    counts its frames after the labeler's."""
+    counts its frames after the labeler's. ``restart_s`` > 0 with take votes and ``fresh`` (a
+    factory of new labelers like ``labeler``): before the votes, the take is labelled again
+    from fresh starts every ``restart_s`` seconds and each kept where it fits better
+    (:func:`restarted`; ``settings["restarts"]`` says what each did); :attr:`ClipRun.causal`
+    stays the first labeler's, as published live."""
     acc = MetricsAccumulator(labels, stream.rate)
     records: list[FrameRecord] = []
     revote = take_votes_s > 0
-    passing = revote and take_pass and len(getattr(labeler, "models", ())) == 1
-    total = len(stream) * (3 if passing else 1) if total is None else total       # the pass: two searches per frame
+    passing = revote and take_pass and len(getattr(labeler, "models", ())) == 1      # the pass: two searches per frame
+    windows = restart_windows(len(stream), stream.rate, restart_s) if revote and fresh is not None and \
+        restart_s > 0 else []
+    restart_frames = sum(stop - first for first, _, stop in windows)
+    total = total if total is not None else len(stream) * (3 if passing else 1) + restart_frames
     t_wall = time.perf_counter()
     for i, f in enumerate(stream):
         res = labeler.process(f.xyz, f.stamp, ids=f.ids if use_ids else None,
@@ -124,16 +134,15 @@ def run_labeler(labeler, labels: Sequence[str], stream: CorruptedStream, use_ids
         if on_frame is not None:
             on_frame(res)
         if keep_records or revote:
-            records.append(FrameRecord(
-                index=f.index, stamp=f.stamp, xyz=f.xyz, truth=f.truth, labels=res.labels,
-                confidence=res.confidence, track_ids=res.track_ids, search_labels=res.search_labels,
-                log_likelihood=res.log_likelihood, truth_fitness=res.truth_fitness, latency_ms=res.latency_ms,
-                full_search=res.full_search, generations=res.generations, evaluations=res.evaluations,
-                reset=res.reset, doubtful=bool(getattr(res, "doubtful", False)),
-                truth_prior=float(getattr(res, "truth_prior", 0.0))))
+            records.append(_record(f, res))
         if progress is not None:
             progress(done + i + 1, total)
     causal = voted = None
+    restarts = []
+    if windows:
+        restarts = restarted(records, stream, fresh, windows, use_ids, scored,
+                             None if progress is None else (lambda k: progress(done + len(stream) + k, total)))
+        done += restart_frames
     if revote:
         causal = acc
         acc = revoted(records, labels, stream.rate, take_votes_s, scored)
@@ -145,7 +154,69 @@ def run_labeler(labeler, labels: Sequence[str], stream: CorruptedStream, use_ids
     return ClipRun(source=stream.source, metrics=acc.metrics(), accumulator=acc,
                    records=records if keep_records else [],
                    settings=dict(stream.settings, use_ids=use_ids, wall_s=wall, scored=scored,
-                                 take_votes_s=take_votes_s, take_pass=passing), causal=causal, voted=voted)
+                                 take_votes_s=take_votes_s, take_pass=passing,
+                                 restart_s=restart_s if windows else 0.0, restarts=restarts),
+                   causal=causal, voted=voted)
+
+
+def _record(f, res) -> FrameRecord:
+    """The record of stream frame ``f`` labelled as ``res`` (a labeler's ``process`` result)."""
+    return FrameRecord(
+        index=f.index, stamp=f.stamp, xyz=f.xyz, truth=f.truth, labels=res.labels,
+        confidence=res.confidence, track_ids=res.track_ids, search_labels=res.search_labels,
+        log_likelihood=res.log_likelihood, truth_fitness=res.truth_fitness, latency_ms=res.latency_ms,
+        full_search=res.full_search, generations=res.generations, evaluations=res.evaluations,
+        reset=res.reset, doubtful=bool(getattr(res, "doubtful", False)),
+        truth_prior=float(getattr(res, "truth_prior", 0.0)))
+
+
+#: track ids of the ``k``-th fresh start's frames are offset by ``k`` times this (they are its own tracks)
+RESTART_TRACK_OFFSET = 1 << 40
+
+
+def restarted(records: list[FrameRecord], stream: CorruptedStream, make, windows, use_ids: bool = False,
+              scored: bool = True, progress: Callable[[int], None] | None = None,
+              min_gain_per_frame: float = MIN_GAIN_PER_FRAME) -> list[dict]:
+    """Fresh starts over a labelled take (:mod:`~dtm_labeler.labeling.take_restarts`), in place:
+    for each ``(first, start, stop)`` of ``windows`` a new labeler from ``make()`` is fed frames
+    ``first`` on, stopped where it agrees with ``records`` for ``REJOIN_FRAMES`` frames in a
+    row; its records from ``start`` to there (or to ``stop``) replace those of ``records`` when
+    they fit better by ``min_gain_per_frame`` (:func:`~dtm_labeler.labeling.take_restarts.fits_better`;
+    their track ids offset: its own tracks). ``progress(frames fed so far)``. Returns one dict per window:
+    ``start`` (s), ``kept``, ``rejoined`` (frame index or None), ``gain_per_frame`` (nats)."""
+    out, fed = [], 0
+    for k, (first, start, stop) in enumerate(windows, start=1):
+        fresh: list[FrameRecord] = []
+        run, rejoined = 0, None
+        with make() as labeler:
+            for i in range(first, stop):
+                f = stream[i]
+                res = labeler.process(f.xyz, f.stamp, ids=f.ids if use_ids else None,
+                                      truth=f.label_to_index if scored else None)
+                fed += 1
+                if progress is not None:
+                    progress(fed)
+                if i < start:
+                    continue
+                fresh.append(_record(f, res))
+                run = run + 1 if agrees(records[i].labels, res.labels) else 0
+                if run >= REJOIN_FRAMES:
+                    rejoined = i
+                    break
+        fed += stop - 1 - i
+        carried = [r.log_likelihood for r in records[start:start + len(fresh)]]
+        gain = (np.nansum([r.log_likelihood for r in fresh]) - np.nansum(carried)) / max(len(fresh), 1)
+        kept = fits_better([r.log_likelihood for r in fresh], carried, min_gain_per_frame)
+        if kept:
+            for j, r in enumerate(fresh):
+                r.track_ids = np.where(r.track_ids >= 0, r.track_ids + k * RESTART_TRACK_OFFSET, -1)
+                records[start + j] = r
+        out.append({"start_s": float(stream[start].stamp), "kept": bool(kept),
+                    "rejoined_s": None if rejoined is None else float(stream[rejoined].stamp),
+                    "gain_per_frame": float(gain)})
+    if progress is not None:
+        progress(fed)
+    return out
 
 
 def revoted(records: list[FrameRecord], labels: Sequence[str], rate: float, take_votes_s: float,
@@ -197,7 +268,7 @@ def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: Labeler
                    progress: Progress | None = None, use_ids: bool = False, gap_frames: float = 1.0,
                    keep_records: bool = True, done: int = 0, total: int | None = None,
                    extra: np.ndarray | None = None, named: bool = True, take_votes_s: float = 0.0,
-                   take_pass: bool = False, calibrate_s: float = 0.0,
+                   take_pass: bool = False, restart_s: float = 0.0, calibrate_s: float = 0.0,
                    calibration_progress: Progress | None = None,
                    fallback: TriangulatedModel | None = None) -> ClipRun:
     """:func:`label_clip` returning the full :class:`ClipRun`; ``extra`` (F, K, 3): the take's
@@ -217,7 +288,8 @@ def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: Labeler
         if fallback is not None and not calibration["applied"]:
             model = fallback
     run = run_stream(model, stream, settings, use_ids=use_ids, keep_records=keep_records, progress=progress,
-                     done=done, total=total, scored=named, take_votes_s=take_votes_s, take_pass=take_pass)
+                     done=done, total=total, scored=named, take_votes_s=take_votes_s, take_pass=take_pass,
+                     restart_s=restart_s)
     if calibration is not None:
         run.settings["calibration"] = calibration
     return run
