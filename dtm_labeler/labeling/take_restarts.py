@@ -10,7 +10,7 @@ the model of the gapped first half; the whole second half, 2960 frames): gap dra
 labelled 96-98 % right per 300 frames up to frame 1200, then 77, 39, 75, 26, 2 and 4 % -- the
 true labeling fitting 100-150 nats per frame above the published one from there on, with no
 full search in the last 1800 frames -- while a labeler started afresh at frame 2100 labelled the
-same frames 87-95 % right. The model tells the two apart as soon as the comparison is over a
+same frames 86-95 % right. The model tells the two apart as soon as the comparison is over a
 long stretch instead of one frame: summed over the frames after a restart point, the lost
 labeling fits 93-141 nats per frame below the fresh start's.
 
@@ -25,7 +25,9 @@ log-likelihood under the same model and background, the fitness of eq. 14 and 18
 markers marginalised as eq. 30-31, so the two are comparable frame by frame) -- on a take the
 model holds, fresh starts rejoin within a second and nothing changes; where the carried
 labeling found its way back by itself, the fresh start's frames before that are kept when
-they fit better. It is the Ukita-style comparison of hypotheses by their likelihood
+they fit better. Measured, ``benchmarks/bench_restarts.py`` (the whole gapped second halves,
+``dtm-label``'s default, gap draws 1-6): 86.20 -> 94.01 %, every draw higher (draw 4 62.17 ->
+93.84 %). It is the Ukita-style comparison of hypotheses by their likelihood
 (several models at once, ``001``), here several starts of one model over time.
 """
 from __future__ import annotations
@@ -46,9 +48,10 @@ REJOIN_FRAMES = 30
 REJOIN_SHARE = 0.95
 #: nats per frame by which a fresh start must fit better, summed over its frames, to be kept: about
 #: two markers' worth (a seen HDM05 marker adds ~10 nats). Measured on the whole gapped HDM05 halves
-#: (draws 1-6, fresh starts every 5 s, live labels of the fresh start against the carried ones over the
-#: same frames): 10 of 10 starts that fit better by over 30 nats per frame were more accurate (by 3-77
-#: points), those by 10-30 mostly (8 of 10, -1.8 to +10), those by under 10 as often less (-5.0 to +4.8)
+#: (draws 1-4 under the model of the whole gapped first half, 1-5 under one of its last 600 frames; a
+#: fresh start every 5 s; its live labels against the carried ones over the same frames): of the starts
+#: that fit better by over 30 nats per frame 10 of 10 were more accurate (+3 to +77 points), by 10-30
+#: 8 of 10 (-1.8 to +10), by under 10 1 of 6 (-5.0 to +4.8) (``results/take_restarts.md``)
 MIN_GAIN_PER_FRAME = 20.0
 
 
