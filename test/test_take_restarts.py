@@ -92,9 +92,15 @@ def test_fresh_starts_rejoin_a_labeling_that_holds(gappy_upper, data_dir):
     model, _ = gappy_upper
     part = load_clip(data_dir / HDM).select(UPPER).slice(1200, 1680)
     plain = label_clip_run(model, part, LabelerSettings(), keep_records=True, take_votes_s=1.0)
-    run = label_clip_run(model, part, LabelerSettings(), keep_records=True, take_votes_s=1.0, restart_s=1.0)
+    calls = []
+    run = label_clip_run(model, part, LabelerSettings(), keep_records=True, take_votes_s=1.0, restart_s=1.0,
+                         progress=lambda done, total: calls.append((done, total)))
     starts = run.settings["restarts"]
     assert len(starts) == 3 and not any(s["kept"] for s in starts)
+    # one progress count over the first labeler's frames and the fresh starts', stopped ones counted whole
+    done = [d for d, _ in calls]
+    fed = sum(stop - first for first, _, stop in restart_windows(part.n_frames, part.rate, 1.0))
+    assert done == sorted(done) and calls[-1][0] == calls[-1][1] == part.n_frames + fed
     assert all(s["rejoined_s"] is not None and s["rejoined_s"] - s["start_s"] < (REJOIN_FRAMES + 5) / part.rate
                for s in starts)
     assert all(np.array_equal(a.labels, b.labels) for a, b in zip(plain.records, run.records))

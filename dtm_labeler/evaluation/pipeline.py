@@ -182,8 +182,9 @@ def restarted(records: list[FrameRecord], stream: CorruptedStream, make, windows
     ``first`` on, stopped where it agrees with ``records`` for ``REJOIN_FRAMES`` frames in a
     row; its records from ``start`` to there (or to ``stop``) replace those of ``records`` when
     they fit better by ``min_gain_per_frame`` (:func:`~dtm_labeler.labeling.take_restarts.fits_better`;
-    their track ids offset: its own tracks). ``progress(frames fed so far)``. Returns one dict per window:
-    ``start`` (s), ``kept``, ``rejoined`` (frame index or None), ``gain_per_frame`` (nats)."""
+    their track ids offset: its own tracks). ``progress(frames so far)``, a stopped start's
+    frames counted as fed. Returns one dict per window: ``start_s`` and ``rejoined_s`` (stamps;
+    None: it never agreed), ``kept``, ``gain_per_frame`` (nats)."""
     out, fed = [], 0
     for k, (first, start, stop) in enumerate(windows, start=1):
         fresh: list[FrameRecord] = []
@@ -193,9 +194,8 @@ def restarted(records: list[FrameRecord], stream: CorruptedStream, make, windows
                 f = stream[i]
                 res = labeler.process(f.xyz, f.stamp, ids=f.ids if use_ids else None,
                                       truth=f.label_to_index if scored else None)
-                fed += 1
                 if progress is not None:
-                    progress(fed)
+                    progress(fed + i - first + 1)
                 if i < start:
                     continue
                 fresh.append(_record(f, res))
@@ -203,7 +203,7 @@ def restarted(records: list[FrameRecord], stream: CorruptedStream, make, windows
                 if run >= REJOIN_FRAMES:
                     rejoined = i
                     break
-        fed += stop - 1 - i
+        fed += stop - first
         carried = [r.log_likelihood for r in records[start:start + len(fresh)]]
         gain = (np.nansum([r.log_likelihood for r in fresh]) - np.nansum(carried)) / max(len(fresh), 1)
         kept = fits_better([r.log_likelihood for r in fresh], carried, min_gain_per_frame)
