@@ -115,9 +115,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--restarts", type=float, default=RESTART_S, metavar="SECONDS",
                    help="offline (with --take-votes > 0, single model): the take is labelled again from a fresh "
                         "start every SECONDS of it, each kept from its restart point to the next where its labels "
-                        "fit the model better summed over those frames, so a labeling lost for good (many markers "
-                        "hidden at once) is not carried to the end of the take; a fresh start that agrees with the "
-                        "carried labels is stopped at once (0: none; the JSON's 'restarts' says what each did)")
+                        "fit the model better summed over those frames (by over 20 nats per frame), so a labeling "
+                        "lost for good (many markers hidden at once) is not carried to the end of the take; a fresh "
+                        "start that agrees with the carried labels for 30 frames is stopped there (0: none; the "
+                        "JSON's 'restarts' says what each did)")
     p.add_argument("--json", action="store_true", help="print one JSON object with the scores")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
