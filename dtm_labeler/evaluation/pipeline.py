@@ -29,7 +29,7 @@ from .corruption import CorruptedStream, corrupt_clip
 from .metrics import Metrics, MetricsAccumulator
 from ..labeling.stream import LabelerSettings, StreamLabeler
 from ..labeling.take_pass import take_pass as second_pass
-from ..labeling.take_restarts import MIN_GAIN_PER_FRAME, REJOIN_FRAMES, agrees, fits_better, restart_windows
+from ..labeling.take_restarts import MIN_GAIN_PER_FRAME, REJOIN_FRAMES, agrees, gain_per_frame, restart_windows
 from ..labeling.take_votes import take_votes
 from ..model.dtm import TriangulatedModel
 from ..motion.clip import MotionClip
@@ -204,9 +204,9 @@ def restarted(records: list[FrameRecord], stream: CorruptedStream, make, windows
                     rejoined = i
                     break
         fed += stop - first
-        carried = [r.log_likelihood for r in records[start:start + len(fresh)]]
-        gain = (np.nansum([r.log_likelihood for r in fresh]) - np.nansum(carried)) / max(len(fresh), 1)
-        kept = fits_better([r.log_likelihood for r in fresh], carried, min_gain_per_frame)
+        gain = gain_per_frame([r.log_likelihood for r in fresh],
+                              [r.log_likelihood for r in records[start:start + len(fresh)]])
+        kept = gain > min_gain_per_frame
         if kept:
             for j, r in enumerate(fresh):
                 r.track_ids = np.where(r.track_ids >= 0, r.track_ids + k * RESTART_TRACK_OFFSET, -1)

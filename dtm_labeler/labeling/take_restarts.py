@@ -35,7 +35,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["RESTART_S", "LEAD_S", "REJOIN_FRAMES", "REJOIN_SHARE", "MIN_GAIN_PER_FRAME",
-           "restart_windows", "agrees", "fits_better"]
+           "restart_windows", "agrees", "gain_per_frame", "fits_better"]
 
 #: dtm-label's default: a fresh start every this many seconds of a take (``--restarts``)
 RESTART_S = 10.0
@@ -78,13 +78,19 @@ def agrees(carried: np.ndarray, fresh: np.ndarray, share: float = REJOIN_SHARE) 
     return float((carried[either] == fresh[either]).mean()) >= share
 
 
-def fits_better(fresh_loglik: np.ndarray, carried_loglik: np.ndarray,
-                min_gain_per_frame: float = MIN_GAIN_PER_FRAME) -> bool:
-    """Whether a fresh start's published labelings fit better than the carried ones over the
-    same frames: summed log-likelihood (frames either leaves unscored, NaN, count 0) higher by
-    more than ``min_gain_per_frame`` nats per frame."""
+def gain_per_frame(fresh_loglik: np.ndarray, carried_loglik: np.ndarray) -> float:
+    """Nats per frame by which a fresh start's published labelings fit better than the carried
+    ones over the same frames (summed log-likelihood; frames either leaves unscored, NaN, count
+    0); NaN when the two are not over the same (non-empty) frames."""
     f = np.nan_to_num(np.asarray(fresh_loglik, dtype=float), nan=0.0)
     c = np.nan_to_num(np.asarray(carried_loglik, dtype=float), nan=0.0)
     if f.size != c.size or not f.size:
-        return False
-    return float(f.sum() - c.sum()) > min_gain_per_frame * f.size
+        return float("nan")
+    return float(f.sum() - c.sum()) / f.size
+
+
+def fits_better(fresh_loglik: np.ndarray, carried_loglik: np.ndarray,
+                min_gain_per_frame: float = MIN_GAIN_PER_FRAME) -> bool:
+    """Whether a fresh start fits better than the carried labelings by more than
+    ``min_gain_per_frame`` nats per frame (:func:`gain_per_frame`)."""
+    return bool(gain_per_frame(fresh_loglik, carried_loglik) > min_gain_per_frame)
