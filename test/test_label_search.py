@@ -366,3 +366,42 @@ def test_exhaustive_refuses_huge_problems(model):
     s = np.c_[np.random.default_rng(0).normal(size=(30, 3)), np.zeros((30, 3))]
     with pytest.raises(ValueError, match="too large"):
         ExhaustiveSearch(max_candidates=1000).search(FrameProblem(model, s, Background()), None)
+
+
+# ---------------------------------------------------------------- transfers (published confidence)
+def test_transfer_moves_hand_a_labelled_point_to_an_allowed_hidden_label():
+    """label_search.transfer_moves: each given label hands its point to a missing label the bounds
+    allow there and is left missing itself; nothing else changes, nothing disallowed appears."""
+    from dtm_labeler.search.label_search import transfer_moves
+    n = 4
+    ind = np.array([0, 1, n, 2, n])                  # labels 2 and 4 hidden, point 3 free
+    allowed = np.zeros((5, n + 1), dtype=bool)
+    allowed[:, n] = True
+    allowed[2, [0, 1]] = True                        # label 2 may take label 0's or label 1's point
+    allowed[4, 2] = True                             # label 4 may take label 3's point
+    rows = transfer_moves(ind, n, np.array([0, 3]), allowed)
+    got = {tuple(r) for r in rows}
+    assert got == {(n, 1, 0, 2, n), (0, 1, n, n, 2)}
+    assert transfer_moves(ind, n, np.array([1]), np.ones((5, n + 1), bool)).shape == (2, 5)
+    assert transfer_moves(np.arange(5), 5, np.array([0]), np.ones((5, 6), bool)).shape == (0, 5)   # none hidden
+
+
+def test_a_transfer_lowers_the_published_posterior_only(model, frames):
+    """confidence.label_posteriors: a transfer that fits as well as the labeling halves the published
+    posterior of the label it moves; the strict one (what a calibration confirms by) is unchanged."""
+    from dtm_labeler.labeling.confidence import label_posteriors
+    states, truth = frames[0]
+    problem = FrameProblem(model, states, Background())
+    n = problem.n
+    ind = truth.copy()
+    ind[1] = n                                       # a hidden label
+    fit = float(problem.fitness(ind[None])[0])
+    moved = ind.copy()
+    moved[1], moved[0] = ind[0], n                   # label 0's point read as label 1
+    pub, strict = label_posteriors(problem, ind, fit, np.zeros((0, ind.size), int), 3.0)
+    pub_t, strict_t = label_posteriors(problem, ind, fit, np.zeros((0, ind.size), int), 3.0,
+                                       transfers=(moved[None], np.array([fit]), np.zeros(1)))
+    assert np.allclose(strict_t, strict, equal_nan=True)
+    assert pub_t[0] < pub[0] and np.isclose(1 / pub_t[0], 1 / pub[0] + 1.0)
+    others = np.flatnonzero((ind < n) & (np.arange(ind.size) != 0))
+    assert np.allclose(pub_t[others], pub[others])

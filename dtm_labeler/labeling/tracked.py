@@ -1320,7 +1320,8 @@ class TrackedLabeler(FastPath):
         if not doubtful:
             self.clutter.update(search_labels)
         post, strict = label_posteriors(problem, assignment, best.fitness, alt, self.settings.confidence_temperature,
-                                        f_alt, alt_prior, self.clutter.odds)
+                                        f_alt, alt_prior, self.clutter.odds,
+                                        self._transfer_alternatives(problem, assignment, prior))
         post_point, strict_point = np.full(n, np.nan), np.full(n, np.nan)
         post_point[assign[present]] = post[present]
         strict_point[assign[present]] = strict[present]

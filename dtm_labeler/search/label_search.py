@@ -220,6 +220,25 @@ def cluster_turns(ind: np.ndarray, n: int, clusters) -> np.ndarray:
     return np.concatenate(blocks) if blocks else np.zeros((0, ind.size), dtype=np.int64)
 
 
+def transfer_moves(ind: np.ndarray, n: int, labels: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+    """(K, M) each of ``labels`` (labelled in ``ind``) handing its point to a missing label that
+    ``allowed`` (M, n+1; :meth:`FrameProblem.allowed`) permits there, itself left missing: the
+    one move that reads a point as the hidden marker next to the one it was labelled as. Not a
+    move of the searches (taken, it followed the model's own preferences, ``results/search_errors.md``);
+    the published confidence weighs it (:func:`~dtm_labeler.labeling.confidence.label_posteriors`)."""
+    ind = _int64(ind)
+    labels = _int64(labels)
+    missing = np.flatnonzero(ind >= n)
+    if not missing.size or not labels.size:
+        return np.zeros((0, ind.size), dtype=np.int64)
+    to, frm = np.nonzero(allowed[missing[:, None], ind[labels][None, :]])
+    rows = np.repeat(ind[None], to.size, axis=0)
+    k = np.arange(to.size)
+    rows[k, missing[to]] = ind[labels[frm]]
+    rows[k, labels[frm]] = n
+    return rows
+
+
 @functools.lru_cache(maxsize=None)
 def _arrangements(k: int) -> np.ndarray:
     """(k! - 1, k) every order of ``range(k)`` but the identity (built once per size)."""
