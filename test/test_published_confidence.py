@@ -180,9 +180,7 @@ def test_a_label_on_a_young_track_is_weighed_against_the_hidden_marker_beside_it
     fraction of a second and a point is often read as the hidden marker next to its own. The
     published confidence now weighs that reading (the label handed to the hidden one) for labels
     their track has carried for under ``hold_s``: labels unchanged, fewer wrong ones published as
-    sure, and the confidence closer to what the labels are worth (the doubt's decay left out: the
-    test below)."""
-    monkeypatch.setattr(confidence, "DOUBT_DECAY_S", np.inf)
+    sure, and the confidence closer to what the labels are worth."""
     labels, conf, right = _half_hidden(hdm05_calibrated, hdm05_take)
     monkeypatch.setattr(FastPath, "_transfer_alternatives", lambda self, *a, **k: None)
     labels_before, conf_before, right_before = _half_hidden(hdm05_calibrated, hdm05_take)
@@ -192,32 +190,3 @@ def test_a_label_on_a_young_track_is_weighed_against_the_hidden_marker_beside_it
     assert sure_and_wrong < 0.6 * sure_and_wrong_before                          # 211 against 471
     assert _ece(conf, right) < 0.75 * _ece(conf_before, right)                  # 9.8 against 15.8 %
     assert abs(conf.mean() - right.mean()) < abs(conf_before.mean() - right.mean())
-
-
-def test_a_labeling_doubted_for_long_loses_its_confidence(hdm05_calibrated, hdm05_take, monkeypatch):
-    """confidence.DOUBT_DECAY_S: every frame the fast path doubts and no search vouches for is
-    evidence against the carried labeling; a doubted frame's confidence falls with the time since
-    the last vouched one. On the half-hidden stream the labels of long doubted runs are right less
-    often (85 % outside them, 58 % after 60 frames) but went out as sure as the rest: now fewer
-    wrong labels are published as sure and the confidence is closer to the labels' worth. Labels
-    unchanged."""
-    labels, conf, right = _half_hidden(hdm05_calibrated, hdm05_take)
-    monkeypatch.setattr(confidence, "DOUBT_DECAY_S", np.inf)
-    labels_before, conf_before, right_before = _half_hidden(hdm05_calibrated, hdm05_take)
-    assert labels_before == labels and np.array_equal(right_before, right)
-    assert (conf <= conf_before + 1e-12).all()                                  # it only ever lowers
-    assert ((conf >= 0.9) & (right == 0)).sum() < 0.7 * ((conf_before >= 0.9) & (right == 0)).sum()   # 116 / 211
-    assert abs(conf.mean() - right.mean()) < 0.6 * abs(conf_before.mean() - right.mean())    # 0.035 / 0.078
-    assert _ece(conf, right) < 0.75 * _ece(conf_before, right)                  # 6.2 against 9.8 %
-
-
-def test_the_doubt_decays_by_e_per_decay_time():
-    """confidence.published_confidence: a doubted labeling's confidences times exp(-doubted_s / DOUBT_DECAY_S),
-    besides the halving; nothing changes at 0 s."""
-    post = np.array([0.9, 0.6, np.nan])
-    search, pub, share = np.array([0, 1, -1]), np.array([0, 1, -1]), np.array([1.0, 0.8, 0.0])
-    base = confidence.published_confidence(post, search, pub, share, doubtful=True)
-    assert np.array_equal(confidence.published_confidence(post, search, pub, share, True, doubted_s=0.0), base)
-    later = confidence.published_confidence(post, search, pub, share, True, doubted_s=confidence.DOUBT_DECAY_S)
-    np.testing.assert_allclose(later, base * np.exp(-1.0))
-    assert later[2] == 0.0

@@ -98,25 +98,6 @@ tracks live a fraction of a second, the labels published as sure were wrong that
 half-hidden 41-marker stream's ECE 11-12 -> 6.5-7.3 % inline, 12.4 -> 10.0 % in the background; the
 standard streams' within 0.05 points; labels unchanged.
 
-**A labeling doubted for long is probably lost.** Each frame the fast path doubts (it fits below the
-running level) and no search's result vouches for is evidence against the carried labeling; the
-confidence of a doubted frame falls with the time since the last vouched frame,
-``exp(-doubted_s / DOUBT_DECAY_S)`` (1 s), on top of the halving (or the pattern's pardon). Measured
-with half of HDM05's 41 markers hidden (the whole gapped second half, 2960 frames, the gapped first
-half's model, background recovery): with the real worker, draws 1, 4 and 6, the labels of frames
-not doubted were 79 % right at 0.88, those 1-11 frames into a doubted run 60 % at 0.75, 12-35 frames
-43 % at 0.67, 36-59 frames 26 % at 0.59, later 11-20 % at 0.40-0.54 -- a labeling lost under the
-occlusions went out at half certainty for seconds. With the worker made deterministic
-(``DeferredRecovery``, results 25 frames after the request; labels the same both ways), ECE over
-the six gap draws 14.7 / 17.0 / 15.7 / 24.0 / 24.2 / 27.4 -> 10.0 / 11.2 / 8.9 / 13.5 / 11.0 / 10.5 %
-(mean 20.5 -> 10.9; 0.5 s: 11.2, 2 s: 11.6). How fast a doubted labeling is lost depends on the
-model: under the take's own calibrated model (``test_published_confidence.py``'s half-hidden
-stream) doubted runs stay right longer (85 % right outside them, 81 % 12-35 frames in, 58 % after
-60), and there the ECE went 9.8 -> 6.2 % (0.5 s: 14.0, 2 s: 4.6) -- 1 s serves both. The standard
-background streams (``bench_stream_latency``, seeds 1-3, 14 points and 41 markers, clean / gaps +
-ghosts / flicker + ghosts) 0.01 / 1.05 / 0.77 / 0.48 / 1.54 / 0.68 -> 0.01 / 1.04 / 0.77 / 0.69 /
-1.05 / 0.99 % (runs of the real worker; their labels differ run to run): they doubt a frame now and
-then, never for long. The strict confirmation a calibration reads is left as it was.
 **A cold start's interim labeling the model scores as lost** is published at confidence 0. Until a
 search has vouched for a frame since the stream began (or was reset), a background search's interim
 result -- its best so far, the GA's first generation refined -- labels the frames; when that labeling
@@ -188,8 +169,6 @@ from ..search.problem import FrameProblem
 
 #: ratio by which a doubtful frame's confidences are lowered
 DOUBTFUL_FACTOR = 0.5
-#: seconds over which the confidence of a labeling doubted since the last vouched frame falls by e
-DOUBT_DECAY_S = 1.0
 #: nats per labelled point below the model's training fit that a right labeling shows, and the
 #: scale of the confidence fall beyond it
 FIT_SLACK, FIT_SCALE = 6.0, 15.0
@@ -307,14 +286,12 @@ def _weight(f: np.ndarray, fit: float, temperature: float) -> np.ndarray:
 
 def published_confidence(posterior_of_point: np.ndarray, search_labels: np.ndarray, published: np.ndarray,
                          vote_share: np.ndarray, doubtful: bool, fit_deficit: float = 0.0,
-                         power: float = CONFIDENCE_POWER, lost: bool = False, doubted_s: float = 0.0) -> np.ndarray:
+                         power: float = CONFIDENCE_POWER, lost: bool = False) -> np.ndarray:
     """(n,) confidence of each point's published label (module doc): ``posterior_of_point``
     the search's local posterior for the label it gave the point (NaN if none);
     ``fit_deficit`` nats per labelled point below the model's training fit; ``power`` the
     tempering (:data:`CONFIDENCE_POWER`; :data:`CONFIRMATION_POWER` for the confirmation);
-    ``lost``: a cold start's unvouched labeling the model scores as lost (module doc) -- 0;
-    ``doubted_s``: how long the labeling has gone without a frame a search vouched for (module
-    doc: every confidence times ``exp(-doubted_s / DOUBT_DECAY_S)``)."""
+    ``lost``: a cold start's unvouched labeling the model scores as lost (module doc) -- 0."""
     if lost:
         return np.zeros(len(published))
     p = np.where(np.isnan(posterior_of_point), 0.0, posterior_of_point)
@@ -322,10 +299,8 @@ def published_confidence(posterior_of_point: np.ndarray, search_labels: np.ndarr
     fit = float(np.exp(-max(fit_deficit - FIT_SLACK, 0.0) / FIT_SCALE)) if np.isfinite(fit_deficit) else 1.0
     conf = np.clip(np.where(agree, p, 1.0 - p) * vote_share * fit, 0.0, 1.0) ** power
     conf = np.where(published >= 0, conf, 0.0)
-    if doubted_s > 0:
-        conf = conf * float(np.exp(-doubted_s / DOUBT_DECAY_S))
     return conf * DOUBTFUL_FACTOR if doubtful else conf
 
 
-__all__ = ["ClutterShare", "label_posteriors", "unlabelled_posteriors", "published_confidence", "CONFIDENCE_POWER", "CONFIRMATION_POWER", "CONFIRMED", "DOUBTFUL_FACTOR", "DOUBT_DECAY_S",
+__all__ = ["ClutterShare", "label_posteriors", "unlabelled_posteriors", "published_confidence", "CONFIDENCE_POWER", "CONFIRMATION_POWER", "CONFIRMED", "DOUBTFUL_FACTOR",
            "FIT_SLACK", "FIT_SCALE"]

@@ -361,7 +361,6 @@ class TrackedLabeler(FastPath):
         self._stream_start = None                  # stamp of the first frame since the reset (its tracks are not young)
         self._provisional = False
         self._vouched = False                      # a frame published since the reset that a search vouched for
-        self._vouched_stamp = None                 # the stamp of the last frame a search vouched for
         self.clutter = ClutterShare()              # the share of points the searches leave unlabelled (confidence)
         self._epoch = getattr(self, "_epoch", 0) + 1   # results of searches asked before are dropped
         self._last_search_stamp = None
@@ -1347,9 +1346,8 @@ class TrackedLabeler(FastPath):
             post_pub = np.where(np.isnan(post_point), p_free, post_point)
         else:
             post_pub = post_point
-        doubted_s = self.last_stamp - self._vouched_stamp if doubtful and self._vouched_stamp is not None else 0.0
         conf = published_confidence(post_pub, search_labels, pub, share, doubtful and not pattern_fit,
-                                    0.0 if calibrated else deficit, lost=unvouched_lost, doubted_s=doubted_s)
+                                    0.0 if calibrated else deficit, lost=unvouched_lost)
         confirmation = published_confidence(strict_point, search_labels, pub, share, doubtful, deficit,
                                             CONFIRMATION_POWER)
         # the next frame starts from this frame's search result, not from the votes: a
@@ -1362,7 +1360,6 @@ class TrackedLabeler(FastPath):
         self.tenure.update(upd.track_ids, search_labels, upd.lost, self.last_stamp)
         if not doubtful:
             self._vouched = True
-            self._vouched_stamp = self.last_stamp
             self.cluster_evidence.measure(problem, assignment, upd.track_ids, began, self.last_stamp)
         self.track_label = {t: lab for t, lab in self.track_label.items()
                             if t not in seen and t not in lost and lab not in taken}
