@@ -6,6 +6,7 @@ confidence leaves the fit factor out:
 * a label the votes keep on a point the frame's own search left unlabelled is not published as sure;
 * a label the model would rather leave unseen is weighed by how much clutter the stream shows;
 * a frame doubted for the markers it cannot show (half of them hidden) keeps the confidence its labels earn.
+* a label on a young track is weighed against the hidden marker beside it (half of them hidden).
 
 For the cold start, background recovery is made deterministic (``DeferredRecovery`` handing out the
 search's first interim result two frames after the request, the final one later; 3 flickering + 2
