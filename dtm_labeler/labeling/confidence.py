@@ -233,17 +233,16 @@ def label_posteriors(problem: FrameProblem, ind: np.ndarray, fit: float, alterna
     f_rel = problem.fitness(rel)
     if len(alternatives):
         f_alt = problem.fitness(alternatives) if fitness is None else np.asarray(fitness, dtype=float)
-        changed = alternatives != ind[None]
-        keep = changed.any(1)
-        odds = changed[keep].T.astype(float) @ _weight(f_alt[keep], fit, temperature)
+        keep = (alternatives != ind[None]).any(1)
+        odds = _label_odds(alternatives[keep], ind, f_alt[keep], fit, temperature)
         odds_pub = odds if prior is None else \
-            changed[keep].T.astype(float) @ _weight(f_alt[keep] - np.asarray(prior)[keep], fit, temperature)
+            _label_odds(alternatives[keep], ind, f_alt[keep] - np.asarray(prior)[keep], fit, temperature)
     else:
         odds = odds_pub = np.zeros(M)
     if transfers is not None and len(transfers[0]):
         rows, f_rows, p_rows = transfers
-        odds_pub = odds_pub + (rows != ind[None]).T.astype(float) @ _weight(
-            np.asarray(f_rows, dtype=float) - np.asarray(p_rows, dtype=float), fit, temperature)
+        odds_pub = odds_pub + _label_odds(rows, ind, np.asarray(f_rows, dtype=float) - np.asarray(p_rows, dtype=float),
+                                          fit, temperature)
     w_rel = _weight(f_rel, fit, temperature)                             # one release per labelled label
     published, strict = np.full(M, np.nan), np.full(M, np.nan)
     published[have] = 1.0 / (1.0 + odds_pub[have] + np.minimum(w_rel * clutter_odds, 1.0))
@@ -277,6 +276,11 @@ def unlabelled_posteriors(problem: FrameProblem, ind: np.ndarray, fit: float, al
     np.add.at(odds, alts[rows, cols], _weight(f_alt[rows], fit, temperature))
     out[free[:n]] = 1.0 / (1.0 + odds[:n][free[:n]])
     return out
+
+
+def _label_odds(rows: np.ndarray, ind: np.ndarray, f: np.ndarray, fit: float, temperature: float) -> np.ndarray:
+    """(M,) per label, the summed odds against ``ind`` (:func:`_weight`) of the ``rows`` (A, M) that change it."""
+    return (np.asarray(rows) != ind[None]).T.astype(float) @ _weight(f, fit, temperature)
 
 
 def _weight(f: np.ndarray, fit: float, temperature: float) -> np.ndarray:
