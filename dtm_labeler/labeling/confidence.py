@@ -233,15 +233,18 @@ def label_posteriors(problem: FrameProblem, ind: np.ndarray, fit: float, alterna
     f_rel = problem.fitness(rel)
     if len(alternatives):
         f_alt = problem.fitness(alternatives) if fitness is None else np.asarray(fitness, dtype=float)
-        keep = (alternatives != ind[None]).any(1)
-        odds = _label_odds(alternatives[keep], ind, f_alt[keep], fit, temperature)
+        changed = alternatives != ind[None]
+        keep = changed.any(1)
+        changed = changed[keep]
+        odds = _label_odds(changed, f_alt[keep], fit, temperature)
         odds_pub = odds if prior is None else \
-            _label_odds(alternatives[keep], ind, f_alt[keep] - np.asarray(prior)[keep], fit, temperature)
+            _label_odds(changed, f_alt[keep] - np.asarray(prior)[keep], fit, temperature)
     else:
         odds = odds_pub = np.zeros(M)
     if transfers is not None and len(transfers[0]):
         rows, f_rows, p_rows = transfers
-        odds_pub = odds_pub + _label_odds(rows, ind, np.asarray(f_rows, dtype=float) - np.asarray(p_rows, dtype=float),
+        odds_pub = odds_pub + _label_odds(np.asarray(rows) != ind[None],
+                                          np.asarray(f_rows, dtype=float) - np.asarray(p_rows, dtype=float),
                                           fit, temperature)
     w_rel = _weight(f_rel, fit, temperature)                             # one release per labelled label
     published, strict = np.full(M, np.nan), np.full(M, np.nan)
@@ -278,9 +281,10 @@ def unlabelled_posteriors(problem: FrameProblem, ind: np.ndarray, fit: float, al
     return out
 
 
-def _label_odds(rows: np.ndarray, ind: np.ndarray, f: np.ndarray, fit: float, temperature: float) -> np.ndarray:
-    """(M,) per label, the summed odds against ``ind`` (:func:`_weight`) of the ``rows`` (A, M) that change it."""
-    return (np.asarray(rows) != ind[None]).T.astype(float) @ _weight(f, fit, temperature)
+def _label_odds(changed: np.ndarray, f: np.ndarray, fit: float, temperature: float) -> np.ndarray:
+    """(M,) per label, the summed odds (:func:`_weight`) of the alternatives (rows of ``changed``,
+    (A, M): which labels each moves) that change it."""
+    return changed.T.astype(float) @ _weight(f, fit, temperature)
 
 
 def _weight(f: np.ndarray, fit: float, temperature: float) -> np.ndarray:
