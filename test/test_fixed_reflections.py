@@ -36,7 +36,10 @@ def test_fixed_reflections_do_not_take_hidden_markers_labels(data_dir):
     volume (two draws of them pooled). Uniform clutter -> the default, measured once the
     reflections have rested 2.5 s: 60.47 -> 95.71 % right, reflections left unlabelled 25.2 ->
     95.7 % (over the whole stream 64.22 -> 86.81 %; with half of the samples hidden 54.16 -> 60.07
-    %; the instantaneous form, every still point paying: 87.75 % over the stream)."""
+    %; the instantaneous form, every still point paying: 87.75 % over the stream). Since the
+    level of a heavily hidden stream is set again with velocities (``tracked.UNTAUGHT_WEIGHT``)
+    the uniform clutter's searches find more of it: 78.72 -> 95.90 % right, 57.6 -> 97.0 %
+    left unlabelled."""
     clip = to_point_set(load_clip(data_dir / "markers_c3d/hdm05_bd_05-01_01_120.c3d"), "all")
     rng = np.random.default_rng(5)
     sub = clip.select([clip.names[i] for i in sorted(rng.choice(clip.n_points, 22, replace=False))])
@@ -67,4 +70,4 @@ def test_fixed_reflections_do_not_take_hidden_markers_labels(data_dir):
     print(score)
     accuracy, rejected = score["default"]
     assert accuracy >= 0.92 and rejected >= 0.7
-    assert accuracy - score["uniform"][0] >= 0.2
+    assert accuracy - score["uniform"][0] >= 0.12 and rejected - score["uniform"][1] >= 0.25

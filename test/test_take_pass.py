@@ -63,14 +63,16 @@ def test_take_heading_holds_where_the_frames_own_pairs_do_not(hdm41):
 
 def test_second_pass_lifts_a_half_hidden_take(data_dir):
     """12 upper-body HDM05 markers, half hidden (real-looking gaps), model of another part of
-    the take: live 51 %, votes over +-1 s 62 %, then the second pass 71 % (measured)."""
+    the take: live 51 %, votes over +-1 s 62 %, then the second pass 71 % (measured); since a
+    heavily hidden stream's level is set again with velocities (``tracked.UNTAUGHT_WEIGHT``)
+    live 73 %, votes 77 %, the pass 81 %."""
     clip = _gapped(load_clip(data_dir / HDM).select(UPPER), 0.5)
     model, _ = train_model([clip.slice(1200, 2400)], TrainConfig(seed=0, k_max=2, structure="greedy"))
     part = clip.slice(2760, 3120)
     second = label_clip_run(model, part, LabelerSettings(), keep_records=True, take_votes_s=1.0, take_pass=True)
     votes = second.voted.metrics()                 # the take-voted labels before the pass
     assert second.settings["take_pass"] and second.settings["take_votes_s"] == 1.0
-    assert second.metrics.accuracy > votes.accuracy + 0.05 and votes.accuracy > second.causal.metrics().accuracy + 0.05
+    assert second.metrics.accuracy > votes.accuracy + 0.03 and votes.accuracy > second.causal.metrics().accuracy + 0.03
     # the records carry the labels of the pass (what a labelled capture is written from)
     right = sum(int((r.labels == r.truth)[r.truth >= 0].sum()) for r in second.records)
     assert right / sum(int((r.truth >= 0).sum()) for r in second.records) == pytest.approx(second.metrics.accuracy)
