@@ -3,7 +3,7 @@ other end of a bar pays a fixed factor per row, a missing point drops it, the tr
 rows from real takes (the wrist bars: the shoulder and upper-arm markers lie nearer the radial
 end), they hold in another lab's takes of other motions, only calibrated bodies apply them, a
 calibration keeps the rows the person's frames do not reverse, and model files keep them
-(format 6; format 5 files load without). On the same real bodies: the reach limits that run
+(format 6; format 5 files load without), and the take pass's rows from the bar's side (format 9). On the same real bodies: the reach limits that run
 between two limbs held still in the training stay on the DTM's edges (format 8)."""
 from dataclasses import replace
 
@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from dtm_labeler.evaluation.generalisation import CASES, calibration_frames, case_clips, train_case_model, train_config
 from dtm_labeler.evaluation.pipeline import label_clip_run, model_clip
+from dtm_labeler.labeling.bar_flips import take_bar_orders
 from dtm_labeler.labeling.config import LabelerSettings
 from dtm_labeler.model.body import ORDER_NATS, BarOrder, BodyModel, CrossSegments, quads_off_ordered_bars
 from dtm_labeler.model.features import point_states
@@ -125,6 +126,40 @@ def test_wrist_bars_learnt_from_a_real_take_hold_in_another_labs_motion(hdm_case
     assert model.body_order is None
 
 
+def test_the_take_passs_rows_come_from_the_bars_side_and_hold_in_another_labs_motion(hdm_case, tmp_path):
+    """``take_orders``: more rows for the offline pass's stretches (labeling/bar_flips.py), from
+    the labels on the bar's side of the body wherever the triangles put them: the right wrist bar,
+    which the frame factor orders by one label, gets more; they hold in CMU 85's jump + twist;
+    a calibration keeps them; format 9 files keep them, format 8 files load without."""
+    model, _, test = hdm_case
+    L = list(model.labels)
+    side = {L[a]: "L" for a, _ in model.mirror_pairs} | {L[b]: "R" for _, b in model.mirror_pairs}
+    take = model.body.take_orders
+    assert all(len({side.get(L[i]) for i in row}) == 1 and side.get(L[row[0]]) for row in take.tolist())
+    right = {L[r[0]] for r in take if {L[r[1]], L[r[2]]} == {"RWRA", "RWRB"}}
+    framed = {L[r[0]] for r in model.body.orders if {L[r[1]], L[r[2]]} == {"RWRA", "RWRB"}}
+    assert len(right) >= 2 and len(right) > len(framed)
+    X = model_clip(model, test).positions
+    x, near, far = (X[:, take[:, k]] for k in range(3))
+    gap = np.linalg.norm(x - far, axis=-1) - np.linalg.norm(x - near, axis=-1)
+    seen = np.isfinite(gap)
+    held = ((gap > 0) | ~seen).mean(0)
+    assert seen.sum(0).min() >= 800 and np.median(held) >= 0.99 and held.min() >= 0.9   # measured: 0.91-1.0
+    assert take_bar_orders(model).shape == (0, 3)          # a generic body: none, as the frame factor
+    window = model_clip(model, test.slice(0, 270)).positions
+    body, summary = calibrated_body(model.body, window, mirror_pairs=model.mirror_pairs,
+                                    heading_pairs=model.heading_pairs)
+    cal = model.replace(body=body)
+    assert summary["take_bar_orders"] == body.take_orders.shape[0] == take.shape[0]
+    rows = take_bar_orders(cal)
+    assert {tuple(r) for r in np.vstack([body.orders, body.take_orders]).tolist()} == {tuple(r) for r in rows.tolist()}
+    path = save_model(cal, tmp_path / "m.npz")
+    assert np.array_equal(load_model(path).body.take_orders, body.take_orders)
+    v8 = as_older_format(path, 8, lambda k: k.endswith("take_orders"))
+    assert v8.provenance["format_version_read"] == 8 and v8.body.take_orders.shape == (0, 3)
+    assert np.array_equal(take_bar_orders(v8), np.unique(body.orders, axis=0))
+
+
 def test_calibrated_body_applies_the_order_to_a_real_exchange(hdm_case, tmp_path):
     model, _, test = hdm_case
     L = list(model.labels)
@@ -194,6 +229,8 @@ def test_dtm_train_says_which_bars_it_ordered(data_dir, tmp_path, capsys):
     line = next(s for s in printed.splitlines() if s.startswith("bars "))
     assert "LSHO" in line and "nearer LWRA than LWRB" in line and line.endswith("(applied once calibrated)")
     assert len(model.body.orders) == line.count(",") + line.count(" nearer ") and model.body_order is None
+    take_line = printed.splitlines()[printed.splitlines().index(line) + 1]
+    assert f"and {len(model.body.take_orders)} orders from the bars' side" in take_line and len(model.body.take_orders)
     # the actor stands on the left foot: its labels may rest that long before a rest reads as a reflection
     rests = dict(zip(model.labels, model.settings["longest_rest_s"]))
     line = next(s for s in printed.splitlines() if s.startswith("rests "))

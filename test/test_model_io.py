@@ -67,13 +67,13 @@ def test_file_is_plain_numeric_npz(trained, tmp_path):
             assert info.filename.endswith(".npy")
             assert b"pickle" not in zf.read(info)[:128].lower()
     header = json.loads(bytes(arrays["header"]).decode())
-    assert header["format"] == "dtm_labeler.model" and header["format_version"] == 8 and header["generic_body"] is False
+    assert header["format"] == "dtm_labeler.model" and header["format_version"] == 9 and header["generic_body"] is False
     assert header["components"] == [2] * 12 and header["broad"] and header["body"]["pairs"] == 91
     assert arrays["body_rigid_pairs"].shape == (0, 2)           # joint centres: no rigid marker pairs
     assert ({f"tri{t}_{k}" for t in range(12) for k in ("weights", "means", "covariances")} | {"header"}
             | {f"body_{k}" for k in ("pairs", "kind", "lo", "hi", "within_sd", "between_sd", "quads", "quad_sign",
                                     "twists", "rigid_pairs", "rigid_length", "rigid_spread", "orders",
-                                    "reach_off_edges")} | {"broad_weights"}
+                                    "reach_off_edges", "take_orders")} | {"broad_weights"}
             | {f"broad{t}_{k}" for t in range(12) for k in ("mean", "covariance")}) == set(arrays)
 
 
@@ -94,7 +94,7 @@ def _corrupt_cases(good):
     c0 = good["tri0_covariances"]
     return {
         "wrong format name": (with_header(format="something.else"), "does not name format"),
-        "wrong version": (with_header(format_version=9), "format version 9 is not supported"),
+        "wrong version": (with_header(format_version=10), "format version 10 is not supported"),
         "body arrays missing": (drop("body_lo"), "body terms lack"),
         "body pair out of range": (replace("body_pairs", good["body_pairs"] + 50), "inconsistent model"),
         "twist label out of range": (replace("body_twists", good["body_twists"] + 50), "inconsistent model"),
@@ -103,6 +103,7 @@ def _corrupt_cases(good):
         "rigid pair without a length": (dict(good, body_rigid_pairs=np.array([[0, 1]])), "inconsistent model"),
         "bar order out of range": (replace("body_orders", np.array([[0, 1, 99]])), "inconsistent model"),
         "bar order repeats a label": (replace("body_orders", np.array([[0, 1, 1]])), "inconsistent model"),
+        "take bar order out of range": (replace("body_take_orders", np.array([[0, 1, 99]])), "inconsistent model"),
         "reach flags not one per pair": (replace("body_reach_off_edges", np.ones(3, dtype=np.int64)),
                                          "inconsistent model"),
         "reach flag not 0 or 1": (replace("body_reach_off_edges", good["body_reach_off_edges"] + 2),
@@ -176,7 +177,7 @@ def test_pickled_object_array_is_refused(trained, tmp_path):
 def test_model_from_arrays_direct():
     with pytest.raises(ModelFileError, match="mine: no header"):
         model_from_arrays({}, "mine")
-    assert mio.FORMAT_VERSION == 8 and mio.READABLE_VERSIONS == (1, 2, 3, 4, 5, 6, 7, 8)
+    assert mio.FORMAT_VERSION == 9 and mio.READABLE_VERSIONS == (1, 2, 3, 4, 5, 6, 7, 8, 9)
 
 
 @settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

@@ -173,7 +173,8 @@ def _main(argv=None) -> int:
     s = summary.as_dict() | {"out": str(args.out)} | ({"calibration": calibration} if calibration else {})
     if model.body is not None:
         s["body"] = {"segments": int(len(model.body.segments)), "rigid_pairs": int(model.body.rigid_pairs.shape[0]),
-                     "bar_orders": [[model.labels[i] for i in row] for row in model.body.orders.tolist()]}
+                     "bar_orders": [[model.labels[i] for i in row] for row in model.body.orders.tolist()],
+                     "take_bar_orders": [[model.labels[i] for i in row] for row in model.body.take_orders.tolist()]}
     rests = model.settings.get("longest_rest_s")
     if rests:
         s["longest_rest_s"] = dict(zip(model.labels, rests))
@@ -211,6 +212,9 @@ def _main(argv=None) -> int:
             nearer.setdefault((near, far), []).append(x)
         print("bars      " + "; ".join(f"{', '.join(xs)} nearer {near} than {far}" for (near, far), xs in nearer.items())
               + (" (applied: calibrated)" if model.body.calibration else " (applied once calibrated)"))
+    if "body" in s and s["body"]["take_bar_orders"]:
+        print(f"          and {len(s['body']['take_bar_orders'])} orders from the bars' side of the body, which "
+              "dtm-label's pass over a take reads over whole stretches (exchanged bars turned back)")
     if rests:
         floor = Background().fixed_after_s
         still = sorted(((r, lab) for lab, r in zip(model.labels, rests) if REST_MARGIN * r > floor), reverse=True)

@@ -101,6 +101,10 @@ class BodyModel:
     No term of the frame fitness: the offline pass over a whole take reads them as the person's
     ruler (:func:`dtm_labeler.labeling.rigid_tracks.body_pairs`). ``orders``: the marker bars'
     order (:class:`BarOrder`), rows ``(x, near, far)`` of label indices (none for joint centres).
+    ``take_orders``: more such rows, read from the labels of the bar's side of the body however
+    far apart the DTM's triangles put them (:func:`~dtm_labeler.training.body_fit.side_reach`);
+    no term of the frame fitness: the offline pass reads them, with ``orders``, over whole
+    stretches of a take (:mod:`dtm_labeler.labeling.bar_flips`).
     ``reach_off_edges``: whether each pair's reach limit holds off the DTM's edges too
     (:class:`CrossSegments`; None: all).
     """
@@ -120,13 +124,16 @@ class BodyModel:
     rigid_length: np.ndarray = field(default_factory=lambda: np.zeros(0))                      # (R,) m
     rigid_spread: np.ndarray = field(default_factory=lambda: np.zeros(0))                      # (R,) m
     orders: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.int64))       # (K, 3) labels
+    take_orders: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.int64))  # (K', 3) labels
     reach_off_edges: np.ndarray | None = None    # (P,) bool: a reach limit held off the DTM's edges too
 
     def __post_init__(self) -> None:
-        self.orders = np.asarray(self.orders, dtype=np.int64).reshape(-1, 3)
-        if self.orders.size and (self.orders.min() < 0 or self.orders.max() >= self.n_labels
-                                 or (np.diff(np.sort(self.orders, axis=1), axis=1) == 0).any()):
-            raise ValueError("body orders must be three distinct label indices (x, near, far)")
+        for name in ("orders", "take_orders"):
+            rows = np.asarray(getattr(self, name), dtype=np.int64).reshape(-1, 3)
+            if rows.size and (rows.min() < 0 or rows.max() >= self.n_labels
+                              or (np.diff(np.sort(rows, axis=1), axis=1) == 0).any()):
+                raise ValueError(f"body {name} must be three distinct label indices (x, near, far)")
+            setattr(self, name, rows)
         self.quads = np.asarray(self.quads, dtype=np.int64).reshape(-1, 4)
         self.quad_sign = np.asarray(self.quad_sign, dtype=np.float64).reshape(-1)
         if self.quad_sign.shape[0] != self.quads.shape[0] or not np.isin(self.quad_sign, (-1.0, 1.0)).all():
@@ -216,7 +223,7 @@ class BodyModel:
                 "body_between_sd": self.between_sd, "body_quads": self.quads, "body_quad_sign": self.quad_sign,
                 "body_twists": self.twists, "body_rigid_pairs": self.rigid_pairs,
                 "body_rigid_length": self.rigid_length, "body_rigid_spread": self.rigid_spread,
-                "body_orders": self.orders, "body_reach_off_edges": self.reach_off_edges.astype(np.int64)}
+                "body_orders": self.orders, "body_take_orders": self.take_orders, "body_reach_off_edges": self.reach_off_edges.astype(np.int64)}
 
     @classmethod
     def from_arrays(cls, arrays: dict, n_labels: int, calibration: dict | None = None) -> "BodyModel":
@@ -226,9 +233,9 @@ class BodyModel:
         except KeyError as e:
             raise ValueError(f"body terms lack {e.args[0]!r}") from None
         for k in ("quads", "quad_sign", "twists", "rigid_pairs", "rigid_length", "rigid_spread", "orders",
-                  "reach_off_edges"):
+                  "reach_off_edges", "take_orders"):
             # format 3: handedness, 4: twists, 5: the person's rigid pairs, 6: bar orders (older: none),
-            # 8: which reach limits hold off the edges (older: all)
+            # 8: which reach limits hold off the edges (older: all), 9: the take pass's bar orders (older: none)
             if "body_" + k in arrays:
                 kw[k] = np.asarray(arrays["body_" + k])
         for k, a in kw.items():
@@ -550,6 +557,8 @@ ORDER_SHARE = 0.995
 ORDER_MARGIN_M = 0.01
 #: labels kept per bar (the clearest margins)
 ORDERS_PER_BAR = 3
+#: ... and for the take pass's rows (:attr:`BodyModel.take_orders`): from the bar's side of the body
+TAKE_ORDERS_PER_BAR = 4
 #: nats a labeling pays per order it shows reversed (as a mirrored quadruple, HANDEDNESS_NATS)
 ORDER_NATS = 3.0
 

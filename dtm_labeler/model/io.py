@@ -22,6 +22,8 @@ Layout (all entries plain numeric arrays; loaded with ``allow_pickle=False``)::
     body_orders       (K,3)   int64     the marker bars' order (version 6): a label and the bar's
                                         end it lies nearer, then the other end
     body_reach_off_edges (P,) int64     1 where a reach limit holds off the DTM's edges too (version 8)
+    body_take_orders  (K',3)  int64     more bar orders, from the bar's side of the body, read over a
+                                        take's stretches by the offline pass (version 9)
     broad_weights     (T,)    float64   broad part of each triangle's conditional (version 2, when
     broad<t>_mean     (15,)   float64   the header's "broad" is true; see dtm_labeler.model.body)
     broad<t>_covariance (15,15) float64
@@ -33,11 +35,12 @@ Versions: 2 adds the body terms and the broad components (issue 13); 3 the clust
 marker bars' order (:class:`~dtm_labeler.model.body.BarOrder`); 7 a calibrated model's body before
 its calibration (``generic_body_*``, the same arrays as ``body_*``; the header's ``"generic_body"``
 is set: :attr:`~dtm_labeler.model.dtm.TriangulatedModel.generic_body`); 8 which reach limits hold
-off the DTM's edges (:attr:`~dtm_labeler.model.body.BodyModel.reach_off_edges`). Version 1
+off the DTM's edges (:attr:`~dtm_labeler.model.body.BodyModel.reach_off_edges`); 9 the take pass's
+bar orders (:attr:`~dtm_labeler.model.body.BodyModel.take_orders`). Version 1
 files still load, as models without body terms, version 2 files as bodies without handedness, version 3
 files as bodies without twist limits, version 4 files as bodies without the person's rigid pairs,
 version 5 files as bodies without bar orders, version 6 files without the generic body, version 7
-files with every reach limit held off the edges (all
+files with every reach limit held off the edges, version 8 files without the take pass's bar orders (all
 score exactly as they did;
 ``provenance["format_version_read"]`` says which). A file that is
 not a model, has an unknown format version, or whose arrays disagree with the header raises
@@ -61,8 +64,8 @@ from .mixture import GaussianMixture
 from .structure import Structure
 
 FORMAT_NAME = "dtm_labeler.model"
-FORMAT_VERSION = 8
-READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7, 8)
+FORMAT_VERSION = 9
+READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7, 8, 9)
 GENERIC = "generic_"                     # prefix of the generic body's arrays (version 7)
 
 

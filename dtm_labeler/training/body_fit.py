@@ -200,9 +200,9 @@ def bars(positions: np.ndarray, segments: np.ndarray, tolerance: float = BAR_TOL
     return np.array(out, dtype=np.int64).reshape(-1, 2)
 
 
-def bar_orders(clips: Sequence[np.ndarray], segments: np.ndarray, triangles: np.ndarray,
+def bar_orders(clips: Sequence[np.ndarray], segments: np.ndarray, triangles: np.ndarray | None,
                share: float = ORDER_SHARE, margin: float = ORDER_MARGIN_M, per_bar: int = ORDERS_PER_BAR,
-               min_frames: int = 20, max_frames: int = 3000) -> np.ndarray:
+               min_frames: int = 20, max_frames: int = 3000, reach: np.ndarray | None = None) -> np.ndarray:
     """(K, 3) the marker bars' order (:class:`~dtm_labeler.model.body.BarOrder`) from (F, M, 3)
     labelled positions per clip: for each bar (:func:`bars`), the labels within two edges of the
     structure's ``triangles`` of either end (but the ends), whose nearer end is the same in at
@@ -216,16 +216,22 @@ def bar_orders(clips: Sequence[np.ndarray], segments: np.ndarray, triangles: np.
     nearer end is the steadiest order there is (HDM05, left wrist: the finger nearer the radial
     end in 99.8 % of the take's first 70 % and in 100 % of the rest, where the clavicle's and
     the right shoulder's orders, which turn with the whole arm, held in 69 % and 78 %). A
-    member that keeps one distance to both ends has no margin and is never taken."""
+    member that keeps one distance to both ends has no margin and is never taken.
+
+    ``reach`` (M, M) bool, instead of the triangles: the labels each label's bar may be ordered
+    by (:func:`side_reach` for the take pass's rows, :attr:`~dtm_labeler.model.body.BodyModel.take_orders`)."""
     clips = [np.asarray(c, dtype=np.float64)[spread_sample(len(c), max_frames)] for c in clips if len(c)]
     if not clips:
         return np.zeros((0, 3), dtype=np.int64)
     P = np.concatenate(clips)
     M = P.shape[1]
-    adjacent = np.eye(M, dtype=np.int64)
-    for tri in np.asarray(triangles, dtype=np.int64).reshape(-1, 3):
-        adjacent[np.ix_(tri, tri)] = 1
-    near = (adjacent @ adjacent) > 0                                   # within two triangle edges
+    if reach is not None:
+        near = np.asarray(reach, dtype=bool)
+    else:
+        adjacent = np.eye(M, dtype=np.int64)
+        for tri in np.asarray(triangles, dtype=np.int64).reshape(-1, 3):
+            adjacent[np.ix_(tri, tri)] = 1
+        near = (adjacent @ adjacent) > 0                               # within two triangle edges
     rows = []
     for a, b in bars(P, segments):
         candidates = np.flatnonzero(near[a] | near[b])
@@ -257,6 +263,18 @@ def bar_orders(clips: Sequence[np.ndarray], segments: np.ndarray, triangles: np.
             x = candidates[k]
             rows.append((x, b, a) if median[k] > 0 else (x, a, b))
     return np.array(rows, dtype=np.int64).reshape(-1, 3)
+
+
+def side_reach(mirror_pairs: np.ndarray, n_labels: int) -> np.ndarray:
+    """(M, M) bool: the labels on one side of the body (one column of the left/right
+    ``mirror_pairs``), each with the others of its side. What a bar's order over a stretch of a
+    take may be read from (:attr:`~dtm_labeler.model.body.BodyModel.take_orders`): the bar's own
+    arm and shoulder, wherever the DTM's triangles put them; not the trunk's middle labels, which
+    lie on the bar's side or the other as the arm crosses the body."""
+    side = np.full(n_labels, -1)
+    pairs = np.asarray(mirror_pairs, dtype=np.int64).reshape(-1, 2)
+    side[pairs[:, 0]], side[pairs[:, 1]] = 0, 1
+    return (side[:, None] == side[None, :]) & (side[:, None] >= 0)
 
 
 def trunk_twists(labels: Sequence[str], clips: Sequence[np.ndarray] = (), share: float = 0.999) -> np.ndarray:

@@ -337,13 +337,15 @@ def calibrated_body(body: BodyModel, positions: np.ndarray, settings: Calibratio
     orders = kept_orders(body.orders, positions)         # the bars' order, unless the person reverses it
     summary["bar_orders"] = int(orders.shape[0])
     summary["bar_orders_dropped"] = int(body.orders.shape[0] - orders.shape[0])
+    take_orders = kept_orders(body.take_orders, positions)     # the take pass's, likewise
+    summary["take_bar_orders"] = int(take_orders.shape[0])
     quads, signs, summary["handedness_left_to_orders"] = quads_off_ordered_bars(
         quads, signs, orders, segment_clusters(body.n_labels, body.pairs[seg | borrowed]))
     summary["handedness_quads"] = int(quads.shape[0])
     rigid = cluster_pairs(body, positions, seg | borrowed)
     summary["rigid_pairs"] = int(rigid["rigid_pairs"].shape[0])
     return replace(body, lo=lo, hi=hi, within_sd=within, between_sd=between, calibration=summary,
-                   quads=quads, quad_sign=signs, orders=orders, **rigid), summary
+                   quads=quads, quad_sign=signs, orders=orders, take_orders=take_orders, **rigid), summary
 
 
 def kept_orders(orders: np.ndarray, positions: np.ndarray, min_frames: int = 10) -> np.ndarray:
