@@ -197,6 +197,16 @@ def hdm05_half_hidden(hdm05_calibrated, hdm05_take):
 
 
 @pytest.fixture(scope="session")
+def half_hidden_background(hdm05_calibrated, hdm05_half_hidden, tmp_path_factory, worker_id):
+    """``background_runs.background_run`` on :func:`hdm05_half_hidden`, audits off -- what
+    test_background_join reads of its joins and test_background_sweeps of the searches asked
+    for; run once per test run (the run is deterministic)."""
+    from background_runs import background_run
+    return computed_once(tmp_path_factory, worker_id, "half_hidden_background",
+                         lambda: background_run(hdm05_calibrated, hdm05_half_hidden))
+
+
+@pytest.fixture(scope="session")
 def dance_pooled(data_dir, tmp_path_factory, worker_id):
     """``dance_pooled(**settings)``: ``dance_streams.pooled`` on ``dance_streams.dance_case``
     with these labeler settings -- (accuracy, search errors) over the four corruption seeds'
