@@ -197,6 +197,20 @@ def hdm05_half_hidden(hdm05_calibrated, hdm05_take):
 
 
 @pytest.fixture(scope="session")
+def gappy_upper(data_dir, tmp_path_factory, worker_id):
+    """12 upper-body HDM05 markers, half of the samples hidden in real-looking gaps; a model
+    of another part of the take (the labeler is often lost on the frames after it), trained
+    once per test run: (model, the gapped clip)."""
+    from dtm_labeler.motion.load import load_clip
+    from dtm_labeler.training.train import TrainConfig, train_model
+    from test_gappy_training import HDM as TAKE, UPPER, _gapped
+    clip = _gapped(load_clip(data_dir / TAKE).select(UPPER), 0.5)
+    model = trained_once(tmp_path_factory, worker_id, "gappy_upper",
+                         lambda: train_model([clip.slice(1200, 2400)], TrainConfig(seed=0, k_max=2, structure="greedy"))[0])
+    return model, clip
+
+
+@pytest.fixture(scope="session")
 def half_hidden_background(hdm05_calibrated, hdm05_half_hidden, tmp_path_factory, worker_id):
     """``background_runs.background_run`` on :func:`hdm05_half_hidden`, audits off -- what
     test_background_join reads of its joins and test_background_sweeps of the searches asked
