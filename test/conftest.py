@@ -197,6 +197,18 @@ def hdm05_half_hidden(hdm05_calibrated, hdm05_take):
 
 
 @pytest.fixture(scope="session")
+def hdm05_markers(data_dir, tmp_path_factory, worker_id):
+    """HDM05's 41 markers (``to_point_set(..., "all")``) and a model of the take's first 600
+    frames (one component per triangle), trained once per test run: (model, the take)."""
+    from dtm_labeler.motion import load_clip, to_point_set
+    from dtm_labeler.training.train import TrainConfig, train_model
+    clip = to_point_set(load_clip(data_dir / HDM05), "all")
+    model = trained_once(tmp_path_factory, worker_id, "hdm05_markers",
+                         lambda: train_model([clip.slice(0, 600)], TrainConfig(mixture="fixed", k_fixed=1, seed=0))[0])
+    return model, clip
+
+
+@pytest.fixture(scope="session")
 def gappy_upper(data_dir, tmp_path_factory, worker_id):
     """12 upper-body HDM05 markers, half of the samples hidden in real-looking gaps; a model
     of another part of the take (the labeler is often lost on the frames after it), trained

@@ -8,7 +8,6 @@ import numpy as np
 
 from dtm_labeler.labeling.config import LabelerSettings
 from dtm_labeler.labeling.fast_path import YOUNG_S
-from dtm_labeler.motion import load_clip, to_point_set
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.training.train import TrainConfig, train_model
 from gap_probe import HIDDEN, probe_per_frame
@@ -40,11 +39,10 @@ def test_labels_on_new_tracks_are_checked_while_the_tracks_are_young():
     assert not set().union(*off)
 
 
-def test_no_young_checks_on_a_marker_set(data_dir):
+def test_no_young_checks_on_a_marker_set(hdm05_markers):
     """HDM05's 41 markers (a body with handedness quadruples): a thigh and a knee marker back
     from a gap are not checked; they are once the body loses its quadruples."""
-    clip = to_point_set(load_clip(data_dir / "markers_c3d/hdm05_bd_05-01_01_120.c3d"), "all")
-    model = train_model([clip.slice(0, 600)], TrainConfig(mixture="fixed", k_fixed=1, seed=0))[0]
+    model, clip = hdm05_markers                  # a model of the take's first 600 frames
     assert model.marker_set
     test = clip.slice(600, 800)
     labels = list(model.labels)
