@@ -85,11 +85,13 @@ def pytest_runtest_makereport(item, call):
 #: so that under ``pytest -n 2`` the workers end together instead of one finishing a long test
 #: alone. pytest.ini's ``--no-loadscope-reorder`` makes xdist keep this order: by default it hands
 #: out the files with the most tests first, which put the single 30-s colcon test last.
+#: test_release_moves.py is left to the alphabetical rest: it reads a run test_young_checks.py
+#: makes (``dance_pooled``), which the other worker loads once it is done, not makes again.
 LONG_FIRST = ("test_calibrate_cli.py", "test_upright.py", "test_background_join.py", "test_bar_order.py",
               "test_archive.py", "test_published_confidence.py", "test_accuracy_floors.py",
               "test_background_sweeps.py", "test_node_colcon.py", "test_label_cli.py", "test_e2e_replay.py",
               "test_node_reload.py", "test_cluster_turns.py", "test_training_augment.py", "test_recovery.py",
-              "test_young_checks.py", "test_release_moves.py", "test_settings_honoured.py",
+              "test_young_checks.py", "test_settings_honoured.py",
               "test_node_bad_input.py", "test_node_params.py")
 
 
@@ -101,29 +103,46 @@ def pytest_collection_modifyitems(session, config, items):
 HDM05 = "markers_c3d/hdm05_bd_05-01_01_120.c3d"
 
 
-def trained_once(tmp_path_factory, worker_id: str, name: str, build):
-    """A model ``build()`` trains, shared by the workers of one ``pytest -n N`` run: a worker
-    that asks after another has trained it loads that worker's file (``save_model``); the
-    first trains it and saves it; one that asks while another is training it trains its own
-    (waiting would cost as much). Saving and loading keep the model exactly (fitness equal to
-    the last bit on the floor cell's and HDM05's frames, the same labels over 60 frames of a
-    stream), so a test does not depend on which worker trained it. Alone (``worker_id`` "master") the model is trained here."""
+def made_once(tmp_path_factory, worker_id: str, filename: str, build, save, load):
+    """What ``build()`` makes, shared by the workers of one ``pytest -n N`` run: a worker that
+    asks after another has made it loads that worker's file (``load(path)``, written by
+    ``save(value, path)``); the first makes it and saves it; one that asks while another is
+    making it makes its own (waiting would cost as much). Alone (``worker_id`` "master") it is
+    made here."""
     import fcntl
-    from dtm_labeler.model.io import load_model, save_model
     if worker_id == "master":
         return build()
     root = tmp_path_factory.getbasetemp().parent              # this run's, shared by its workers
-    path = root / f"trained_{name}.npz"
-    with open(root / f"trained_{name}.lock", "w") as lock:
+    path = root / filename
+    with open(root / f"{filename}.lock", "w") as lock:
         try:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:                                # another worker is training it now
+        except BlockingIOError:                                # another worker is making it now
             return build()
         if path.is_file():
-            return load_model(path)
-        model = build()
-        save_model(model, path)
-        return model
+            return load(path)
+        value = build()
+        save(value, path)
+        return value
+
+
+def trained_once(tmp_path_factory, worker_id: str, name: str, build):
+    """A model ``build()`` trains, shared by the workers of one ``pytest -n N`` run
+    (:func:`made_once`, the file written by ``save_model``). Saving and loading keep the model
+    exactly (fitness equal to the last bit on the floor cell's and HDM05's frames, the same
+    labels over 60 frames of a stream), so a test does not depend on which worker trained it."""
+    from dtm_labeler.model.io import load_model, save_model
+    return made_once(tmp_path_factory, worker_id, f"trained_{name}.npz", build, save_model, load_model)
+
+
+def computed_once(tmp_path_factory, worker_id: str, name: str, build):
+    """A result ``build()`` computes (picklable: numbers, lists, arrays), shared by the workers
+    of one ``pytest -n N`` run (:func:`made_once`): a deterministic computation another worker
+    has already done is loaded, not done again."""
+    import pickle
+    return made_once(tmp_path_factory, worker_id, f"computed_{name}.pkl", build,
+                     lambda value, path: path.write_bytes(pickle.dumps(value)),
+                     lambda path: pickle.loads(path.read_bytes()))
 
 
 @pytest.fixture(scope="session")
@@ -175,3 +194,61 @@ def hdm05_half_hidden(hdm05_calibrated, hdm05_take):
     from test_gappy_training import _gapped
     clip = _gapped(hdm05_take, 0.5, seed=1, gap_s=0.25).slice(2400, 2640)
     return list(corrupt_clip(model_clip(hdm05_calibrated, clip), noise_mm=1.0, seed=1))
+
+
+@pytest.fixture(scope="session")
+def hdm05_markers(data_dir, tmp_path_factory, worker_id):
+    """HDM05's 41 markers (``to_point_set(..., "all")``) and a model of the take's first 600
+    frames (one component per triangle), trained once per test run: (model, the take)."""
+    from dtm_labeler.motion import load_clip, to_point_set
+    from dtm_labeler.training.train import TrainConfig, train_model
+    clip = to_point_set(load_clip(data_dir / HDM05), "all")
+    model = trained_once(tmp_path_factory, worker_id, "hdm05_markers",
+                         lambda: train_model([clip.slice(0, 600)], TrainConfig(mixture="fixed", k_fixed=1, seed=0))[0])
+    return model, clip
+
+
+@pytest.fixture(scope="session")
+def gappy_upper(data_dir, tmp_path_factory, worker_id):
+    """12 upper-body HDM05 markers, half of the samples hidden in real-looking gaps; a model
+    of another part of the take (the labeler is often lost on the frames after it), trained
+    once per test run: (model, the gapped clip)."""
+    from dtm_labeler.motion.load import load_clip
+    from dtm_labeler.training.train import TrainConfig, train_model
+    from test_gappy_training import HDM as TAKE, UPPER, _gapped
+    clip = _gapped(load_clip(data_dir / TAKE).select(UPPER), 0.5)
+    model = trained_once(tmp_path_factory, worker_id, "gappy_upper",
+                         lambda: train_model([clip.slice(1200, 2400)], TrainConfig(seed=0, k_max=2, structure="greedy"))[0])
+    return model, clip
+
+
+@pytest.fixture(scope="session")
+def half_hidden_background(hdm05_calibrated, hdm05_half_hidden, tmp_path_factory, worker_id):
+    """``background_runs.background_run`` on :func:`hdm05_half_hidden`, audits off -- what
+    test_background_join reads of its joins and test_background_sweeps of the searches asked
+    for; run once per test run (the run is deterministic)."""
+    from background_runs import background_run
+    return computed_once(tmp_path_factory, worker_id, "half_hidden_background",
+                         lambda: background_run(hdm05_calibrated, hdm05_half_hidden))
+
+
+@pytest.fixture(scope="session")
+def dance_pooled(data_dir, tmp_path_factory, worker_id):
+    """``dance_pooled(**settings)``: ``dance_streams.pooled`` on ``dance_streams.dance_case``
+    with these labeler settings -- (accuracy, search errors) over the four corruption seeds'
+    streams. The model is trained and each distinct ``LabelerSettings`` run once per test run
+    (the runs are deterministic: test_young_checks' young checks on and test_release_moves'
+    release moves on are both the defaults, one run)."""
+    import hashlib
+    from dance_streams import dance_case, pooled
+    from dtm_labeler.labeling.config import LabelerSettings
+    model, test = dance_case(data_dir, lambda name, build: trained_once(tmp_path_factory, worker_id, name, build))
+    done = {}
+
+    def get(**settings):
+        key = hashlib.sha1(repr(LabelerSettings(recovery="inline", **settings)).encode()).hexdigest()[:16]
+        if key not in done:
+            done[key] = computed_once(tmp_path_factory, worker_id, f"dance_pooled_{key}",
+                                      lambda: pooled(model, test, **settings))
+        return done[key]
+    return get

@@ -18,10 +18,12 @@ BVH = ["cmu_07_01_walk_s07.bvh", "cmu_09_11_run_s09.bvh", "cmu_55_01_dance-whirl
 SEEDS = (1, 2, 3, 4)
 
 
-def dance_case(data_dir: Path):
-    """(model, the 360 test frames of the dance)."""
+def dance_case(data_dir: Path, trained=lambda name, build: build()):
+    """(model, the 360 test frames of the dance); ``trained(name, build)``: the model
+    ``build()`` trains (conftest's ``trained_once`` shares it between a run's workers)."""
     clips = [to_point_set(load_clip(data_dir / "cmu_skeletal/bvh_from_fbx" / f), "body14") for f in BVH]
-    model, _ = train_model([c.slice(0, c.n_frames // 2) for c in clips], TrainConfig(seed=0))
+    model = trained("dance_case", lambda: train_model([c.slice(0, c.n_frames // 2) for c in clips],
+                                                      TrainConfig(seed=0))[0])
     dance = clips[2]
     return model, dance.slice(dance.n_frames // 2, dance.n_frames // 2 + 360)
 

@@ -9,9 +9,8 @@ import pytest
 
 from dtm_labeler.evaluation.corruption import corrupt_clip
 from dtm_labeler.evaluation.pipeline import model_clip
-from dtm_labeler.labeling.recovery import DeferredRecovery
-from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
 from dtm_labeler.labeling.tracked import TrackedLabeler
+from background_runs import background_run
 from test_gappy_training import _gapped
 
 @pytest.fixture(scope="module")
@@ -19,39 +18,21 @@ def stream(hdm05_half_hidden):
     return hdm05_half_hidden
 
 
-def _run(model, frames) -> tuple[float, list[int], list[list[int]]]:
+def _run(model, frames) -> tuple[float, list[tuple[int, bool]], list[list[int]]]:
     """Share of the visible markers labelled right, the number of readings each join offered
     (with whether a search had vouched for a frame of the stream by then), and every frame's
     labels."""
-    lab = StreamLabeler(model, LabelerSettings(recovery="background", audit_period_s=0))
-    lab.recovery.close()
-    lab.recovery = DeferredRecovery(lab, delay_frames=25, interim_frames=2)
-    join, offered = lab._join, []
-
-    def counted(inp):
-        out = join(inp)
-        if out is not None:
-            offered.append((len(out[0]), lab._vouched))
-        return out
-    lab._join = counted
-    right = seen = 0
-    labels = []
-    for fr in frames:
-        r = lab.process(fr.xyz, fr.stamp)
-        labels.append(r.labels.tolist())
-        v = fr.truth >= 0
-        right += int((r.labels[v] == fr.truth[v]).sum())
-        seen += int(v.sum())
-    lab.close()
-    return right / seen, offered, labels
+    run = background_run(model, frames)
+    return run["accuracy"], run["offered"], run["labels"]
 
 
-def test_a_search_few_of_whose_tracks_outlive_it_joins_on_its_own_labels(hdm05_calibrated, stream, monkeypatch):
+def test_a_search_few_of_whose_tracks_outlive_it_joins_on_its_own_labels(hdm05_calibrated, stream,
+                                                                       half_hidden_background, monkeypatch):
     """At the start of the stream the carried labeling filling the labels of the search's gone
     tracks made the joined labeling fit worse than the (wrong) carried one, so the search never
     joined; its labels alone, the rest placed by the fast path, do. (No frame of this stream is
     vouched for: a right labeling of half the markers fits below the running level.)"""
-    acc, offered, _ = _run(hdm05_calibrated, stream)
+    acc, offered = half_hidden_background["accuracy"], half_hidden_background["offered"]   # _run on the stream
     assert max(k for k, _ in offered) == 2           # the bare reading was offered beside the filled one
     assert acc > 0.5
     _filled_only(monkeypatch)

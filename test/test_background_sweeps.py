@@ -11,6 +11,7 @@ import pytest
 
 from dtm_labeler.labeling.recovery import DeferredRecovery
 from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
+from background_runs import background_run
 
 
 @pytest.fixture(scope="module")
@@ -21,21 +22,8 @@ def stream(hdm05_half_hidden):
 def _run(model, frames, period: float):
     """(share of the visible markers labelled right, [(kind, stamp) of every request],
     [kind of the request whose result each joined frame took])."""
-    lab = StreamLabeler(model, LabelerSettings(recovery="background", audit_period_s=period))
-    lab.recovery.close()
-    lab.recovery = DeferredRecovery(lab, delay_frames=25, interim_frames=2, sweep_frames=2)
-    asked, submit = [], lab.recovery.submit
-    lab.recovery.submit = lambda req: (asked.append((req.kind, lab.last_stamp)), submit(req))
-    joined, right, seen = [], 0, 0
-    for fr in frames:
-        r = lab.process(fr.xyz, fr.stamp)
-        if r.recovered:
-            joined.append(asked[-1][0] if not lab.recovery.busy else asked[-2][0])
-        v = fr.truth >= 0
-        right += int((r.labels[v] == fr.truth[v]).sum())
-        seen += int(v.sum())
-    lab.close()
-    return right / seen, asked, joined
+    run = background_run(model, frames, audit_period_s=period)
+    return run["accuracy"], run["asked"], run["joined"]
 
 
 def test_a_doubted_stream_asks_for_sweeps_between_warm_searches(hdm05_calibrated, stream):
@@ -50,9 +38,9 @@ def test_a_doubted_stream_asks_for_sweeps_between_warm_searches(hdm05_calibrated
     assert acc > 0.5
 
 
-def test_without_audits_every_doubted_frame_asks_for_the_warm_search(hdm05_calibrated, stream):
+def test_without_audits_every_doubted_frame_asks_for_the_warm_search(half_hidden_background):
     """``audit_period_s`` 0 (audits off): the warm GA every time, as before the sweeps."""
-    _, asked, _ = _run(hdm05_calibrated, stream, period=0.0)
+    asked = half_hidden_background["asked"]                    # _run on the stream, period 0
     kinds = [k for k, _ in asked]
     assert "sweep" not in kinds and kinds.count("recover") >= 5
 

@@ -257,7 +257,8 @@ def test_auto_calibration_keeps_the_model_when_it_cannot_or_should_not_calibrate
     reported frame by frame."""
     from dtm_labeler.training.calibrate import CalibrationSettings, auto_calibrate, kept_share
     model_path, v1_path, _ = models
-    clouds = load_clip(data_dir / PIROUETTE, points="body14").slice(0, 80).positions
+    F = 40                   # the pirouette's first frames: kept share 0.934 (0.956 on 80 frames, half the time)
+    clouds = load_clip(data_dir / PIROUETTE, points="body14").slice(0, F).positions
     v1 = load_model(v1_path)
     same, info = auto_calibrate(v1, clouds, 120.0)
     assert same is v1 and not info["applied"] and "no body terms" in info["reason"]
@@ -272,7 +273,7 @@ def test_auto_calibration_keeps_the_model_when_it_cannot_or_should_not_calibrate
     assert info["applied"] and calibrated.body.calibration and SEGMENT in calibrated.body.applied_kinds
     assert info["attempts"] == 1
     # every frame of each self-labelling (two rounds and the check) shows in the progress
-    assert seen == [(f, 80) for f in range(1, 81)] * 3
+    assert seen == [(f, F) for f in range(1, F + 1)] * 3
     again, info = auto_calibrate(calibrated, clouds, 120.0)
     assert again is calibrated and "already calibrated" in info["reason"]
     # the share kept: of the labels confirmed before, those confirmed on the same point after
@@ -293,7 +294,8 @@ def test_auto_calibration_stops_on_a_window_the_model_does_not_follow(models, da
     generic = load_model(model_path)
     clip = load_clip(data_dir / PIROUETTE, points="body14")
     rng = np.random.default_rng(0)
-    W = 30                                                  # the window's frames
+    W = 20                     # the window's frames; measured: stopped after full searches in 11 of the first 11
+    #                            (W 30: 16 of 16), the budget spent at 20 frames (31), 5 self-labellings to the end
     frames = rng.choice(clip.n_frames, W, replace=False)
     clouds = [clip.positions[f][rng.permutation(clip.positions.shape[1])] for f in frames]
     stop = W // 2 + 1                                       # full searches: more than half the window

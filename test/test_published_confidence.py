@@ -152,13 +152,20 @@ def _half_hidden(model, hdm) -> tuple[list, np.ndarray, np.ndarray]:
     return labels, np.array(conf), np.array(right, dtype=float)
 
 
+@pytest.fixture(scope="module")
+def half_hidden(hdm05_calibrated, hdm05_take):
+    """:func:`_half_hidden` as the labeler is (the two tests below each weigh it against a
+    labeler changed back; the run is deterministic: each asserts the same labels both ways)."""
+    return _half_hidden(hdm05_calibrated, hdm05_take)
+
+
 def test_a_frame_doubted_for_its_hidden_markers_keeps_the_confidence_its_labels_earn(hdm05_calibrated, hdm05_take,
-                                                                                    monkeypatch):
+                                                                                    half_hidden, monkeypatch):
     """Half of the markers hidden: per labelled point a right labeling fits far below a fully
     seen frame's level, so the fast path doubts nearly every frame; judged on what a right
     labeling with the frame's observation pattern fits, a doubted frame's labels are no longer
     halved (or zeroed as lost at the start) for the markers it cannot show. Labels unchanged."""
-    labels, conf, right = _half_hidden(hdm05_calibrated, hdm05_take)
+    labels, conf, right = half_hidden
     assert right.mean() > 0.6
     monkeypatch.setattr(tracked, "pattern_weight", tracked.label_weight)      # the count, as before
     labels_count, conf_count, right_count = _half_hidden(hdm05_calibrated, hdm05_take)
@@ -176,13 +183,13 @@ def _ece(conf: np.ndarray, right: np.ndarray, bins: int = 10) -> float:
 
 
 def test_a_label_on_a_young_track_is_weighed_against_the_hidden_marker_beside_it(hdm05_calibrated, hdm05_take,
-                                                                                  monkeypatch):
+                                                                                  half_hidden, monkeypatch):
     """fast_path.FastPath._transfer_alternatives: with half of the markers hidden, tracks live a
     fraction of a second and a point is often read as the hidden marker next to its own. The
     published confidence now weighs that reading (the label handed to the hidden one) for labels
     their track has carried for under ``hold_s``: labels unchanged, fewer wrong ones published as
     sure, and the confidence closer to what the labels are worth."""
-    labels, conf, right = _half_hidden(hdm05_calibrated, hdm05_take)
+    labels, conf, right = half_hidden
     monkeypatch.setattr(FastPath, "_transfer_alternatives", lambda self, *a, **k: None)
     labels_before, conf_before, right_before = _half_hidden(hdm05_calibrated, hdm05_take)
     assert labels_before == labels and np.array_equal(right_before, right)

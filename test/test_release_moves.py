@@ -9,10 +9,8 @@ import numpy as np
 
 from dtm_labeler.labeling.config import LabelerSettings
 from dtm_labeler.labeling.fast_path import RELEASE_S
-from dtm_labeler.motion import load_clip, to_point_set
 from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.training.train import TrainConfig, train_model
-from dance_streams import dance_case, pooled
 from gap_probe import HIDDEN, probe_per_frame
 
 
@@ -42,11 +40,10 @@ def test_only_labels_on_new_tracks_may_be_released():
     assert not set().union(*off)
 
 
-def test_no_releases_on_a_marker_set(data_dir):
+def test_no_releases_on_a_marker_set(hdm05_markers):
     """HDM05's 41 markers (a body with handedness quadruples): a thigh and a knee marker back
     from a gap are not released; they may be once the body loses its quadruples."""
-    clip = to_point_set(load_clip(data_dir / "markers_c3d/hdm05_bd_05-01_01_120.c3d"), "all")
-    model = train_model([clip.slice(0, 600)], TrainConfig(mixture="fixed", k_fixed=1, seed=0))[0]
+    model, clip = hdm05_markers                  # a model of the take's first 600 frames
     assert model.marker_set
     test = clip.slice(600, 800)
     hidden = [list(test.names).index(n) for n in ("LTHI", "RKNE")]
@@ -57,13 +54,12 @@ def test_no_releases_on_a_marker_set(data_dir):
     assert set().union(*releasable_per_frame(unsided, test, hidden, settings, HIDDEN[1] + 30)) == set(hidden)
 
 
-def test_fewer_search_errors_on_a_real_dance_with_gaps_and_ghosts(data_dir):
+def test_fewer_search_errors_on_a_real_dance_with_gaps_and_ghosts(dance_pooled):
     """``bench_stream_latency``'s 14-point case: the model of the first halves of walk 07_01, run
     09_11 and dance 55_01 labels 360 frames of the dance's second half, 3 markers in gaps of ~24
     frames, 2 ghosts, 1 mm noise, four corruption seeds pooled: search errors 39 -> 16 and
     accuracy 98.88 -> 98.90 % with release moves (measured)."""
-    model, test = dance_case(data_dir)
-    pooled_by = {v: pooled(model, test, release_moves=v) for v in (False, True)}
+    pooled_by = {v: dance_pooled(release_moves=v) for v in (False, True)}
     print(pooled_by)
     assert pooled_by[True][1] <= 0.6 * pooled_by[False][1]
     assert pooled_by[True][0] >= pooled_by[False][0] - 0.001

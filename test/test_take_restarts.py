@@ -16,8 +16,7 @@ from dtm_labeler.labeling.take_restarts import (MIN_GAIN_PER_FRAME, REJOIN_FRAME
 from dtm_labeler.model.io import save_model
 from dtm_labeler.motion.c3d_write import write_c3d
 from dtm_labeler.motion.load import load_clip
-from dtm_labeler.training.train import TrainConfig, train_model
-from test_gappy_training import HDM, UPPER, _gapped
+from test_gappy_training import HDM, UPPER
 
 
 def test_restart_windows_cover_the_take_after_its_start():
@@ -41,15 +40,6 @@ def test_a_fresh_start_must_fit_better_by_its_margin_per_frame():
     assert not fits_better(carried + 0.5 * MIN_GAIN_PER_FRAME, carried)
     assert not fits_better(carried, carried + 2 * MIN_GAIN_PER_FRAME)
     assert not fits_better(np.zeros(0), np.zeros(0)) and not fits_better(np.ones(3), np.ones(4))
-
-
-@pytest.fixture(scope="module")
-def gappy_upper(data_dir):
-    """12 upper-body HDM05 markers, half of the samples hidden in real-looking gaps; a model
-    of another part of the take (the labeler is often lost on the frames after it)."""
-    clip = _gapped(load_clip(data_dir / HDM).select(UPPER), 0.5)
-    model, _ = train_model([clip.slice(1200, 2400)], TrainConfig(seed=0, k_max=2, structure="greedy"))
-    return model, clip
 
 
 def _accuracy(records):

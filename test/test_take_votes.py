@@ -13,9 +13,6 @@ from dtm_labeler.labeling.stream import LabelerSettings
 from dtm_labeler.labeling.take_votes import take_votes
 from dtm_labeler.model.io import save_model
 from dtm_labeler.motion.c3d_write import write_c3d
-from dtm_labeler.motion.load import load_clip
-from dtm_labeler.training.train import TrainConfig, train_model
-from test_gappy_training import HDM, UPPER, _gapped
 
 
 def _direct(tracks, labels, M, hw, abstain):
@@ -105,13 +102,6 @@ def test_one_label_per_frame_and_bad_input():
         take_votes(tracks, labels[:3], 2, 1)
     with pytest.raises(ValueError):
         take_votes(tracks, labels, 2, -1)
-
-
-@pytest.fixture(scope="module")
-def gappy_upper(data_dir):
-    clip = _gapped(load_clip(data_dir / HDM).select(UPPER), 0.5)
-    model, _ = train_model([clip.slice(1200, 2400)], TrainConfig(seed=0, k_max=2, structure="greedy"))
-    return model, clip
 
 
 def test_take_votes_beat_the_live_labels_on_half_hidden_markers(gappy_upper):
