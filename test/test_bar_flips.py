@@ -7,6 +7,7 @@ import pytest
 from dtm_labeler.labeling.bar_flips import bar_stretches, flip_bars
 from dtm_labeler.motion.load import load_clip
 from test_gappy_training import HDM, _gapped
+from test_rigid_tracks import channel_tracks
 
 #: the left wrist bar's rows (x, near, far): the shoulder, upper arm and finger nearer the radial end
 ROWS = [("LSHO", "LWRA", "LWRB"), ("LUPA", "LWRA", "LWRB"), ("LFIN", "LWRA", "LWRB")]
@@ -18,14 +19,7 @@ def take(data_dir):
     clip = load_clip(data_dir / HDM)
     clip = _gapped(clip.slice(2960, 3560), missing=0.5, seed=1, gap_s=0.25)
     names = list(clip.names)
-    seen = np.isfinite(clip.positions[..., 0])
-    run = np.cumsum(np.vstack([seen[:1], seen[1:] & ~seen[:-1]]), axis=0)
-    xyz, truth, tracks = [], [], []
-    for f in range(clip.n_frames):
-        c = np.flatnonzero(seen[f])
-        xyz.append(clip.positions[f, c])
-        truth.append(c.astype(np.int64))
-        tracks.append(c * 10_000 + run[f, c])
+    xyz, truth, tracks = channel_tracks(clip)
     rows = np.array([[names.index(n) for n in row] for row in ROWS])
     return dict(xyz=xyz, truth=truth, tracks=tracks, names=names, rows=rows, bar=tuple(rows[0, 1:]),
                 P=clip.positions)

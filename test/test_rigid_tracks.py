@@ -32,6 +32,20 @@ def take(data_dir):
     return dict(xyz=xyz, truth=truth, tracks=tracks, n_labels=len(known), names=known, ghost=ghost)
 
 
+def channel_tracks(clip):
+    """Per frame of a gapped ``clip``: the seen channels' points, their channel indices (the
+    true labels) and track ids (one per seen run of a channel, as a C3D's trajectories)."""
+    seen = np.isfinite(clip.positions[..., 0])
+    run = np.cumsum(np.vstack([seen[:1], seen[1:] & ~seen[:-1]]), axis=0)
+    xyz, truth, tracks = [], [], []
+    for f in range(clip.n_frames):
+        c = np.flatnonzero(seen[f])
+        xyz.append(clip.positions[f, c])
+        truth.append(c.astype(np.int64))
+        tracks.append(c * 10_000 + run[f, c])
+    return xyz, truth, tracks
+
+
 def _pieces(take):
     """{track id: [(frame, row)]} of the known markers."""
     out = {}
@@ -151,14 +165,7 @@ def test_a_right_label_refuted_by_pose_held_pairs_is_not_taken_by_its_mirror(dat
     shoulder marker with more support: it stays there (without that rule the right shoulder
     took it and the left shoulder was left unlabelled: 0.36 % of the labels moved)."""
     clip = _gapped(load_clip(data_dir / HDM).slice(2960, 3560), missing=0.5, seed=5, gap_s=0.25)
-    seen = np.isfinite(clip.positions[..., 0])
-    run = np.cumsum(np.vstack([seen[:1], seen[1:] & ~seen[:-1]]), axis=0)
-    xyz, truth, tracks = [], [], []
-    for f in range(clip.n_frames):
-        c = np.flatnonzero(seen[f])
-        xyz.append(clip.positions[f, c])
-        truth.append(c.astype(np.int64))
-        tracks.append(c * 10_000 + run[f, c])
+    xyz, truth, tracks = channel_tracks(clip)
     new, moves = relabel_tracks(xyz, tracks, truth, clip.n_points)
     assert moves == 0 and all((a == b).all() for a, b in zip(new, truth))
 
