@@ -55,7 +55,7 @@ def take_bar_orders(model) -> np.ndarray:
     (:attr:`~dtm_labeler.model.body.BodyModel.orders`) and the take pass's own
     (:attr:`~dtm_labeler.model.body.BodyModel.take_orders`), each row once -- for a body
     calibrated to a person only, as the frame factor (:class:`~dtm_labeler.model.body.BarOrder`):
-    where a lab puts its markers decides the order. None for other models."""
+    where a lab puts its markers decides the order. No rows (an empty array) for other models."""
     body = getattr(model, "body", None)
     if body is None or not body.calibration:
         return np.zeros((0, 3), dtype=np.int64)
@@ -68,8 +68,8 @@ def bar_stretches(track_ids: Sequence[np.ndarray], labels: Sequence[np.ndarray],
     """``[(first, last)]`` frames of each stretch of bar ``ends`` (module doc): the pieces holding
     either end (runs of consecutive frames of one track and one label; an untracked point is a
     piece of one frame), joined while their frames overlap."""
-    spans: dict[tuple[int, int], list[int]] = {}       # (track or -1 - frame*n - i, label) -> [first, last]
-    open_: dict[tuple[int, int], tuple[int, int]] = {}  # (track, label) -> (key, last frame)
+    spans: dict[tuple, list[int]] = {}           # piece (track, label, first frame, row) -> [first, last]
+    open_: dict[tuple[int, int], tuple] = {}     # (track, label) -> (its open piece, last frame)
     out: list[list[int]] = []
     for f, (tid, lab) in enumerate(zip(track_ids, labels)):
         lab = np.asarray(lab)
