@@ -136,13 +136,20 @@ def trained_once(tmp_path_factory, worker_id: str, name: str, build):
 
 
 def computed_once(tmp_path_factory, worker_id: str, name: str, build):
-    """A result ``build()`` computes (picklable: numbers, lists, arrays), shared by the workers
-    of one ``pytest -n N`` run (:func:`made_once`): a deterministic computation another worker
-    has already done is loaded, not done again."""
-    import pickle
-    return made_once(tmp_path_factory, worker_id, f"computed_{name}.pkl", build,
-                     lambda value, path: path.write_bytes(pickle.dumps(value)),
-                     lambda path: pickle.loads(path.read_bytes()))
+    """A result ``build()`` computes (JSON's kinds: numbers, strings, lists and dicts, numpy
+    scalars as numbers), shared by the workers of one ``pytest -n N`` run (:func:`made_once`):
+    a deterministic computation another worker has already done is loaded, not done again. The
+    result is returned as the file gives it back, also to the worker that computed it, so every
+    worker reads the same (tuples as lists). No pickles, here as in model files."""
+    import json
+
+    def save(value, path):
+        path.write_text(json.dumps(value, default=lambda o: o.item()))
+
+    def load(path):
+        return json.loads(path.read_text())
+    return made_once(tmp_path_factory, worker_id, f"computed_{name}.json",
+                     lambda: json.loads(json.dumps(build(), default=lambda o: o.item())), save, load)
 
 
 @pytest.fixture(scope="session")
