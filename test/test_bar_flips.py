@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from dtm_labeler.labeling.bar_flips import bar_stretches, flip_bars
+from dtm_labeler.labeling.rigid_tracks import track_pieces
 from dtm_labeler.motion.load import load_clip
 from test_gappy_training import HDM, _gapped
 from test_rigid_tracks import channel_tracks
@@ -51,7 +52,7 @@ def test_the_rows_hold_on_the_true_labels(take):
 
 
 def test_stretches_cover_every_end_once(take):
-    stretches = bar_stretches(take["tracks"], take["truth"], take["bar"])
+    stretches = bar_stretches(track_pieces(take["tracks"], take["truth"])[0], take["truth"], take["bar"])
     assert len(stretches) > 3
     covered = np.zeros(len(take["truth"]), dtype=int)
     for first, last in stretches:
@@ -71,7 +72,7 @@ def test_true_labels_stay(take):
 
 def _shown_stretches(take, rows, min_frames=4):
     """The stretches in which every one of ``rows`` is shown in ``min_frames`` frames or more."""
-    return [s for s in bar_stretches(take["tracks"], take["truth"], take["bar"])
+    return [s for s in bar_stretches(track_pieces(take["tracks"], take["truth"])[0], take["truth"], take["bar"])
             if min(_shown(take, s, rows)) >= min_frames]
 
 

@@ -45,7 +45,7 @@ from typing import Sequence
 import numpy as np
 
 from ..model.body import ORDER_NATS
-from .rigid_tracks import label_positions
+from .rigid_tracks import label_positions, track_pieces
 
 __all__ = ["bar_stretches", "flip_bars", "take_bar_orders"]
 
@@ -63,30 +63,24 @@ def take_bar_orders(model) -> np.ndarray:
     return np.unique(rows, axis=0) if rows.shape[0] else rows
 
 
-def bar_stretches(track_ids: Sequence[np.ndarray], labels: Sequence[np.ndarray], ends: tuple[int, int]
+def bar_stretches(pieces: Sequence[np.ndarray], labels: Sequence[np.ndarray], ends: tuple[int, int]
                   ) -> list[tuple[int, int]]:
     """``[(first, last)]`` frames of each stretch of bar ``ends`` (module doc): the pieces holding
-    either end (runs of consecutive frames of one track and one label; an untracked point is a
-    piece of one frame), joined while their frames overlap."""
-    spans: dict[tuple, list[int]] = {}           # piece (track, label, first frame, row) -> [first, last]
-    open_: dict[tuple[int, int], tuple] = {}     # (track, label) -> (its open piece, last frame)
-    out: list[list[int]] = []
-    for f, (tid, lab) in enumerate(zip(track_ids, labels)):
+    either end (``pieces``: :func:`~.rigid_tracks.track_pieces`' per-frame piece ids; an untracked
+    point is a piece of one frame), joined while their frames overlap."""
+    spans: dict[int, list[int]] = {}
+    single: list[list[int]] = []
+    for f, (pid, lab) in enumerate(zip(pieces, labels)):
         lab = np.asarray(lab)
-        held = np.flatnonzero((lab == ends[0]) | (lab == ends[1]))
-        tid = np.asarray(tid)
-        for i in held.tolist():
-            t, l = int(tid[i]), int(lab[i])
-            prev = open_.get((t, l)) if t >= 0 else None
-            if prev is not None and prev[1] == f - 1:
-                spans[prev[0]][1] = f
-                open_[(t, l)] = (prev[0], f)
-                continue
-            key = (t, l, f, i)
-            spans[key] = [f, f]
-            if t >= 0:
-                open_[(t, l)] = (key, f)
-    for first, last in sorted(spans.values()):
+        for p in np.asarray(pid)[(lab == ends[0]) | (lab == ends[1])].tolist():
+            if p < 0:
+                single.append([f, f])
+            elif p in spans:
+                spans[p][1] = f
+            else:
+                spans[p] = [f, f]
+    out: list[list[int]] = []
+    for first, last in sorted(list(spans.values()) + single):
         if out and first <= out[-1][1]:
             out[-1][1] = max(out[-1][1], last)
         else:
@@ -117,6 +111,7 @@ def flip_bars(xyz: Sequence[np.ndarray], track_ids: Sequence[np.ndarray], labels
     for _ in range(max(1, rounds)):
         flipped = 0
         P = label_positions(xyz, labels, n_labels)
+        pieces = track_pieces(track_ids, labels)[0]     # a flip exchanges whole pieces: they stay pieces
         for (a, b), rows in bars.items():
             # +1 per frame a row holds (x nearer its near end), -1 reversed, 0 not shown
             says = np.zeros((len(rows), len(labels)))
@@ -131,7 +126,7 @@ def flip_bars(xyz: Sequence[np.ndarray], track_ids: Sequence[np.ndarray], labels
             xs = np.array([x for x, _ in rows])
             if groups is not None:                              # one partner per rigid segment
                 xs = np.where(groups[xs] >= 0, groups[xs], n_labels + xs)
-            for first, last in bar_stretches(track_ids, labels, (a, b)):
+            for first, last in bar_stretches(pieces, labels, (a, b)):
                 per_row = cum[:, last + 1] - cum[:, first]            # held minus reversed, per row
                 per_x = np.array([per_row[xs == x].sum() for x in np.unique(xs)])
                 evidence = np.clip(-ORDER_NATS * per_x, -partner_cap, partner_cap).sum()

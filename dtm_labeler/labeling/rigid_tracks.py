@@ -298,14 +298,14 @@ def relabel_tracks(xyz: Sequence[np.ndarray], track_ids: Sequence[np.ndarray], l
     start = 0
     while start < F:
         stop = min(F, start + max(1, block))
-        pieces = _pieces(track_ids[start:stop], labels[start:stop])
+        pieces = track_pieces(track_ids[start:stop], labels[start:stop])
         while stop - start > 1 and pieces[1] * n_labels ** 2 > MAX_CELLS:
             stop = start + (stop - start) // 2             # many short pieces (flicker): a shorter block
-            pieces = _pieces(track_ids[start:stop], labels[start:stop])
+            pieces = track_pieces(track_ids[start:stop], labels[start:stop])
         lab = labels[start:stop]
         for r in range(max(1, rounds)):
             if r:
-                pieces = _pieces(track_ids[start:stop], lab)
+                pieces = track_pieces(track_ids[start:stop], lab)
             lab, m = _relabel_block(xyz[start:stop], pieces, lab, n_labels,
                                     support, partner_cap, table_frames, max_sweeps, prior, pair_kw)
             moves += m
@@ -316,7 +316,7 @@ def relabel_tracks(xyz: Sequence[np.ndarray], track_ids: Sequence[np.ndarray], l
     return out, moves
 
 
-def _pieces(track_ids: Sequence[np.ndarray], labels: Sequence[np.ndarray]) -> tuple[list[np.ndarray], int]:
+def track_pieces(track_ids: Sequence[np.ndarray], labels: Sequence[np.ndarray]) -> tuple[list[np.ndarray], int]:
     """Per frame, each point's piece: a run of consecutive frames of one (track, label);
     -1 for untracked points."""
     pid, last, n = [], {}, 0
@@ -353,7 +353,7 @@ class Support:
 
 
 def _relabel_block(xyz, pieces, labels, M, support, partner_cap, table_frames, max_sweeps, prior, pair_kw):
-    """One block: ``pieces`` = :func:`_pieces` of its frames."""
+    """One block: ``pieces`` = :func:`track_pieces` of its frames."""
     min_gain = support.min_gain
     F = len(xyz)
     labels = [np.asarray(lab, dtype=np.int64) for lab in labels]
