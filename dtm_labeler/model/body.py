@@ -223,7 +223,8 @@ class BodyModel:
                 "body_between_sd": self.between_sd, "body_quads": self.quads, "body_quad_sign": self.quad_sign,
                 "body_twists": self.twists, "body_rigid_pairs": self.rigid_pairs,
                 "body_rigid_length": self.rigid_length, "body_rigid_spread": self.rigid_spread,
-                "body_orders": self.orders, "body_take_orders": self.take_orders, "body_reach_off_edges": self.reach_off_edges.astype(np.int64)}
+                "body_orders": self.orders, "body_take_orders": self.take_orders,
+                "body_reach_off_edges": self.reach_off_edges.astype(np.int64)}
 
     @classmethod
     def from_arrays(cls, arrays: dict, n_labels: int, calibration: dict | None = None) -> "BodyModel":
