@@ -361,6 +361,32 @@ def test_a_ghost_beside_a_hidden_marker_does_not_take_its_label(model):
         assert took[default] == 0 and back[default] == hide.stop, name
 
 
+def test_a_held_label_pays_to_be_left_on_no_point(model):
+    """labeling/fast_path.py _hold_cost: a label whose track, seen this frame, has carried it for
+    hold_s pays hold_nats for a move that leaves it on no point -- as for one that hands it to a
+    newcomer; in the stream's first hold_s no label is held and leaving one out is free."""
+    clip = synthesize(duration=1.6, seed=7, heading=-2.0, noise_mm=2, start_xy=(1.0, 2.0))
+    settings = LabelerSettings()
+    lab = StreamLabeler(model, settings)
+    early, late = [], []
+    for f in range(clip.n_frames):
+        lab.process(clip.positions[f], f / clip.rate)
+        problems, _, found = lab.last_frame
+        seed, n, M = found.best.assignment, problems[0].n, problems[0].M
+        cost = lab._hold_cost(problems[0], seed)
+        dropped = np.repeat(seed[None], M, 0)
+        dropped[np.arange(M), np.arange(M)] = n                      # row k: label k left on no point
+        paid = np.zeros(M) if cost is None else cost(dropped) - cost(seed[None])
+        if f / clip.rate < 0.9 * settings.hold_s:
+            early.append(paid)
+        elif f / clip.rate > 1.1 * settings.hold_s:
+            assert (seed < n).all()
+            late.append(paid)
+    assert len(early) > 50 and len(late) > 50
+    assert np.allclose(early, 0.0)
+    assert np.allclose(late, settings.hold_nats)
+
+
 def test_a_marker_whose_track_broke_keeps_its_label(model, monkeypatch):
     """labeling/fast_path.py _hold_cost: the coasting track's prior spares the same marker on a new
     track -- one that began in the frames right after the coasting track was last seen, near

@@ -203,7 +203,7 @@ PARAMS: Tuple[Param, ...] = (
           "turned in 221 of 360 frames, 94.0 -> 99.9 %)."),
     Param("hold_nats", 15.0, "Nats the fast path's move must gain besides its fitness to take a label "
           "off the track that has carried it for hold_s (seen this frame) and give it to a point no label "
-          "holds, whose track has carried that label for hold_s less; or to take the label a coasting "
+          "holds, whose track has carried that label for hold_s less, or to no point; or to take the label a coasting "
           "track (its marker hidden) has carried for hold_s and give it to a point whose track never "
           "carried it (a trajectory keeps its label; eq. 32 read as a hidden Markov chain). Stops a ghost riding beside a marker from "
           "taking its label (41 HDM05 markers, 3 flickering + 2 ghosts, four seeds: wrong labels after the "

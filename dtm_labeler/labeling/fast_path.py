@@ -158,9 +158,9 @@ class FastPath:
 
     def _hold_cost(self, problem: FrameProblem, seed: np.ndarray):
         """What the fast path's moves pay for taking a label off the track that holds it and
-        putting it on a point no label holds: ``hold_nats`` each. Eq. 32 read as a hidden Markov
-        chain over each track's label (:mod:`.label_tenure`): a trajectory keeps its label unless
-        the frame's evidence outweighs the prior. A track holds its label
+        putting it on a point no label holds, or on no point: ``hold_nats`` each. Eq. 32 read as
+        a hidden Markov chain over each track's label (:mod:`.label_tenure`): a trajectory keeps
+        its label unless the frame's evidence outweighs the prior. A track holds its label
 
         * while it is seen, once it has carried the label for ``hold_s`` of stream time; the move
           pays when the point's track has carried that label for ``hold_s`` less. What it stops
@@ -200,6 +200,20 @@ class FastPath:
           without the known velocity the MoCap Toolbox walker (60 Hz) lost an ankle whose track,
           each seen once, broke in every frame of the stream's start (98.74 -> 97.69 %).
 
+        A label held while its track is seen pays the same for being left on no point: its
+        marker is there, and the labeling that drops it says the track never was that marker --
+        the same transition of the chain as handing it to a newcomer. Until 2026-12-06 that move
+        was free, and a region check or chain shift could pass a held label through "missing" on
+        the way to a labeling the prior would not let it reach directly (41 markers with gaps:
+        the left wrist bar's ends exchanged, 14 points with gaps: the hips). Measured
+        (``results/search_errors.md``, 2026-12-06), ``bench_stream_latency``'s streams, inline:
+        41 markers with gaps + ghosts, corruption seeds 1-3, 98.22 / 98.12 / 99.73 -> 98.56 /
+        98.39 / 99.77 %; 14 points with gaps 98.72 / 98.62 / 98.16 -> 99.07 / 98.96 / 98.30 %;
+        41 markers with flicker, seeds 1-5, 99.82 / 99.55 / 99.69 / 99.71 / 99.76 -> 99.82 /
+        99.24 / 99.69 / 99.78 / 99.45 % (two seeds: the bar exchanged for 50-70 frames where
+        the model prefers it); a lost half-hidden upper body (``test_take_restarts``' stream)
+        60.4 -> 68.2 %; HDM05's and Qualisys' gapped halves through ``dtm-label`` unchanged.
+
         Swaps and shifts between labelled tracks, the labels of lost tracks and labels a track
         has carried about as long as the one holding them move freely; so does everything in a
         stream's first ``hold_s``."""
@@ -208,14 +222,13 @@ class FastPath:
         if c <= 0 or not len(self.tenure) or self._frame_tracks.size != n:
             return None
         free = free_points(seed, n)
-        if not free.size:
-            return None
         tids, now = self._frame_tracks, self.last_stamp
         price = np.zeros((problem.M, n + 1))
         held = np.flatnonzero(seed < n)
         hold = self.tenure.held_for(tids[seed[held]], held, now)
         held, hold = held[hold >= hold_s], hold[hold >= hold_s]
-        if held.size:
+        price[held, n] = c                          # left on no point while its track is seen
+        if held.size and free.size:
             newcomer = hold[:, None] - self.tenure.held_for(tids[free][None, :], held[:, None], now) >= hold_s
             price[held[:, None], free[None, :]] = np.where(newcomer, c, 0.0)
         coasting = np.flatnonzero(self._coasting & (seed >= n))
