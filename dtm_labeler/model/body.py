@@ -486,27 +486,6 @@ class BarOrder(PointFactor):
 
         log P(X | G) = ... eq. 14 + edge factors ... + sum_k -w [|x_x - x_near| > |x_x - x_far|]
 
-    How much a reversed row weighs: ``w`` is the log-odds of the row, read as a binary factor
-    whose outcome the training saw hold in at least ``ORDER_SHARE`` of the frames of every clip
-    -- ``w = log(ORDER_SHARE / (1 - ORDER_SHARE)) = log 199 = 5.29``, the least odds a kept row
-    has. Until 2026-12-06 it was 3 (as the handedness), and the motion mixtures outweighed two
-    reversed rows where a forearm marker sits otherwise than in the training: HDM05's left
-    forearm marker lies 6 mm nearer the ulnar end in the take's last 30 % (:class:`CrossSegments`),
-    and the model of its first 70 % preferred the left wrist bar exchanged by 5-20 nats a frame
-    over 250 frames of ``bench_stream_latency``'s stream (the ends' order against it by 2 x 3,
-    the handedness by 3). The labels then followed (66 frames of the clean stream, 82 of the
-    154 frames the truth fitted better in, 41 markers with gaps + ghosts, seed 1). Measured
-    (``results/search_errors.md``, 2026-12-06), inline, 3 -> 5.29 nats: clean 99.58 ->
-    99.90 %, gaps 3 + ghosts 2 (corruption seeds 1-3) 98.56 / 98.39 / 99.77 -> 99.44 / 98.68 /
-    99.77 % (search errors 154 / 124 / 44 -> 74 / 98 / 44 of 990), flicker 2 + ghosts 2 (seeds
-    1-5) 99.82 / 99.24 / 99.69 / 99.78 / 99.45 -> 99.97 / 99.79 / 99.72 / 99.80 / 99.67 %;
-    ``dtm-eval``'s calibrated 41-marker cells: HDM05 -> CMU 85 stream 99.04 -> 99.15 % (single
-    frames 64.94 -> 62.50 %), floor moves single frames 99.09 -> 99.70 %, the rest the same;
-    ``dtm-label`` on HDM05's gapped halves (six draws, own tracker) live 86.64 -> 87.42 %, final
-    labels 98.65 -> 98.57 % (one draw's take pass chose another start: 98.36 -> 97.40 %). A
-    stronger weight also trusts the rows that hold only in the training's poses (trunk markers
-    picked within two triangle edges of a bar, whose nearer end turns with the whole arm).
-
     A row with a missing point drops its factor (eq. 30-31 unchanged). Marker sets only (joint
     centres have no bars). Whose order: as the handedness, a generic body keeps its rows but does
     not apply them, a calibrated one does (:func:`~dtm_labeler.training.calibrate.calibrated_body`
@@ -581,9 +560,8 @@ ORDER_MARGIN_M = 0.01
 ORDERS_PER_BAR = 3
 #: ... and for the take pass's rows (:attr:`BodyModel.take_orders`): from the bar's side of the body
 TAKE_ORDERS_PER_BAR = 4
-#: nats a labeling pays per order it shows reversed: the log-odds of a kept order, whose row holds
-#: in at least ``ORDER_SHARE`` of every training clip's frames (log 199 = 5.29; :class:`BarOrder`)
-ORDER_NATS = float(np.log(ORDER_SHARE / (1.0 - ORDER_SHARE)))
+#: nats a labeling pays per order it shows reversed (as a mirrored quadruple, HANDEDNESS_NATS)
+ORDER_NATS = 3.0
 
 
 class TrunkTwist(PointFactor):
