@@ -477,7 +477,8 @@ class BarOrder(PointFactor):
     the radius on the upper arm's side. The training fixes, for every *bar* -- two labels of one
     segment cluster whose distances to each other label of the cluster differ by less than
     ``BAR_TOLERANCE_M`` (median over the frames) -- the labels ``x`` near it (within two
-    triangle edges of either end in the model's structure) whose nearer end is the same in at
+    triangle edges of either end in the model's structure, and on the bar's side of the body:
+    :func:`~dtm_labeler.training.body_fit.sided_reach`) whose nearer end is the same in at
     least ``ORDER_SHARE`` of the frames of every training clip, with a median margin of at least
     ``ORDER_MARGIN_M``; the ``ORDERS_PER_BAR`` of them with the clearest margin (median over
     robust spread) are kept as rows ``(x, near, far)``. A labeling whose points show ``x``

@@ -218,20 +218,22 @@ def bar_orders(clips: Sequence[np.ndarray], segments: np.ndarray, triangles: np.
     the right shoulder's orders, which turn with the whole arm, held in 69 % and 78 %). A
     member that keeps one distance to both ends has no margin and is never taken.
 
-    ``reach`` (M, M) bool, instead of the triangles: the labels each label's bar may be ordered
-    by (:func:`side_reach` for the take pass's rows, :attr:`~dtm_labeler.model.body.BodyModel.take_orders`)."""
+    ``reach`` (M, M) bool: the labels each label's bar may be ordered by, besides the triangles'
+    reach (:func:`sided_reach` for the model's rows) or instead of it (``triangles`` None:
+    :func:`side_reach` for the take pass's rows, :attr:`~dtm_labeler.model.body.BodyModel.take_orders`)."""
     clips = [np.asarray(c, dtype=np.float64)[spread_sample(len(c), max_frames)] for c in clips if len(c)]
     if not clips:
         return np.zeros((0, 3), dtype=np.int64)
     P = np.concatenate(clips)
     M = P.shape[1]
-    if reach is not None:
-        near = np.asarray(reach, dtype=bool)
-    else:
+    near = np.ones((M, M), dtype=bool)
+    if triangles is not None:
         adjacent = np.eye(M, dtype=np.int64)
         for tri in np.asarray(triangles, dtype=np.int64).reshape(-1, 3):
             adjacent[np.ix_(tri, tri)] = 1
         near = (adjacent @ adjacent) > 0                               # within two triangle edges
+    if reach is not None:
+        near &= np.asarray(reach, dtype=bool)
     rows = []
     for a, b in bars(P, segments):
         candidates = np.flatnonzero(near[a] | near[b])
@@ -275,6 +277,29 @@ def side_reach(mirror_pairs: np.ndarray, n_labels: int) -> np.ndarray:
     pairs = np.asarray(mirror_pairs, dtype=np.int64).reshape(-1, 2)
     side[pairs[:, 0]], side[pairs[:, 1]] = 0, 1
     return (side[:, None] == side[None, :]) & (side[:, None] >= 0)
+
+
+def sided_reach(mirror_pairs: np.ndarray, n_labels: int) -> np.ndarray:
+    """(M, M) bool: :func:`side_reach`, and every label for a label without a mirror partner
+    (a point set of one arm: whose side is not known). What the model's own bar orders
+    (:attr:`~dtm_labeler.model.body.BodyModel.orders`) may be read from besides the triangles'
+    reach (:func:`bar_orders`): a bar on one side of the body is ordered by labels of its side.
+
+    Within two triangle edges of a wrist bar, a take that mostly stands still also holds the
+    other side's and the midline's labels in one order: HDM05's first 2000 frames ordered the
+    left wrist bar by RFHD, the right one by STRN, C7 and the *left* upper arm, orders a pose
+    held for a while. Measured on the model the demo and the node use (that training, CBGA,
+    K <= 2, calibrated), frames 2400-3000 with 3 gaps + 2 ghosts + 1 mm, inline, corruption
+    seeds 1-7 (``results/search_errors.md``, 2026-12-06): 99.42 / 97.16 / 99.22 / 90.18 /
+    97.65 / 96.27 / 98.69 -> 99.38 / 97.30 / 99.22 / 99.23 / 98.30 / 98.68 / 98.72 % (mean
+    96.94 -> 98.69 %), ghosts labelled 659 -> 514 of 8400; frames 4144-4744, seeds 1-4, 96.15
+    -> 96.31 %; ``bench_stream_latency``'s model (70 % of the take, whose rows were all of the
+    bar's side already) unchanged. Rows only from labels the body's rigid tree joins to the
+    bar within two links (tried): the right bars of that model and of ``dtm-eval``'s HDM05
+    body then kept no row, and the bench's stream lost 0.6-1.8 points."""
+    reach = side_reach(mirror_pairs, n_labels)
+    reach[~reach.any(1)] = True
+    return reach
 
 
 def trunk_twists(labels: Sequence[str], clips: Sequence[np.ndarray] = (), share: float = 0.999) -> np.ndarray:

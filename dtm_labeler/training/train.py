@@ -53,7 +53,7 @@ from ..model.structure import BODY14_GIVEN, Structure
 from ..search import structure_search as ss
 from ..labeling.rest_clock import longest_rests
 from .body_fit import (BodySettings, bar_orders, broad_components, edge_prior, fit_body, handedness_quads,
-                       pair_statistics, side_reach, trunk_twists, validation_rows, person_rigid_pairs)
+                       pair_statistics, side_reach, sided_reach, trunk_twists, validation_rows, person_rigid_pairs)
 
 STRUCTURE_METHODS = ("auto", "cbga", "greedy", "given", "sga", "body")
 MIXTURE_KINDS = ("mdl", "fixed", "single")
@@ -439,7 +439,8 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
     step("structure", 1, 1)
     if body is not None and not joint_centres:      # marker bars: their order (model/body.py BarOrder)
         body = replace(body, orders=bar_orders(positions, body.segments, structure.array,
-                                               max_frames=config.body.max_frames),
+                                               max_frames=config.body.max_frames,
+                                               reach=sided_reach(all_pairs, len(labels))),
                        take_orders=bar_orders(positions, body.segments, None, per_bar=TAKE_ORDERS_PER_BAR,
                                               max_frames=config.body.max_frames,
                                               reach=side_reach(all_pairs, len(labels))))
