@@ -196,7 +196,7 @@ def hdm05_half_hidden(hdm05_calibrated, hdm05_take):
     """240 frames (2 s) after :func:`hdm05_calibrated`'s training part with half of the samples
     hidden as a capture's occlusions hide them (gaps of ~0.25 s), 1 mm of noise: the frames
     the labeler gets. A half-hidden cold start is chaotic: nine such draws (frames 2400, 3000,
-    3600 + 240, gap draws 1-3) ended 4-72 % right, and one changed row of the model moves a
+    3600 + 240, gap draws 1-3) ended 3-72 % right, and one changed row of the model moves a
     draw by 30 points either way; this one (frames 3600-3840, draw 3) is recovered by the join
     with the model's bar orders from the triangles' reach (67.5 %, the filled join only 42.4 %)
     and from the bar's side (67.5 %, 35.3 %). Until 2026-12-06: frames 2400-2640, draw 1

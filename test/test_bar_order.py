@@ -115,7 +115,8 @@ def test_wrist_bars_learnt_from_a_real_take_hold_in_another_labs_motion(hdm_case
     assert {("LWRA", "LWRB"), ("RWRA", "RWRB")} <= found
     rows = {tuple(L[i] for i in r) for r in model.body.orders}
     assert ("LSHO", "LWRA", "LWRB") in rows and ("RSHO", "RWRA", "RWRB") in rows      # nearer the radial end
-    assert np.array_equal(bar_orders(P, model.body.segments, model.structure.array), model.body.orders)
+    assert np.array_equal(bar_orders(P, model.body.segments, model.structure.array,
+                                     reach=sided_reach(model.mirror_pairs, len(L))), model.body.orders)
     # CMU 85's true labels, every frame of the jump + twist: each row holds in at least 99 % of them
     X = model_clip(model, test).positions
     x, near, far = (X[:, model.body.orders[:, k]] for k in range(3))
