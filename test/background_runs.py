@@ -4,8 +4,19 @@ what test_background_join and test_background_sweeps read of it: the readings ea
 the searches asked for, the kind of search each joined frame took, every frame's labels."""
 from __future__ import annotations
 
+from dtm_labeler.evaluation.corruption import corrupt_clip
+from dtm_labeler.evaluation.pipeline import model_clip
 from dtm_labeler.labeling.recovery import DeferredRecovery
 from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
+
+
+def half_hidden_frames(model, take, start: int, draw: int) -> list:
+    """240 frames (2 s) of ``take`` from ``start`` with half of the samples hidden as a
+    capture's occlusions hide them (gaps of ~0.25 s, gap draw ``draw``), 1 mm of noise: the
+    frames the labeler gets."""
+    from test_gappy_training import _gapped
+    clip = _gapped(take, 0.5, seed=draw, gap_s=0.25).slice(start, start + 240)
+    return list(corrupt_clip(model_clip(model, clip), noise_mm=1.0, seed=1))
 
 
 def background_run(model, frames, audit_period_s: float = 0.0) -> dict:

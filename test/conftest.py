@@ -201,11 +201,8 @@ def hdm05_half_hidden(hdm05_calibrated, hdm05_take):
     with the model's bar orders from the triangles' reach (67.5 %, the filled join only 42.4 %)
     and from the bar's side (67.5 %, 35.3 %). Until 2026-12-06: frames 2400-2640, draw 1
     (62.9 % and 23.5 %; 29.7 % and 28.3 % with the side's rows)."""
-    from dtm_labeler.evaluation.corruption import corrupt_clip
-    from dtm_labeler.evaluation.pipeline import model_clip
-    from test_gappy_training import _gapped
-    clip = _gapped(hdm05_take, 0.5, seed=3, gap_s=0.25).slice(3600, 3840)
-    return list(corrupt_clip(model_clip(hdm05_calibrated, clip), noise_mm=1.0, seed=1))
+    from background_runs import half_hidden_frames
+    return half_hidden_frames(hdm05_calibrated, hdm05_take, 3600, draw=3)
 
 
 @pytest.fixture(scope="session")

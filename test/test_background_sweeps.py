@@ -11,7 +11,7 @@ import pytest
 
 from dtm_labeler.labeling.recovery import DeferredRecovery
 from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
-from background_runs import background_run
+from background_runs import background_run, half_hidden_frames
 
 
 @pytest.fixture(scope="module")
@@ -19,11 +19,7 @@ def stream(hdm05_calibrated, hdm05_take):
     """:func:`conftest.hdm05_half_hidden`'s kind of stream, frames 3600-3840 with gap draw 1:
     one whose sweeps replace the carried labeling (three joins; 74 % right). The
     conftest's draw, whose own joins recover it, has no sweep that beats the carried labeling."""
-    from dtm_labeler.evaluation.corruption import corrupt_clip
-    from dtm_labeler.evaluation.pipeline import model_clip
-    from test_gappy_training import _gapped
-    clip = _gapped(hdm05_take, 0.5, seed=1, gap_s=0.25).slice(3600, 3840)
-    return list(corrupt_clip(model_clip(hdm05_calibrated, clip), noise_mm=1.0, seed=1))
+    return half_hidden_frames(hdm05_calibrated, hdm05_take, 3600, draw=1)
 
 
 def _run(model, frames, period: float):
