@@ -246,6 +246,13 @@ PARAMS: Tuple[Param, ...] = (
           "or a ghost that took a hidden point's label -- one such label after another. Joint centres "
           "only (the 14 body points): on a marker set the exact relabelling of a hand's or a foot's "
           "region follows the model's own errors. 0 = off.", range=(0, 16)),
+    Param("young_candidates", 3, "Points each label of a young check's region may take: its own and the "
+          "nearest others no label outside the region holds (a missing label: the nearest its distance "
+          "bounds allow). The other region checks, and the searches' final sweeps, take 6. A young check "
+          "runs in nearly every frame of a stream with gaps or ghosts, and its DP's rows grow with the cube "
+          "of this per triangle: 6 -> 3 on bench_stream_latency's 14 points with 3 gaps + 2 ghosts (seeds "
+          "1-3, inline) kept the labels (98.78 -> 98.81 %, search errors 26 -> 25) and cut the steady p99 "
+          "2.46-2.56 -> 2.21-2.30 ms.", range=(1, 64)),
     Param("region_every", 240, "Background region check every this many frames "
           "in steady state (0 = only after GA searches).", range=(0, 1000000)),
     Param("region_size", 6, "Labels per region of the region checks and of the "
@@ -463,6 +470,7 @@ class LabelerSettings:
     region_size: int = DEFAULTS["region_size"]
     region_every: int = DEFAULTS["region_every"]
     young_checks: int = DEFAULTS["young_checks"]
+    young_candidates: int = DEFAULTS["young_candidates"]
     region_branches: int = DEFAULTS["region_branches"]
     max_gap_s: float = DEFAULTS["max_gap_s"]
     noise_mm: float = DEFAULTS["noise_mm"]

@@ -26,15 +26,20 @@ pay, for evaluation) and keeps its own cursors (``_region_cursor``, ``_young_cur
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from ..search import label_ops
-from ..search.dtm_dp import chains_of, regions_of, relabel_regions
+from ..search.dtm_dp import chains_of, region_candidates, regions_of, relabel_regions
 from ..search.label_search import cluster_turns, polish, targeted_moves, transfer_moves
 from ..search.move_kernels import close_label_pairs, free_points
 from ..search.problem import FrameProblem
 from .fit_check import label_misfit
 
+#: points each label of a region check may take (:meth:`FastPath._region_checks`; young checks:
+#: the ``young_candidates`` setting), as :func:`~dtm_labeler.search.dtm_dp.region_candidates`' default
+REGION_CANDIDATES = 6
 #: the hold prior of a coasting track (:meth:`FastPath._hold_cost`) spares a point whose
 #: track began within ``TRACK_BREAK_FRAMES`` frame periods after the coasting one was last seen,
 #: within ``TRACK_BREAK_M`` of where that one is predicted: the same marker, its track broken by
@@ -306,11 +311,13 @@ class FastPath:
                     self._region_cursor = (self._region_cursor + 1) % problem.M
                     centres = [self._region_cursor] + [c for c in centres if c != self._region_cursor]
                 centres = centres[:self.settings.region_checks]
-            centres += [c for c in self._young_centres(problem, ind) if c not in centres]
-            if centres:
+            young = [c for c in self._young_centres(problem, ind) if c not in centres]
+            if centres or young:
                 ind0, f0 = ind, f
-                ind, f, e = self._region_checks(problem, ind, f, moves, centres)
-                evals += e
+                for checked, k in ((centres, REGION_CANDIDATES), (young, self.settings.young_candidates)):
+                    if checked:
+                        ind, f, e = self._region_checks(problem, ind, f, moves, checked, k)
+                        evals += e
                 if cost is not None and not np.array_equal(ind, ind0):    # the same prior as the moves'
                     price = cost(np.stack([ind0, ind]))
                     if f - price[1] <= f0 - price[0]:
@@ -519,15 +526,31 @@ class FastPath:
         return np.roll(young, -(self._young_cursor % young.size))[:k].tolist()
 
     def _region_checks(self, problem: FrameProblem, ind: np.ndarray, f: float, moves,
-                       centres: list[int]) -> tuple[np.ndarray, float, int]:
+                       centres: list[int], candidates: int = REGION_CANDIDATES) -> tuple[np.ndarray, float, int]:
         """Exact relabelling of the body regions around ``centres`` given the rest
         (:func:`relabel_regions`): a wrong labeling that tracking carries on -- e.g. labels
         shifted one marker along a limb -- is put right; measured about 3-4 ms per region at
-        41 markers."""
+        41 markers. Each label of a region may take ``candidates`` points
+        (:func:`region_candidates`); the DP's term rows grow with their cube per triangle.
+
+        A young check (:meth:`_young_centres`) takes ``young_candidates`` (3): it runs in nearly
+        every frame of a 14-point stream with gaps or ghosts (their points make young tracks) and
+        was about 0.5 of its 1.7 ms, and what it repairs -- a ghost holding a hidden point's
+        label, a point back from a gap given its neighbour's -- has the right point among the
+        nearest free ones. Measured, ``bench_stream_latency`` inline, corruption seeds 1-3, young
+        checks 6 -> 3 candidates: 14 points with 3 gaps + 2 ghosts 99.07 / 98.96 / 98.30 ->
+        99.06 / 98.96 / 98.42 % (search errors 26 -> 25), steady p99 2.46-2.56 -> 2.21-2.30 ms;
+        with 2 flickering + 2 ghosts the same labels, p99 1.99-2.09 -> 1.90-2.05 ms; every cell
+        of ``dtm-eval``'s marker, generalisation, occlusion, Table 3, noise, cross-subject and
+        voting sections the same.
+        Every check at 3 cut the p99 further (2.0 / 1.75 ms) but moved a generalisation cell
+        through its self-calibration, and 3-4 for a marker set's checks cost the demo's kind of
+        model (``results/search_errors.md``, 2026-12-06 afternoon)."""
         def refine(x, fx):
             return polish(problem, x, fx, self.settings.fast_rounds, neighbours=moves)
         return relabel_regions(problem, ind, f, regions_of(problem.model, self.settings.region_size),
-                               centres, refine, self.settings.region_branches)
+                               centres, refine, self.settings.region_branches,
+                               functools.partial(region_candidates, max_candidates=candidates))
 
 
 __all__ = ["FastPath"]
