@@ -31,15 +31,12 @@ import functools
 import numpy as np
 
 from ..search import label_ops
-from ..search.dtm_dp import chains_of, region_candidates, regions_of, relabel_regions
+from ..search.dtm_dp import REGION_CANDIDATES, chains_of, region_candidates, regions_of, relabel_regions
 from ..search.label_search import cluster_turns, polish, targeted_moves, transfer_moves
 from ..search.move_kernels import close_label_pairs, free_points
 from ..search.problem import FrameProblem
 from .fit_check import label_misfit
 
-#: points each label of a region check may take (:meth:`FastPath._region_checks`; young checks:
-#: the ``young_candidates`` setting), as :func:`~dtm_labeler.search.dtm_dp.region_candidates`' default
-REGION_CANDIDATES = 6
 #: the hold prior of a coasting track (:meth:`FastPath._hold_cost`) spares a point whose
 #: track began within ``TRACK_BREAK_FRAMES`` frame periods after the coasting one was last seen,
 #: within ``TRACK_BREAK_M`` of where that one is predicted: the same marker, its track broken by

@@ -29,6 +29,9 @@ from .dp_kernels import dp_solve, grid_keys
 from .problem import FrameProblem
 from . import label_ops as ops
 
+#: points each free label of a region may take by default (:func:`region_candidates`)
+REGION_CANDIDATES = 6
+
 
 @dataclass(frozen=True)
 class Candidates:
@@ -213,7 +216,7 @@ def local_candidates(problem: FrameProblem, ind: np.ndarray, k_near: int = 3,
 
 
 def region_candidates(problem: FrameProblem, ind: np.ndarray, free: np.ndarray,
-                      max_candidates: int = 6) -> Candidates:
+                      max_candidates: int = REGION_CANDIDATES) -> Candidates:
     """Candidates for relabelling the region ``free`` (M,) bool of ``ind`` with the other
     labels kept. The pool is every point not held by a kept label; a free label with a
     point gets the ``max_candidates`` pool points nearest to it (its own included), a
