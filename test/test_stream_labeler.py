@@ -205,7 +205,9 @@ def test_input_ids_and_truth_fitness(model, walker):
         assert r.track_ids.tolist() == list(range(100, 114))
         assert np.isfinite(r.truth_fitness)
         assert r.log_likelihood >= r.truth_fitness - 1e-6
+        assert r.truth_ms > 0.0 and r.latency_ms > 0.0          # scoring the truth is timed on its own
     assert (r.labels == np.arange(14)).mean() >= 0.9
+    assert lab.process(walker.positions[4], 4 / walker.rate).truth_ms == 0.0   # nothing to score
 
 
 def test_full_search_restarts_while_short_of_the_level(model, walker):
