@@ -20,7 +20,10 @@ before the mixture kernel itself). Here each is one compiled loop:
   observation pattern, that pattern's mixture term, the broad part and the edges' body factor.
 
 All are pure functions of arrays, cached on disk by numba (``cache=True``) and compiled when a
-model is warmed up (:func:`warm_up`), never on a frame.
+model is warmed up (:func:`warm_up`), never on a frame. Numba's cache of a function is keyed on
+its own file only: :func:`frame_terms` inlines :func:`~dtm_labeler.model.term_kernel.row_term`,
+so a change there must come with a change here (last: row_term's three entries a pass,
+2026-12-06) or a checkout keeps running the old compiled kernel.
 """
 from __future__ import annotations
 
