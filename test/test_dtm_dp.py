@@ -190,6 +190,51 @@ def test_region_candidates_are_each_labels_sorted_distinct_points(model, frame):
     assert np.array_equal(max_product(p, lists, b), max_product(p, c, b))
 
 
+def _region_candidates_numpy(p: FrameProblem, ind: np.ndarray, free: np.ndarray, k: int) -> Candidates:
+    """``region_candidates``' rules in numpy (what it ran until 2026-12-06): the reference."""
+    n, M = p.n, p.M
+    kept = np.where(free, n, ind)
+    pool = np.flatnonzero(~ops.used_mask(kept[None], n)[0])
+    fixed = np.flatnonzero(~free)
+    points, labels = [ind[fixed], np.full(int(free.sum()), n)], [fixed, np.flatnonzero(free)]
+    have = free & (ind < n)
+    held = np.flatnonzero(have)
+    if held.size:
+        near = np.argsort(p.dist[ind[held]][:, pool], axis=1, kind="stable")[:, :k]
+        points.append(pool[near].ravel())
+        labels.append(np.repeat(held, near.shape[1]))
+    missing = np.flatnonzero(free & (ind >= n))
+    if missing.size:
+        ref = ind[have]
+        d = p.dist[pool][:, ref].min(1) if ref.size else np.zeros(pool.size)
+        order = pool[np.argsort(d, kind="stable")]
+        ok = p.allowed(kept)[missing][:, order]
+        r, c = np.nonzero(ok & (np.cumsum(ok, axis=1) <= k))
+        points.append(order[c])
+        labels.append(missing[r])
+    return Candidates.of(np.concatenate(points), np.concatenate(labels), M)
+
+
+def test_compiled_region_candidates_are_the_numpy_rules(model, frame):
+    """The compiled table (``dp_kernels.region_table``) is what the rules give in numpy, over
+    random labelings (points missing, shuffled, on clutter), regions and candidate counts, with
+    points at equal distances (ties are broken as a stable sort breaks them)."""
+    states, truth = frame
+    rng = np.random.default_rng(3)
+    tied = np.vstack([states, states[2] + np.r_[0.05, 0.0, 0.0, 0, 0, 0], states[2] - np.r_[0.05, 0.0, 0.0, 0, 0, 0]])
+    for st in (states, tied):
+        p = FrameProblem(model, st, Background())
+        for trial in range(60):
+            ind = np.full(p.M, p.n, dtype=np.int64)
+            shown = rng.permutation(p.n)[:rng.integers(0, min(p.n, p.M) + 1)]
+            ind[rng.permutation(p.M)[:shown.size]] = shown
+            free = rng.random(p.M) < rng.uniform(0.1, 0.9)
+            k = int(rng.integers(1, 7))
+            got = region_candidates(p, ind, free, max_candidates=k)
+            want = _region_candidates_numpy(p, ind, free, k)
+            assert np.array_equal(got.flat, want.flat) and np.array_equal(got.off, want.off), (trial, k)
+
+
 def test_model_regions_hold_the_nearest_labels_on_the_mean_body(model):
     regions = model_regions(model, max_size=4)
     assert len(regions) == model.n_labels

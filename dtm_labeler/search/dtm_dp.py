@@ -25,12 +25,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .dp_kernels import dp_solve, grid_keys
+from .dp_kernels import dp_solve, grid_keys, region_table
 from .problem import FrameProblem
 from . import label_ops as ops
 
 #: points each free label of a region may take by default (:func:`region_candidates`)
 REGION_CANDIDATES = 6
+_NOTHING_ALLOWED = np.zeros((0, 0), dtype=bool)     # region_table's ``allowed`` when no free label is missing
 
 
 @dataclass(frozen=True)
@@ -224,29 +225,13 @@ def region_candidates(problem: FrameProblem, ind: np.ndarray, free: np.ndarray,
     nearest to the region's points; both may also be missing. A kept label has its own
     point only. :func:`max_product` over these is the best relabelling of the region (at
     one heading) given the rest of the body; the cap bounds the work when many points are
-    unlabelled."""
-    n, M = problem.n, problem.M
-    ind = np.asarray(ind, dtype=np.int64)
-    kept = np.where(free, n, ind)
-    pool = np.flatnonzero(~ops.used_mask(kept[None], n)[0])
-    fixed = np.flatnonzero(~free)
-    points, labels = [ind[fixed], np.full(int(free.sum()), n, dtype=np.int64)], [fixed, np.flatnonzero(free)]
-    have = free & (ind < n)
-    held = np.flatnonzero(have)
-    if held.size:                        # each: its max_candidates nearest pool points
-        near = np.argsort(problem.dist[ind[held]][:, pool], axis=1, kind="stable")[:, :max_candidates]
-        points.append(pool[near].ravel())
-        labels.append(np.repeat(held, near.shape[1]))
-    missing = np.flatnonzero(free & (ind >= n))
-    if missing.size:                     # each: the first max_candidates allowed pool points by distance
-        ref = ind[have]
-        d = problem.dist[pool][:, ref].min(1) if ref.size else np.zeros(pool.size)
-        order = pool[np.argsort(d, kind="stable")]
-        ok = problem.allowed(kept)[missing][:, order]                   # (missing, pool) in that order
-        r, c = np.nonzero(ok & (np.cumsum(ok, axis=1) <= max_candidates))
-        points.append(order[c])
-        labels.append(missing[r])
-    return Candidates.of(np.concatenate(points), np.concatenate(labels), M)
+    unlabelled. Compiled (:func:`~.dp_kernels.region_table`)."""
+    n = problem.n
+    ind = np.ascontiguousarray(ind, dtype=np.int64)
+    free = np.ascontiguousarray(free, dtype=bool)
+    missing = free & (ind >= n)
+    allowed = problem.allowed(np.where(free, n, ind)) if missing.any() else _NOTHING_ALLOWED
+    return Candidates(*region_table(problem.dist, ind, free, allowed, n, int(max_candidates)))
 
 
 def shared_candidates(problem: FrameProblem, ind: np.ndarray, free: np.ndarray,
