@@ -168,32 +168,38 @@ def test_sliding_window_equals_a_recount():
             assert none[i] == sum(int(((t == tr) & (labs < 0)).sum()) for t, labs, a in frames if not a)
 
 
-def test_the_assignment_without_the_hungarian_algorithm_publishes_what_it_would(monkeypatch):
-    """``_max_assignment`` takes each row's strict maximum when no two positive rows share it
-    and falls back to the Hungarian algorithm otherwise: on random vote tables (counts and the
-    current frame's half vote, ties, shared maxima, more tracks than labels and fewer) the
-    labels a positive vote publishes are the Hungarian algorithm's."""
+def test_the_assignment_without_the_hungarian_algorithm_publishes_what_it_would():
+    """``_publish_maxima`` takes each row's strict maximum when no two positive rows share it
+    and hands the frame to the Hungarian algorithm otherwise: on random vote tables (counts, the
+    current frame's half vote, ties, shared maxima, "no label" votes, more tracks than labels
+    and fewer) what it publishes is what the Hungarian algorithm publishes, and both ways occur."""
     from scipy.optimize import linear_sum_assignment
 
     from dtm_labeler.labeling import voting
-    calls = []
-    monkeypatch.setattr(voting, "linear_sum_assignment", lambda c: calls.append(1) or linear_sum_assignment(c))
     rng = np.random.default_rng(3)
-    tables = 0
+    fast = slow = 0
     for trial in range(600):
         n, M = int(rng.integers(1, 9)), int(rng.integers(1, 7))
         votes = rng.integers(0, 4, size=(n, M)).astype(float)
         votes[rng.random((n, M)) < 0.6] = 0.0
-        cur = rng.integers(-1, M, size=n)
-        votes[np.flatnonzero(cur >= 0), cur[cur >= 0]] += 0.5 * (trial % 2)
-        if not votes.any():
+        seen = votes.sum(1) + rng.integers(0, 3, size=n)
+        none = rng.integers(0, 3, size=n).astype(float) * (rng.random(n) < 0.3)
+        cur = rng.integers(-1, M, size=n) if trial % 2 else np.full(n, -1)
+        before = votes.copy()
+        labels, conf, ties = voting._publish_maxima(votes, seen, none, cur)
+        assert np.array_equal(votes, before)                              # left as it was
+        v = votes.copy()
+        v[np.flatnonzero(cur >= 0), cur[cur >= 0]] += 0.5
+        want, want_conf = np.full(n, -1), np.zeros(n)
+        if v.any():
+            r, c = linear_sum_assignment(-v)
+            ok = (v[r, c] > 0) & (v[r, c] > none[r])
+            want[r[ok]] = c[ok]
+            want_conf[r[ok]] = np.minimum((v[r[ok], c[ok]] - 0.5 * (cur[r[ok]] == c[ok])) / np.maximum(seen[r[ok]], 1), 1)
+        if ties:
+            slow += 1
             continue
-        tables += 1
-        got, want = np.full(n, -1), np.full(n, -1)
-        r, c = voting._max_assignment(votes)
-        got[r[votes[r, c] > 0]] = c[votes[r, c] > 0]
-        r2, c2 = linear_sum_assignment(-votes)
-        want[r2[votes[r2, c2] > 0]] = c2[votes[r2, c2] > 0]
-        assert votes[r, c].sum() == votes[r2, c2].sum()               # an optimal assignment
-        assert got.tolist() == want.tolist(), votes
-    assert 100 < len(calls) < tables - 100                              # both ways were tried
+        fast += 1
+        assert labels.tolist() == want.tolist(), (votes, cur)
+        assert np.allclose(conf, want_conf)
+    assert fast > 100 and slow > 100                                      # both ways were tried

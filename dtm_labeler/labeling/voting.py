@@ -23,6 +23,7 @@ from __future__ import annotations
 from collections import deque
 
 import numpy as np
+from numba import njit
 from scipy.optimize import linear_sum_assignment
 
 
@@ -72,22 +73,12 @@ class VoteBook:
 
     def _count(self, track_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Votes (n, n_labels), frames seen (n,) and "no label" votes (n,) of ``track_ids``:
-        one pass over the window."""
-        track_ids = np.asarray(track_ids)
+        one pass over the window (:func:`_window_counts`)."""
+        track_ids = np.ascontiguousarray(track_ids, dtype=np.int64).reshape(-1)
         k, M = track_ids.size, self.n_labels
         if not self.frame_sizes or k == 0:
             return np.zeros((k, M)), np.zeros(k), np.zeros(k)
-        tids, labs = self._tids, self._labs
-        order = np.argsort(track_ids)
-        sorted_ids = track_ids[order]
-        pos = np.minimum(np.searchsorted(sorted_ids, tids), k - 1)
-        hit = sorted_ids[pos] == tids
-        row = order[pos]
-        seen = np.bincount(row[hit], minlength=k).astype(float)
-        lab = hit & (labs >= 0)
-        votes = np.bincount(row[lab] * M + labs[lab], minlength=k * M).astype(float).reshape(k, M)
-        none = np.bincount(row[hit & self._none], minlength=k).astype(float)
-        return votes, seen, none
+        return _window_counts(track_ids, self._tids, self._labs, self._none, M)
 
     def publish(self, track_ids: np.ndarray, current: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Published labels (-1 none) and confidences for this frame's points.
@@ -97,14 +88,15 @@ class VoteBook:
         label / frames of the window in which the track was seen.
         """
         votes, seen, none = self._count(track_ids)
-        cur = np.asarray(current)
+        cur = np.ascontiguousarray(current, dtype=np.int64).reshape(-1)
+        labels, conf, ties = _publish_maxima(votes, seen, none, cur)
+        if not ties:                   # each row at its own strict maximum: what the Hungarian algorithm gives
+            return labels, conf
         has = cur >= 0
         votes[np.flatnonzero(has), cur[has]] += 0.5
         labels = np.full(len(track_ids), -1, dtype=np.int64)
         conf = np.zeros(len(track_ids))
-        if votes.size == 0 or not votes.any():
-            return labels, conf
-        r, c = _max_assignment(votes)
+        r, c = linear_sum_assignment(-votes)
         ok = (votes[r, c] > 0) & (votes[r, c] > none[r])
         labels[r[ok]] = c[ok]
         conf[r[ok]] = np.minimum((votes[r[ok], c[ok]] - 0.5 * (cur[r[ok]] == c[ok])) / np.maximum(seen[r[ok]], 1.0),
@@ -112,18 +104,63 @@ class VoteBook:
         return labels, conf
 
 
-def _max_assignment(votes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rows and columns of a one-to-one assignment maximising the total ``votes``, the same
-    labels as ``linear_sum_assignment(-votes)`` gives where they count (a positive vote): when
-    every row with a positive vote has one strict maximum and no two such rows share its column
-    -- nearly every frame of a stream on track -- each such row takes its maximum (nothing beats
-    every row at its maximum, and that is the only way to reach it), without the Hungarian
-    algorithm's cost; otherwise the Hungarian algorithm. Rows without a positive vote are
-    left out (no label is published for them either way)."""
-    best = votes.argmax(1)
-    top = votes[np.arange(votes.shape[0]), best]
-    rows = np.flatnonzero(top > 0)
-    cols = best[rows]
-    if (votes[rows] == top[rows, None]).sum() == rows.size and np.unique(cols).size == cols.size:
-        return rows, cols
-    return linear_sum_assignment(-votes)
+@njit(cache=True, nogil=True)
+def _window_counts(track_ids, tids, labs, none_votes, M):  # pragma: no cover - compiled
+    """:meth:`VoteBook._count` in one pass over the window's entries."""
+    k = track_ids.size
+    order = np.argsort(track_ids)
+    sorted_ids = track_ids[order]
+    votes = np.zeros((k, M))
+    seen = np.zeros(k)
+    none = np.zeros(k)
+    for e in range(tids.size):
+        pos = np.searchsorted(sorted_ids, tids[e])
+        if pos >= k or sorted_ids[pos] != tids[e]:
+            continue
+        row = order[pos]
+        seen[row] += 1.0
+        if labs[e] >= 0:
+            votes[row, labs[e]] += 1.0
+        if none_votes[e]:
+            none[row] += 1.0
+    return votes, seen, none
+
+
+@njit(cache=True, nogil=True)
+def _publish_maxima(votes, seen, none, cur):  # pragma: no cover - compiled
+    """:meth:`VoteBook.publish` when every row with a positive vote (this frame's label adding
+    half a vote) has one strict maximum and no two such rows share its column -- nearly every
+    frame of a stream on track -- each row takes its maximum, which is what the Hungarian
+    algorithm gives where it counts (a positive vote; nothing beats every row at its maximum);
+    (labels, confidences, False). (unset, unset, True) when that does not hold: the
+    caller assigns with the Hungarian algorithm. ``votes`` is left as it was."""
+    k, M = votes.shape
+    labels = np.full(k, -1, dtype=np.int64)
+    conf = np.zeros(k)
+    taken = np.zeros(M, dtype=np.bool_)
+    for r in range(k):
+        best = -1
+        top = 0.0
+        ties = False
+        for c in range(M):
+            v = votes[r, c] + (0.5 if c == cur[r] else 0.0)
+            if best < 0 or v > top:
+                best, top, ties = c, v, False
+            elif v == top:
+                ties = True
+        if top <= 0.0:
+            continue
+        if ties or taken[best]:
+            return labels, conf, True
+        taken[best] = True
+        if top > none[r]:
+            labels[r] = best
+            conf[r] = min((top - (0.5 if cur[r] == best else 0.0)) / max(seen[r], 1.0), 1.0)
+    return labels, conf, False
+
+
+def warm_up() -> None:
+    """Compile (or load) the module's kernels once, before a stream."""
+    book = VoteBook(2, 3)
+    book.add(np.array([0, 1]), np.array([0, -1]))
+    book.publish(np.array([0, 1]), np.array([0, 2]))
