@@ -103,3 +103,23 @@ def test_frame_kernel_arrays_are_the_models_own(models):
     got = frame_terms(keys, p.states, p.codes, p.dist, p.n + 1, p.T, p.bins, 0.0, *bare.kernel_tables)
     assert got.shape == (1,) and np.isfinite(got[0])
     assert stacked.W.shape[0] == 27 and pid == 9 * 1 + 3 * 1 + 1      # positions only (no velocities)
+
+
+def test_frame_geometry_is_the_numpy_reading():
+    """Each point's observation code and the distances between points (0 for unseen points
+    and "missing") from the compiled loop are numpy's, value for value, on states with full,
+    position-only, partly and wholly missing rows."""
+    from dtm_labeler.model.features import FULL, MISSING, POSITION_ONLY
+    from dtm_labeler.search.frame_kernels import frame_geometry
+    rng = np.random.default_rng(5)
+    for trial in range(20):
+        st = rng.normal(size=(int(rng.integers(1, 40)), 6))
+        st[rng.random(st.shape) < 0.08] = np.nan                   # a coordinate or a velocity lost
+        st[rng.random(len(st)) < 0.2, :3] = np.nan                 # a whole position
+        st = np.vstack([st, np.full(6, np.nan)])                   # the row of "missing"
+        codes, dist = frame_geometry(st, FULL, POSITION_ONLY, MISSING)
+        assert np.array_equal(codes, observation_state(st))
+        diff = st[:, None, :3] - st[None, :, :3]
+        want = np.sqrt((diff * diff).sum(-1))
+        want[np.isnan(want)] = 0.0
+        assert np.array_equal(dist, want)

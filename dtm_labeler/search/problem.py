@@ -35,8 +35,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..model.dtm import TriangulatedModel
-from ..model.features import STATE_DIM, observation_state
-from .frame_kernels import TermTable, allowed_points, facing, frame_terms, table_fill, table_lookup, table_lookup_keys
+from ..model.features import FULL, MISSING, POSITION_ONLY, STATE_DIM
+from .frame_kernels import (TermTable, allowed_points, facing, frame_geometry, frame_terms, table_fill, table_lookup,
+                            table_lookup_keys)
 
 
 @dataclass(frozen=True)
@@ -124,13 +125,8 @@ class FrameProblem:
         self.states = np.empty((self.n + 1, STATE_DIM))                        # row n = missing
         self.states[:-1] = states
         self.states[-1] = np.nan
-        self.codes = observation_state(self.states)
-        xyz = self.states[:, :3]
-        diff = xyz[:, None] - xyz[None]
-        d = np.sqrt((diff * diff).sum(-1))                     # what np.linalg.norm computes, cheaper
-        d[-1, :] = d[:, -1] = 0.0                              # "missing" is never too far
-        d[np.isnan(d)] = 0.0
-        self.dist = d
+        # observation codes; distances, 0 for "missing" (never too far) and unseen points
+        self.codes, self.dist = frame_geometry(self.states, FULL, POSITION_ONLY, MISSING)
         self.bounds = np.ascontiguousarray(model.distance_bounds, dtype=np.float64)
         self._xy = np.ascontiguousarray(self.states[:, :2])
         self.bins = model.heading_bins
