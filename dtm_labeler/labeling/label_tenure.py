@@ -5,11 +5,14 @@ Markov chain over a track's label, a trajectory keeps the label it has carried u
 evidence outweighs the prior against changing it. :class:`LabelTenure` keeps, for every (track,
 label) pair the labeler has published, the stream time it was first published -- also while the
 label is briefly elsewhere, so a label that flickers to a neighbour and back keeps the tenure it
-had. Pairs go when their track does. Pure numpy (sorted int64 keys), no Python loop over tracks.
+had. Pairs go when their track does. Sorted int64 keys, no Python loop over tracks; a lookup
+(:meth:`LabelTenure.held_for`, asked 5-8 times a frame by the fast path's priors and the
+published confidence) is one compiled loop (:func:`_held`; in numpy 8-12 us each).
 """
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 
 class LabelTenure:
@@ -52,13 +55,25 @@ class LabelTenure:
         """Seconds each track (broadcast with ``labels``) has carried that label by ``stamp``;
         0 for a pair never published."""
         key = self._key(track_ids, labels)
-        out = np.zeros(key.shape)
-        if not self._keys.size:
-            return out
-        pos = np.minimum(np.searchsorted(self._keys, key), self._keys.size - 1)
-        hit = self._keys[pos] == key
-        out[hit] = float(stamp) - self._first[pos[hit]]
-        return out
+        return _held(self._keys, self._first, key.ravel(), float(stamp)).reshape(key.shape)
 
 
-__all__ = ["LabelTenure"]
+@njit(cache=True, nogil=True)
+def _held(keys, first, query, stamp):  # pragma: no cover - compiled
+    """``stamp`` minus the first time of each of ``query`` in the sorted ``keys``, 0 where absent."""
+    out = np.zeros(query.size)
+    for i in range(query.size):
+        pos = np.searchsorted(keys, query[i])
+        if pos < keys.size and keys[pos] == query[i]:
+            out[i] = stamp - first[pos]
+    return out
+
+
+def warm_up() -> None:
+    """Compile (or load) the lookup once, before a stream."""
+    tenure = LabelTenure(2)
+    tenure.update(np.array([0]), np.array([1]), np.zeros(0, dtype=np.int64), 0.0)
+    tenure.held_for(np.array([0, 1]), np.array([1, 0]), 1.0)
+
+
+__all__ = ["LabelTenure", "warm_up"]

@@ -52,7 +52,7 @@ from .fast_path import RESUMED_EVENT_REGIONS, RESUMED_EVENT_S, FastPath
 from .fit_check import expected_share, pattern_means, term_floors
 from .label_tenure import LabelTenure
 from .recovery import InlineRecovery, ProcessRecovery, Recovery, RecoveryRequest, RecoveryResult
-from . import tracker, voting
+from . import label_tenure, tracker, voting
 from .tracker import Tracker, TrackUpdate
 from .voting import VoteBook
 
@@ -121,6 +121,7 @@ class Engine:
         move_kernels.warm_up()
         tracker.warm_up()
         voting.warm_up()
+        label_tenure.warm_up()
         for m in models:
             pattern_means(m)                          # drawn here, not on a stream's frame
         return cls(names, base, models, float(noise_mm), tuple(term_floors(m) for m in models))
