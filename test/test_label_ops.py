@@ -221,3 +221,15 @@ def test_targeted_moves_respect_allowed():
     assert not (out == 4).any()
     assert not ((out[:, 3] == 5)).any()
     assert sum(1 for r in out if (r == 5).any()) == 3       # labels 0, 1, 2 onto point 5
+
+
+def test_repair_draws_the_same_random_numbers_whether_or_not_a_row_needs_it():
+    """A single valid row comes back as it was (the shortcut the labeler's seed takes), a single
+    row with a repeated point is repaired, and both use the random stream alike: what a search
+    draws after a repair does not depend on whether the seed needed one."""
+    valid, bad = np.array([[0, 3, 5, 2]]), np.array([[0, 3, 3, 2]])
+    a, b = np.random.default_rng(7), np.random.default_rng(7)
+    assert np.array_equal(ops.repair(valid, 6, a, fill=False), valid)
+    fixed = ops.repair(bad, 6, b, fill=False)
+    assert sorted(fixed[0][fixed[0] < 6].tolist()) == [0, 2, 3] and (fixed[0] == 6).sum() == 1
+    assert a.random() == b.random()
