@@ -15,11 +15,16 @@ compiled:
 * :func:`region_table` -- a region check's candidates (:func:`~.dtm_dp.region_candidates`) as
   the DP reads them, in one loop (in numpy, 25 array operations: 40-60 us a check, a fifth of a
   14-point check's cost besides its terms).
+
+Numba caches each kernel by its own file: :func:`region_table` calls
+:func:`~.move_kernels.free_points`, so a change there must touch this file too.
 """
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
+
+from .move_kernels import free_points
 
 
 @njit(cache=True, nogil=True)
@@ -142,20 +147,12 @@ def region_table(dist, ind, free, allowed, n, k):  # pragma: no cover - compiled
     ``allowed`` (M, n+1; :func:`~.frame_kernels.allowed_points` of the kept labels) lets it take,
     in order of their distance to the region's held points. Each label's sorted, no repeats."""
     M = ind.size
-    used = np.zeros(n + 1, dtype=np.bool_)
+    kept = ind.copy()
     for lab in range(M):
-        if not free[lab]:
-            used[ind[lab]] = True
-    npool = 0
-    for p in range(n):
-        if not used[p]:
-            npool += 1
-    pool = np.empty(npool, dtype=np.int64)
-    j = 0
-    for p in range(n):
-        if not used[p]:
-            pool[j] = p
-            j += 1
+        if free[lab]:
+            kept[lab] = n
+    pool = free_points(kept, n)
+    npool = pool.size
     near_region = np.zeros(npool)                  # a missing label's order: nearest the region's held points
     any_held = False
     for lab in range(M):
