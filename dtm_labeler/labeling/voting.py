@@ -89,19 +89,15 @@ class VoteBook:
         """
         votes, seen, none = self._count(track_ids)
         cur = np.ascontiguousarray(current, dtype=np.int64).reshape(-1)
-        labels, conf, ties = _publish_maxima(votes, seen, none, cur)
-        if not ties:                   # each row at its own strict maximum: what the Hungarian algorithm gives
-            return labels, conf
-        has = cur >= 0
-        votes[np.flatnonzero(has), cur[has]] += 0.5
-        labels = np.full(len(track_ids), -1, dtype=np.int64)
-        conf = np.zeros(len(track_ids))
-        r, c = linear_sum_assignment(-votes)
-        ok = (votes[r, c] > 0) & (votes[r, c] > none[r])
-        labels[r[ok]] = c[ok]
-        conf[r[ok]] = np.minimum((votes[r[ok], c[ok]] - 0.5 * (cur[r[ok]] == c[ok])) / np.maximum(seen[r[ok]], 1.0),
-                                 1.0)
-        return labels, conf
+        cols, clear = _row_maxima(votes, cur)
+        if not clear:                  # a tie or a shared maximum: the Hungarian algorithm decides
+            ahead = votes.copy()
+            has = np.flatnonzero(cur >= 0)
+            ahead[has, cur[has]] += 0.5
+            r, c = linear_sum_assignment(-ahead)
+            cols = np.full(len(cur), -1, dtype=np.int64)
+            cols[r] = c
+        return _published(votes, seen, none, cur, cols)
 
 
 @njit(cache=True, nogil=True)
@@ -127,16 +123,14 @@ def _window_counts(track_ids, tids, labs, none_votes, M):  # pragma: no cover - 
 
 
 @njit(cache=True, nogil=True)
-def _publish_maxima(votes, seen, none, cur):  # pragma: no cover - compiled
-    """:meth:`VoteBook.publish` when every row with a positive vote (this frame's label adding
-    half a vote) has one strict maximum and no two such rows share its column -- nearly every
-    frame of a stream on track -- each row takes its maximum, which is what the Hungarian
-    algorithm gives where it counts (a positive vote; nothing beats every row at its maximum);
-    (labels, confidences, False). (unset, unset, True) when that does not hold: the
-    caller assigns with the Hungarian algorithm. ``votes`` is left as it was."""
+def _row_maxima(votes, cur):  # pragma: no cover - compiled
+    """Each row's label by its votes, this frame's label ``cur`` adding half a vote: (column of
+    every row with a positive vote, -1 for the others; True) when each such row has one strict
+    maximum and no two share it -- nearly every frame of a stream on track. Then each row at its
+    maximum is what the Hungarian algorithm gives where it counts (nothing beats every row at
+    its maximum); else (unset, False) and the caller asks the Hungarian algorithm."""
     k, M = votes.shape
-    labels = np.full(k, -1, dtype=np.int64)
-    conf = np.zeros(k)
+    cols = np.full(k, -1, dtype=np.int64)
     taken = np.zeros(M, dtype=np.bool_)
     for r in range(k):
         best = -1
@@ -151,12 +145,29 @@ def _publish_maxima(votes, seen, none, cur):  # pragma: no cover - compiled
         if top <= 0.0:
             continue
         if ties or taken[best]:
-            return labels, conf, True
+            return cols, False
         taken[best] = True
-        if top > none[r]:
-            labels[r] = best
-            conf[r] = min((top - (0.5 if cur[r] == best else 0.0)) / max(seen[r], 1.0), 1.0)
-    return labels, conf, False
+        cols[r] = best
+    return cols, True
+
+
+@njit(cache=True, nogil=True)
+def _published(votes, seen, none, cur, cols):  # pragma: no cover - compiled
+    """Labels (-1 none) and confidences of rows assigned ``cols``: a row's label is published
+    when its votes (with this frame's half vote) are positive and beat its "no label" votes;
+    its confidence is its votes over the frames the track was seen."""
+    k = votes.shape[0]
+    labels = np.full(k, -1, dtype=np.int64)
+    conf = np.zeros(k)
+    for r in range(k):
+        c = cols[r]
+        if c < 0:
+            continue
+        v = votes[r, c] + (0.5 if cur[r] == c else 0.0)
+        if v > 0.0 and v > none[r]:
+            labels[r] = c
+            conf[r] = min(votes[r, c] / max(seen[r], 1.0), 1.0)
+    return labels, conf
 
 
 def warm_up() -> None:
