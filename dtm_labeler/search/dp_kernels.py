@@ -122,52 +122,30 @@ def dp_solve(vals, goff, active, tri, cand, off, gain, M):  # pragma: no cover -
 
 
 @njit(cache=True, nogil=True)
-def _nearest(score, pool, k, out, start):  # pragma: no cover - compiled
-    """Write the ``k`` entries of ``pool`` with the smallest ``score`` (ties: the earlier in
-    ``pool``, as a stable sort) to ``out[start:]``; returns how many were written."""
-    taken = np.zeros(pool.size, dtype=np.bool_)
-    m = 0
-    for _ in range(min(k, pool.size)):
-        best = -1
-        for j in range(pool.size):
-            if not taken[j] and (best < 0 or score[j] < score[best]):
-                best = j
-        taken[best] = True
-        out[start + m] = pool[best]
-        m += 1
-    return m
-
-
-@njit(cache=True, nogil=True)
 def region_table(dist, ind, free, allowed, n, k):  # pragma: no cover - compiled
     """(flat, off) of :class:`~.dtm_dp.Candidates` for relabelling the region ``free`` of
     ``ind`` (the rules of :func:`~.dtm_dp.region_candidates`): a kept label its own point; a
     free label "missing" (``n``) and, when it holds a point, the ``k`` pool points nearest that
     point (the pool: every point no kept label holds), else the first ``k`` pool points that
     ``allowed`` (M, n+1; :func:`~.frame_kernels.allowed_points` of the kept labels) lets it take,
-    in order of their distance to the region's held points. Each label's sorted, no repeats."""
+    in order of their distance to the region's held points. Ties go as a stable sort orders
+    them; each label's points sorted (distinct: the pool's are, and ``n`` is not among them)."""
     M = ind.size
     kept = ind.copy()
     for lab in range(M):
         if free[lab]:
             kept[lab] = n
     pool = free_points(kept, n)
-    npool = pool.size
-    near_region = np.zeros(npool)                  # a missing label's order: nearest the region's held points
-    any_held = False
-    for lab in range(M):
-        if free[lab] and ind[lab] < n:
-            q = ind[lab]
-            for j in range(npool):
-                d = dist[pool[j], q]
-                if not any_held or d < near_region[j]:
-                    near_region[j] = d
-            any_held = True
-    order = np.empty(npool, dtype=np.int64)
-    _nearest(near_region, pool, npool, order, 0)
+    order = pool                                   # a missing label's order: nearest the region's held points
+    held = np.flatnonzero(free & (ind < n))
+    if held.size and (free & (ind >= n)).any():
+        near = np.full(pool.size, np.inf)
+        for lab in held:
+            for j in range(pool.size):
+                near[j] = min(near[j], dist[pool[j], ind[lab]])
+        order = pool[np.argsort(near, kind="mergesort")]
     buf = np.empty((M, k + 1), dtype=np.int64)
     size = np.zeros(M, dtype=np.int64)
-    score = np.empty(npool)
     for lab in range(M):
         if not free[lab]:
             buf[lab, 0] = ind[lab]
@@ -176,23 +154,18 @@ def region_table(dist, ind, free, allowed, n, k):  # pragma: no cover - compiled
         buf[lab, 0] = n
         c = 1
         if ind[lab] < n:
-            for j in range(npool):
-                score[j] = dist[ind[lab], pool[j]]
-            c += _nearest(score, pool, k, buf[lab], 1)
+            nearest = pool[np.argsort(dist[ind[lab]][pool], kind="mergesort")[:k]]
+            buf[lab, 1:1 + nearest.size] = nearest
+            c += nearest.size
         else:
-            for j in range(npool):
+            for p in order:
                 if c > k:
                     break
-                if allowed[lab, order[j]]:
-                    buf[lab, c] = order[j]
+                if allowed[lab, p]:
+                    buf[lab, c] = p
                     c += 1
-        row = np.sort(buf[lab, :c])
-        m = 0
-        for i in range(c):
-            if m == 0 or row[i] != buf[lab, m - 1]:
-                buf[lab, m] = row[i]
-                m += 1
-        size[lab] = m
+        buf[lab, :c] = np.sort(buf[lab, :c])
+        size[lab] = c
     off = np.zeros(M + 1, dtype=np.int64)
     for lab in range(M):
         off[lab + 1] = off[lab] + size[lab]
