@@ -43,8 +43,8 @@ def repair(pop: np.ndarray, n: int, rng: np.random.Generator, fill: bool = True)
     P, M = pop.shape
     pop[(pop < 0) | (pop > n)] = n
     noise = rng.random((P, M))          # drawn either way: the random stream does not depend on the rows
-    if P == 1 and np.bincount(pop[0], minlength=n + 1)[:n].max(initial=0) <= 1:
-        return pop                      # one valid row, as the labeler's seed usually is: nothing to do
+    if is_valid(pop, n).all():
+        return pop                      # valid rows (the labeler's seed, nearly every frame): nothing to do
     # duplicates: order each row by (value, random key); a repeat of the previous value loses
     key = pop * 2.0 + noise
     order = np.argsort(key, axis=1)
