@@ -12,7 +12,9 @@ from dtm_labeler.model.features import point_states
 from dtm_labeler.model.io import FORMAT_VERSION, load_model, save_model
 from dtm_labeler.motion.load import load_clip
 from dtm_labeler.search.problem import Background, FrameProblem
-from dtm_labeler.training.body_fit import handedness_quads, quad_signs, rigid_quads, segment_clusters
+from dtm_labeler.evaluation.corruption import realistic_gaps
+from dtm_labeler.training.body_fit import (handedness_quads, joined_clusters, person_rigid_pairs, quad_signs,
+                                          rigid_quads, segment_clusters)
 from dtm_labeler.training.calibrate import calibrate_on_takes, calibrated_body, labelled_positions
 from dtm_labeler.training.train import TrainConfig, train_model
 from model_files import as_older_format
@@ -228,6 +230,46 @@ def test_segment_clusters_are_the_segments_connected_components():
     got = segment_clusters(7, np.array([[0, 1], [2, 3], [1, 4], [3, 5]]))
     assert got[0] == got[1] == got[4] >= 0 and got[2] == got[3] == got[5] >= 0 and got[0] != got[2]
     assert got[6] == -1                                                   # on no segment
+
+
+def test_clusters_join_where_two_short_pairs_between_them_held_rigid():
+    cluster = np.array([0, 0, 1, 1, 2, 2, -1])
+    rigid = np.zeros((7, 7), dtype=bool)
+    for u, v in ((1, 2), (0, 3), (3, 4), (5, 6), (4, 6)):             # 0-1: two links; 1-2: one; 6: on no segment
+        rigid[u, v] = rigid[v, u] = True
+    got = joined_clusters(cluster, rigid)
+    assert got[0] == got[1] == got[2] == got[3] and got[4] == got[5] != got[0] and got[6] == -1
+    rigid[2, 5] = rigid[5, 2] = True                                    # a second link: the chain joins
+    assert len(set(joined_clusters(cluster, rigid)[:6].tolist())) == 1
+
+
+def test_a_gappy_takes_person_pairs_span_one_foot_the_tree_split(data_dir):
+    """The Qualisys walk's first 170 frames at 50 % gaps (``bench_captures``' draw): a gapped
+    training's tree left the right foot's markers in three clusters (its segments below); the
+    person's rigid pairs still hold the foot's pairs across them -- the lateral malleolus to
+    the fifth metatarsal, which tells that marker from the first -- at the length the whole
+    take shows, and nothing across the knee."""
+    clip = load_clip(data_dir / "markers_c3d/qualisys_walk_55markers.c3d")
+    names = ["R_FTC", "R_FME", "R_FAX", "R_WAND2", "R_TAM", "R_FAL", "R_FM1", "R_FCC", "R_FM5"]
+    gapped = clip.positions.copy()
+    gapped[realistic_gaps(clip.n_frames, clip.n_points, clip.rate, missing=0.5, mean_gap_s=0.1, spread=20.0,
+                          seed=2)] = np.nan
+    cols = [list(clip.names).index(n) for n in names]
+    whole, P = clip.positions[:, cols], gapped[:170, cols]
+    ix = {n: i for i, n in enumerate(names)}
+    segments = np.array([[ix[a], ix[b]] for a, b in (("R_FTC", "R_FME"), ("R_FAX", "R_TAM"), ("R_WAND2", "R_TAM"),
+                                                       ("R_FAL", "R_FM1"), ("R_FCC", "R_FM5"))])
+    cluster = segment_clusters(len(names), segments)
+    assert len({cluster[ix[n]] for n in ("R_TAM", "R_FAL", "R_FCC")}) == 3
+    out = person_rigid_pairs([P], segments)
+    got = {(names[u], names[v]): length for (u, v), length in zip(out["rigid_pairs"].tolist(), out["rigid_length"])}
+    seen = np.isfinite(P[:, [ix["R_FAL"], ix["R_FM5"]], 0]).all(1).sum()
+    assert seen < 20                                                    # fewer frames than a take's pairs need
+    true = np.nanmedian(np.linalg.norm(whole[:, ix["R_FAL"]] - whole[:, ix["R_FM5"]], axis=-1))
+    assert got[("R_FAL", "R_FM5")] == pytest.approx(true, abs=0.003)
+    assert ("R_TAM", "R_FCC") in got and ("R_FAL", "R_FCC") in got
+    thigh = {"R_FTC", "R_FME"}
+    assert not [p for p in got if len(thigh & set(p)) == 1]             # the thigh's cluster joined nothing
 
 
 def test_the_take_pass_applies_a_generic_bodys_handedness_only_to_its_person(models, hdm):
