@@ -233,14 +233,14 @@ def test_segment_clusters_are_the_segments_connected_components():
 
 
 def test_clusters_join_where_two_short_pairs_between_them_held_rigid():
-    cluster = np.array([0, 0, 1, 1, 2, 2, -1])
-    rigid = np.zeros((7, 7), dtype=bool)
-    for u, v in ((1, 2), (0, 3), (3, 4), (5, 6), (4, 6)):             # 0-1: two links; 1-2: one; 6: on no segment
+    cluster = np.array([0, 0, 1, 1, 2, 2, -1, -1])                    # 6, 7: on no segment
+    rigid = np.zeros((8, 8), dtype=bool)
+    for u, v in ((1, 2), (0, 3), (3, 4), (5, 6), (4, 6), (0, 7)):      # 0-1: two links; 1-2: one; 6: two to 2; 7: one
         rigid[u, v] = rigid[v, u] = True
     got = joined_clusters(cluster, rigid)
-    assert got[0] == got[1] == got[2] == got[3] and got[4] == got[5] != got[0] and got[6] == -1
+    assert got[0] == got[1] == got[2] == got[3] and got[4] == got[5] == got[6] != got[0] and got[7] == -1
     rigid[2, 5] = rigid[5, 2] = True                                    # a second link: the chain joins
-    assert len(set(joined_clusters(cluster, rigid)[:6].tolist())) == 1
+    assert len(set(joined_clusters(cluster, rigid)[:7].tolist())) == 1
 
 
 def test_a_gappy_takes_person_pairs_span_one_foot_the_tree_split(data_dir):
@@ -270,6 +270,8 @@ def test_a_gappy_takes_person_pairs_span_one_foot_the_tree_split(data_dir):
     assert ("R_TAM", "R_FCC") in got and ("R_FAL", "R_FCC") in got
     thigh = {"R_FTC", "R_FME"}
     assert not [p for p in got if len(thigh & set(p)) == 1]             # the thigh's cluster joined nothing
+    alone = person_rigid_pairs([P], segments[:-1])                      # R_FCC, R_FM5 on no segment: they join too
+    assert [ix["R_FAL"], ix["R_FM5"]] in alone["rigid_pairs"].tolist()
 
 
 def test_the_take_pass_applies_a_generic_bodys_handedness_only_to_its_person(models, hdm):

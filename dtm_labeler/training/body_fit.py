@@ -424,18 +424,23 @@ def person_rigid_pairs(clips: Sequence[np.ndarray], segments: np.ndarray, max_fr
     fifth metatarsal in a triangle with the head and the left elbow, and one foot's markers fell
     in three clusters. Without the foot's pairs across them the take pass kept the fifth
     metatarsal's trajectory under the first's label in all 79 frames of it, 39 of them showing the
-    lateral malleolus, 113 mm from the one and 158 mm from the other. So two clusters with at least
-    :data:`JOIN_LINKS` short pairs (:data:`JOIN_LENGTH_M`) between them that held rigid are one
-    here, and a pair counts as measured from :data:`PERSON_PAIR_MIN_FRAMES` frames seen together
-    (20 before: the foot's pairs are seen together in 11-14 of the 170 frames). Measured on
+    lateral malleolus, 113 mm from the one and 158 mm from the other; on another draw the left
+    forefoot's two markers were on no segment at all. So two clusters -- a label on no segment
+    counting as a cluster of its own -- with at least :data:`JOIN_LINKS` short pairs
+    (:data:`JOIN_LENGTH_M`) between them that held rigid are one here, and a pair counts as
+    measured from :data:`PERSON_PAIR_MIN_FRAMES` frames seen together (20 before: the foot's
+    pairs are seen together in 11-14 of the 170 frames). Measured on
     ``benchmarks/bench_captures.py``'s gapped halves (train the gapped first half as
     ``dtm-train`` does, ``dtm-label``'s default on the gapped second half; capture ids / own
-    tracker), before -> after: the Qualisys walk, gap draws 1-4, 99.21 / 99.68, 97.62 / 96.77,
-    97.10 / 96.84, 95.87 / 97.69 -> 99.21 / 99.68, 98.87 / 99.11, 97.10 / 96.84, 99.10 / 99.38 %
-    (means 97.45 / 97.75 -> 98.57 / 98.75 %); HDM05, gap draws 1-6, the same but draw 2 with
-    capture ids, 99.50 -> 99.42 % (own tracker 98.73 / 99.70 / 98.94 / 98.77 / 98.05 / 97.59 %
-    before and after). Tried and not kept: two rigid pairs of any length joining clusters (the
-    walk's 0.85 s held a thigh and an elbow marker within 6 mm, and the clusters chained into one):
+    tracker), before -> clusters joined -> labels on no segment joining too: the Qualisys walk,
+    gap draws 1-4, 99.21 / 99.68, 97.62 / 96.77, 97.10 / 96.84, 95.87 / 97.69 -> 99.21 / 99.68,
+    98.87 / 99.11, 97.10 / 96.84, 99.10 / 99.38 -> 99.59 / 99.79, 98.78 / 99.18, 98.50 / 99.88,
+    99.10 / 99.38 % (means 97.45 / 97.75 -> 98.57 / 98.75 -> 98.99 / 99.56 %); HDM05, gap draws
+    1-6, 98.12 / 98.73, 99.50 / 99.70, 96.55 / 98.94, 98.57 / 98.77, 97.85 / 98.05, 96.85 / 97.59
+    -> the same but draw 2 99.42 / 99.70 -> and draw 1 98.12 / 98.31, draw 5 97.56 / 98.02 %
+    (means 97.91 / 98.63 -> 97.89 / 98.63 -> 97.85 / 98.56 %). Tried and not kept: two rigid
+    pairs of any length joining clusters (the walk's 0.85 s held a thigh and an elbow marker
+    within 6 mm, and the clusters chained into one):
     the walk 98.72 / 98.60 % but HDM05 draw 1 98.12 / 98.73 -> 97.18 / 97.25 %."""
     P = np.concatenate([np.asarray(c, dtype=np.float64) for c in clips]) if len(clips) else np.zeros((0, 0, 3))
     if P.shape[0] == 0:
@@ -452,20 +457,23 @@ def person_rigid_pairs(clips: Sequence[np.ndarray], segments: np.ndarray, max_fr
 def joined_clusters(cluster: np.ndarray, rigid: np.ndarray, links: int = JOIN_LINKS) -> np.ndarray:
     """(M,) ``cluster`` (:func:`segment_clusters`; -1 on no segment) with two clusters made one
     wherever at least ``links`` pairs between them are ``rigid`` (M, M, symmetric), repeated until
-    no two join (:func:`person_rigid_pairs`). A label on no segment joins nothing: one marker
-    seen steady beside a cluster over a short take is a held pose as often as a rigid mount."""
+    no two join (:func:`person_rigid_pairs`). A label on no segment is a cluster of its own here:
+    it joins a cluster it has ``links`` rigid pairs to, and is -1 again if it joins none."""
     cluster = np.asarray(cluster).copy()
+    alone = cluster < 0
+    cluster[alone] = cluster.max(initial=-1) + 1 + np.arange(alone.sum())
     while True:
-        ids = np.unique(cluster[cluster >= 0])
-        if ids.size < 2:
-            return cluster
+        ids = np.unique(cluster)
         member = (cluster[None, :] == ids[:, None]).astype(np.int64)            # (C, M)
         between = member @ rigid.astype(np.int64) @ member.T                   # (C, C) rigid pairs between
         np.fill_diagonal(between, 0)
         a, b = np.nonzero(np.triu(between >= links, 1))
         if not a.size:
-            return cluster
+            break
         cluster[cluster == ids[b[0]]] = ids[a[0]]
+    ids, counts = np.unique(cluster, return_counts=True)
+    cluster[alone & np.isin(cluster, ids[counts == 1])] = -1
+    return cluster
 
 
 def clip_spread(sd: np.ndarray) -> np.ndarray:
