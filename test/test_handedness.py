@@ -243,6 +243,21 @@ def test_clusters_join_where_two_short_pairs_between_them_held_rigid():
     assert len(set(joined_clusters(cluster, rigid)[:7].tolist())) == 1
 
 
+def test_a_label_joins_a_cluster_only_on_tight_short_links():
+    """A marker on no segment, 0.11 m from both ends of a two-marker cluster: at 2 mm of jitter
+    its two pairs join it to the cluster (both kept as the person's pairs); at 6.5 mm (rigid by the
+    8 mm rule, looser than a join needs) it stays out."""
+    rng = np.random.default_rng(3)
+    base = np.array([[0.0, 0.0, 1.0], [0.1, 0.0, 1.0], [0.05, 0.1, 1.0]])
+
+    def pairs(jitter):
+        P = np.repeat(base[None], 300, axis=0)
+        P[:, 2] += rng.normal(0.0, jitter, size=(300, 3))
+        return {tuple(p) for p in person_rigid_pairs([P], np.array([[0, 1]]))["rigid_pairs"].tolist()}
+    assert pairs(0.002) == {(0, 1), (0, 2), (1, 2)}
+    assert pairs(0.0065) == {(0, 1)}
+
+
 def test_a_gappy_takes_person_pairs_span_one_foot_the_tree_split(data_dir):
     """The Qualisys walk's first 170 frames at 50 % gaps (``bench_captures``' draw): a gapped
     training's tree left the right foot's markers in three clusters (its segments below); the
