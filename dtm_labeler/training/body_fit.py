@@ -440,10 +440,14 @@ def person_rigid_pairs(clips: Sequence[np.ndarray], segments: np.ndarray, max_fr
     99.70 -> 99.42 / 99.70 and draw 5 97.85 / 98.05 -> 97.56 / 98.02 % (means 97.91 / 98.63 ->
     97.85 / 98.63 %). Tried and not kept: links of any spread up to the rigid pairs' 8 mm (HDM05
     draw 1: a finger marker joined the wrist bar's cluster on a 7 mm link, and the bar's ends
-    were exchanged over 50 frames, own tracker 98.73 -> 98.31 %; the walk 98.99 / 99.56 %); only the short tight links kept as pairs across the joined
-    clusters (the walk's means 98.81 / 99.33 %); no label on no segment joining (the walk 98.57 /
-    98.75 %: the left forefoot's markers stay out); links of any length (the walk's 0.85 s held a
-    thigh and an elbow marker within 6 mm, and the clusters chained into one):
+    were exchanged over 50 frames, own tracker 98.73 -> 98.31 %; the walk 98.99 / 99.56 %); a
+    single label joining on three links only (two leave a point free to turn about the line
+    through its partners, as the hand about the wrist bar's ends: HDM05 draw 5 back to 97.85 /
+    98.05 %, but the walk's draw 3 96.53 / 96.84 %, its forefoot out again); only the short tight
+    links kept as pairs across the joined clusters (the walk's means 98.81 / 99.33 %); no label
+    on no segment joining (the walk 98.57 / 98.75 %: the left forefoot's markers stay out); links
+    of any length (the walk's 0.85 s held a thigh and an elbow marker within 6 mm, and the
+    clusters chained into one):
     the walk 98.72 / 98.60 % but HDM05 draw 1 98.12 / 98.73 -> 97.18 / 97.25 %."""
     P = np.concatenate([np.asarray(c, dtype=np.float64) for c in clips]) if len(clips) else np.zeros((0, 0, 3))
     if P.shape[0] == 0:
