@@ -143,7 +143,7 @@ import numpy as np
 
 from ..model.body import SEGMENT, BodyModel
 
-__all__ = ["RigidPairs", "Support", "body_pairs", "rigid_pairs", "relabel_tracks", "spread_sample"]
+__all__ = ["PieceEvidence", "RigidPairs", "Support", "body_pairs", "rigid_pairs", "relabel_tracks", "spread_sample"]
 
 Z_CAP = 4.0                 # a broken distance costs at most Z_CAP^2 / 2 nats
 MAX_CELLS = 20_000_000      # evidence cells (pieces x labels^2) of one block: 160 MB
@@ -352,87 +352,121 @@ class Support:
         return self.min_gain
 
 
-def _relabel_block(xyz, pieces, labels, M, support, partner_cap, table_frames, max_sweeps, prior, pair_kw):
-    """One block: ``pieces`` = :func:`track_pieces` of its frames."""
-    min_gain = support.min_gain
-    F = len(xyz)
-    labels = [np.asarray(lab, dtype=np.int64) for lab in labels]
-    positions = label_positions(xyz, labels, M)
-    sample = spread_sample(F, table_frames)
-    pairs = rigid_pairs(positions[sample], **pair_kw).with_body(prior)
-    pid, n_pieces = pieces
-    if not pairs.count or not n_pieces:
-        return labels, 0
-    reach = float(np.max(np.where(pairs.rigid, pairs.length + Z_CAP * pairs.spread, 0.0)))
-    lab = np.full(n_pieces, -1, dtype=np.int64)
-    members: list[list[int]] = [[] for _ in range(n_pieces)]
-    # evidence entries: piece, partner piece, distance, weight. Within reach one entry per frame;
-    # beyond it every rigid pair's distance is broken at the cap whatever it is, so the frames of
-    # one (piece, partner) are a single entry at distance inf weighted by their count
-    P, Q, D = [], [], []
-    far = []                               # n_pieces * piece + partner, per frame seen beyond reach
-    for f in range(F):
-        p = pid[f]
-        tracked = p >= 0
-        lab[p[tracked]] = labels[f][tracked]
-        for q in p[tracked]:
-            members[q].append(f)
-        x = np.asarray(xyz[f], dtype=np.float64)[tracked]
-        pp = p[tracked]
-        d = np.linalg.norm(x[:, None] - x[None], axis=-1)
-        near = d <= reach
-        i, j = np.nonzero(near & ~np.eye(len(pp), dtype=bool))
-        P.append(pp[i])
-        Q.append(pp[j])
-        D.append(d[i, j])
-        i, j = np.nonzero(~near)
-        far.append(pp[i] * n_pieces + pp[j])
-    key, count = np.unique(np.concatenate(far), return_counts=True)
-    W = np.concatenate([np.ones(sum(len(x) for x in P)), count.astype(np.float64)])
-    P = np.concatenate(P + [key // n_pieces])
-    Q = np.concatenate(Q + [key % n_pieces])
-    D = np.concatenate(D + [np.full(key.size, np.inf)])
-    frames = [np.asarray(m, dtype=np.int64) for m in members]
-    by_partner = np.split(np.argsort(Q, kind="stable"), np.cumsum(np.bincount(Q, minlength=n_pieces))[:-1])
+class PieceEvidence:
+    """The rigid-pair evidence of one block's track pieces (module doc), kept current as pieces
+    change label.
 
-    def evidence(entries: np.ndarray, partner_label: np.ndarray) -> np.ndarray:
-        return pairs.evidence(D[entries], slice(None), partner_label)
+    ``pieces``: :func:`track_pieces` of the block's frames; the pairs are measured on the
+    block's ``labels`` (at most ``table_frames`` frames of it) with the person's segments
+    (``prior``, :meth:`RigidPairs.with_body`). Holds, per piece, its label ``lab`` and its frames
+    ``frames``; ``score[p, a]``: the evidence for piece ``p`` holding label ``a`` from the pieces
+    labelled in its frames, each partner label's share clipped to +- ``partner_cap``;
+    ``holder[f, a]``: the piece holding label ``a`` in frame ``f`` (-1 none). ``empty``: no rigid
+    pair or no piece (every score 0)."""
 
-    # per_partner[p, a, b]: evidence for piece p holding label a from the pieces labelled b in its
-    # frames; score[p, a]: its sum over b, each partner label's share clipped to +- partner_cap
-    per_partner = np.zeros((n_pieces, M, M))
-    cols = np.arange(M)[None]
+    def __init__(self, xyz, pieces, labels, M: int, partner_cap: float = 10.0, table_frames: int = 1200,
+                 prior: RigidPairs | None = None, pair_kw: dict | None = None):
+        F = len(xyz)
+        self.M, self.partner_cap = M, partner_cap
+        labels = [np.asarray(lab, dtype=np.int64) for lab in labels]
+        positions = label_positions(xyz, labels, M)
+        self.pairs = pairs = rigid_pairs(positions[spread_sample(F, table_frames)], **(pair_kw or {})).with_body(prior)
+        self.pid, n_pieces = pieces
+        self.n_pieces = n_pieces
+        self.lab = lab = np.full(n_pieces, -1, dtype=np.int64)
+        members: list[list[int]] = [[] for _ in range(n_pieces)]
+        for f in range(F):
+            p = self.pid[f]
+            tracked = p >= 0
+            lab[p[tracked]] = labels[f][tracked]
+            for q in p[tracked]:
+                members[q].append(f)
+        self.frames = [np.asarray(m, dtype=np.int64) for m in members]
+        self.score = np.zeros((n_pieces, M))
+        self.holder = np.full((F, M), -1, dtype=np.int64)
+        for p in np.flatnonzero(lab >= 0):
+            self.holder[self.frames[p], lab[p]] = p
+        self.empty = not pairs.count or not n_pieces
+        if self.empty:
+            return
+        reach = float(np.max(np.where(pairs.rigid, pairs.length + Z_CAP * pairs.spread, 0.0)))
+        # evidence entries: piece, partner piece, distance, weight. Within reach one entry per frame;
+        # beyond it every rigid pair's distance is broken at the cap whatever it is, so the frames of
+        # one (piece, partner) are a single entry at distance inf weighted by their count
+        P, Q, D = [], [], []
+        far = []                               # n_pieces * piece + partner, per frame seen beyond reach
+        for f in range(F):
+            p = self.pid[f]
+            tracked = p >= 0
+            x = np.asarray(xyz[f], dtype=np.float64)[tracked]
+            pp = p[tracked]
+            d = np.linalg.norm(x[:, None] - x[None], axis=-1)
+            near = d <= reach
+            i, j = np.nonzero(near & ~np.eye(len(pp), dtype=bool))
+            P.append(pp[i])
+            Q.append(pp[j])
+            D.append(d[i, j])
+            i, j = np.nonzero(~near)
+            far.append(pp[i] * n_pieces + pp[j])
+        key, count = np.unique(np.concatenate(far), return_counts=True)
+        self.W = np.concatenate([np.ones(sum(len(x) for x in P)), count.astype(np.float64)])
+        self.P = np.concatenate(P + [key // n_pieces])
+        self.Q = np.concatenate(Q + [key % n_pieces])
+        self.D = np.concatenate(D + [np.full(key.size, np.inf)])
+        self.by_partner = np.split(np.argsort(self.Q, kind="stable"),
+                                   np.cumsum(np.bincount(self.Q, minlength=n_pieces))[:-1])
+        # per_partner[p, a, b]: evidence for piece p holding label a from the pieces labelled b in
+        # its frames; score = its sum over b, each partner label's share clipped
+        self.per_partner = np.zeros((n_pieces, M, M))
+        self._add(np.arange(len(self.P)), lab[self.Q], 1.0)
+        self._rescore(np.arange(n_pieces))
 
-    def add(entries: np.ndarray, partner_label, sign: float) -> None:
+    def _add(self, entries: np.ndarray, partner_label, sign: float) -> None:
         b = np.broadcast_to(partner_label, entries.shape)
         ok = b >= 0
         if ok.any():
             e = entries[ok]
-            np.add.at(per_partner, (P[e][:, None], cols, b[ok][:, None]), sign * W[e][:, None] * evidence(e, b[ok]))
+            ev = self.pairs.evidence(self.D[e], slice(None), b[ok])
+            np.add.at(self.per_partner, (self.P[e][:, None], np.arange(self.M)[None], b[ok][:, None]),
+                      sign * self.W[e][:, None] * ev)
 
-    score = np.zeros((n_pieces, M))
+    def _rescore(self, pieces: np.ndarray) -> None:
+        self.score[pieces] = np.clip(self.per_partner[pieces], -self.partner_cap, self.partner_cap).sum(-1)
 
-    def rescore(pieces: np.ndarray) -> None:
-        score[pieces] = np.clip(per_partner[pieces], -partner_cap, partner_cap).sum(-1)
-
-    add(np.arange(len(P)), lab[Q], 1.0)
-    rescore(np.arange(n_pieces))
-    holder = np.full((F, M), -1, dtype=np.int64)
-    for p in np.flatnonzero(lab >= 0):
-        holder[frames[p], lab[p]] = p
-
-    def relabel(p: int, new: int) -> None:
-        old = lab[p]
+    def relabel(self, p: int, new: int) -> None:
+        """Piece ``p`` takes label ``new`` (-1 none); the scores of the pieces it is seen with follow."""
+        old = self.lab[p]
         if old >= 0:
-            holder[frames[p], old] = -1
+            self.holder[self.frames[p], old] = -1
         if new >= 0:
-            holder[frames[p], new] = p
-        e = by_partner[p]
-        if len(e):
-            add(e, old, -1.0)
-            add(e, new, 1.0)
-            rescore(np.unique(P[e]))
-        lab[p] = new
+            self.holder[self.frames[p], new] = p
+        if not self.empty:
+            e = self.by_partner[p]
+            if len(e):
+                self._add(e, old, -1.0)
+                self._add(e, new, 1.0)
+                self._rescore(np.unique(self.P[e]))
+        self.lab[p] = new
+
+    def labels(self, labels) -> list[np.ndarray]:
+        """Per frame, ``labels`` with every tracked point given its piece's label."""
+        out = []
+        for f, lab in enumerate(labels):
+            new = np.asarray(lab, dtype=np.int64).copy()
+            tracked = self.pid[f] >= 0
+            new[tracked] = self.lab[self.pid[f][tracked]]
+            out.append(new)
+        return out
+
+
+def _relabel_block(xyz, pieces, labels, M, support, partner_cap, table_frames, max_sweeps, prior, pair_kw):
+    """One block: ``pieces`` = :func:`track_pieces` of its frames."""
+    min_gain = support.min_gain
+    ev = PieceEvidence(xyz, pieces, labels, M, partner_cap, table_frames, prior, pair_kw)
+    if ev.empty:
+        return [np.asarray(lab, dtype=np.int64) for lab in labels], 0
+    lab, score, holder, frames, relabel = ev.lab, ev.score, ev.holder, ev.frames, ev.relabel
+    n_pieces = ev.n_pieces
 
     def attempt(p: int, a: int) -> float:
         """Piece p takes label a; the pieces holding a in p's frames take p's old label where
@@ -488,10 +522,4 @@ def _relabel_block(xyz, pieces, labels, M, support, partner_cap, table_frames, m
         moves += made
         if not made:
             break
-    out = []
-    for f in range(F):
-        new = labels[f].copy()
-        tracked = pid[f] >= 0
-        new[tracked] = lab[pid[f][tracked]]
-        out.append(new)
-    return out, moves
+    return ev.labels(labels), moves

@@ -60,6 +60,11 @@ bar's orders, summed over the stretch, say so (:mod:`.bar_flips`: what no distan
 frame's triangles tell apart; HDM05's whole gapped second halves 95.80 -> 96.52 % and 93.21 ->
 94.58 %).
 
+Last of all, whole track pieces are relabelled by the model's fitness summed over their
+frames, a move allowed only where the take's rigid pairs do not object (:mod:`.fitness_pieces`:
+the votes count frames, not nats; the ungated move of whole tracks above was tried and not
+kept).
+
 States: positions and backward-difference velocities along the labeler's tracks (a point
 without a previous frame on its track has no velocity, as live). Single-model labelers only
 (a bank's frames were scored by different models).
@@ -77,6 +82,7 @@ from ..model.features import STATE_DIM, lateral_yaw
 from ..search.label_search import sweep_regions
 from ..search.problem import Background, FrameProblem
 from .bar_flips import flip_bars, take_bar_orders
+from .fitness_pieces import relabel_by_fitness
 from .rest_clock import take_rests
 from .rigid_tracks import body_pairs, label_positions, relabel_tracks, rigid_pairs, spread_sample
 from .take_votes import take_votes
@@ -142,13 +148,15 @@ def take_pass(model: TriangulatedModel, background: Background, xyz: Sequence[np
               track_ids: Sequence[np.ndarray], labels: Sequence[np.ndarray], rate: float, half_window: int,
               region_size: int = 6, polish_rounds: int = 4, sweeps: int = 2, heading_snap_deg: float = 4.0,
               progress: Callable[[int, int], None] | None = None,
-              rigid_tracks: bool = True) -> tuple[list[np.ndarray], list[np.ndarray]]:
+              rigid_tracks: bool = True, fitness_pieces: bool = True) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Per frame, the labels and confidences of its points after the second pass (module doc).
     ``labels``: the take-voted labels the pass starts from (-1 none); ``track_ids``: the
     labeler's track per point (-1 untracked: left unlabelled by the votes); ``progress(done,
     total)`` after every frame of each of the two searches. ``rigid_tracks``: whole track pieces
     relabelled by the take's rigid pairs (:mod:`.rigid_tracks`) before the searches start from
-    the labels and again after the votes (a moved point keeps the confidence its votes gave)."""
+    the labels and again after the votes (a moved point keeps the confidence its votes gave).
+    ``fitness_pieces``: last, whole track pieces relabelled by the model's fitness summed over
+    their frames where the rigid pairs allow it (:mod:`.fitness_pieces`; the same)."""
     F = len(xyz)
     prior = body_pairs(model.body)
     if rigid_tracks:
@@ -178,6 +186,9 @@ def take_pass(model: TriangulatedModel, background: Background, xyz: Sequence[np
     if orders.shape[0]:                          # a bar's ends exchanged over a stretch (.bar_flips)
         lab, _ = flip_bars(xyz, track_ids, lab, orders, model.n_labels,
                            groups=segment_clusters(model.n_labels, model.body.segments))
+    if fitness_pieces:
+        lab, _ = relabel_by_fitness(model, background, states, rests, take_heading(model, xyz, lab), xyz, track_ids,
+                                    lab, (own, take), prior=prior, heading_snap_deg=heading_snap_deg)
     return lab, conf
 
 
