@@ -45,7 +45,11 @@ own tracker): HDM05 draws 1-6 98.12 / 98.73 -> 98.19 / 98.83, 99.42 / 99.70 -> 9
 96.85 / 97.59 -> 97.08 / 98.47 % (means 97.85 / 98.63 -> 98.05 / 98.94 %, every cell higher);
 the Qualisys walk draws 1-4 the same but draw 2 with capture ids 98.78 -> 98.96 % (means
 99.11 / 99.49 -> 99.16 / 99.49 %). A take of 600 frames of 41 markers: under a second.
-Tried and not kept: the holders of the label taking the piece's old one (above); moves from
+Tried and not kept: the holders of the label taking the piece's old one (above), also with a
+move needing 20 nats more than leaving the piece unlabelled (so that a point the labeling
+explains no better than clutter does not take a label from another): the walk's draw 4 with
+capture ids 99.10 -> 99.25 %, HDM05 draws 1 and 3 own tracker 98.83 -> 98.94 and 99.03 ->
+99.19 %, but draw 6 98.47 -> 97.93 % and draw 3 with capture ids 96.76 -> 96.62 %; moves from
 10 nats and a candidate refuted down to -20 nats, the label's holders always taking the old
 label: HDM05 own tracker mean 98.88 %, but the walk's draw 2 99.18 -> 99.08 % and draw 4
 99.38 -> 99.30 %.
