@@ -57,7 +57,11 @@ capture ids 99.10 -> 99.25 %, HDM05 draws 1 and 3 own tracker 98.83 -> 98.94 and
 99.19 %, but draw 6 98.47 -> 97.93 % and draw 3 with capture ids 96.76 -> 96.62 %; moves from
 10 nats and a candidate refuted down to -20 nats, the label's holders always taking the old
 label: HDM05 own tracker mean 98.88 %, but the walk's draw 2 99.18 -> 99.08 % and draw 4
-99.38 -> 99.30 %.
+99.38 -> 99.30 %; the rigid evidence's difference added to the fitness gain instead of the order
+asked (HDM05 draw 1 own tracker 98.83 -> 98.97 %, draw 3 99.03 -> 98.81 %), and with it a refuted candidate
+allowed where the old label is refuted too (draw 5 98.52 -> 98.99 %: an upper arm whose pose-held pairs broke;
+but the walk's draw 4 with capture ids 99.10 -> 97.98 %: where both labels are refuted the gapped model decides
+alone, and on the feet it decides wrong; ``results/captures.md``, 2026-12-06 evening).
 """
 from __future__ import annotations
 
