@@ -19,8 +19,8 @@ over ``p``'s frames of the fitness change, computed exactly (one
 :class:`~dtm_labeler.search.problem.FrameProblem` per frame, every candidate move of the frame
 in one population). Moves are made greedily by gain, above ``min_gain`` nats (10: the gate
 below carries the caution, so a move needs the model's preference only, summed over at least
-``min_frames`` frames), one per piece per round, then the pieces are cut again from the new labels and the next round scores again
-(at most ``rounds``).
+``min_frames`` frames), one per piece per round, then the pieces are cut again from the new
+labels and the next round scores again (at most ``rounds``).
 
 The gate. The gapped model alone is not to be trusted with whole pieces: trained on frames
 that showed half of the markers, it can prefer a hand marker's neighbour label by 1400 nats
