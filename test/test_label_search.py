@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from dtm_labeler.search.frame_kernels import TermTable, table_lookup_keys
+from dtm_labeler.search.frame_kernels import TermTable
 from dtm_labeler.search.problem import Background, FrameProblem
 from dtm_labeler.model.features import canonicalise, lateral_yaw, point_states, rotation_z
 from dtm_labeler.training.train import TrainConfig, train_model
@@ -163,17 +163,37 @@ def test_heading_snap_scores_near_candidates_at_the_anchor(model, frames):
 
 
 def test_term_table():
+    asked = []
+
+    def compute(keys):
+        asked.append(keys.tolist())
+        return keys * 0.5
+
     c = TermTable(capacity=8)
-    v, miss = table_lookup_keys(c.keys, c.vals, np.array([3, 1]))
-    assert miss.tolist() == [1, 3] and np.isnan(v).all()
-    c.insert(np.array([5, 1]), np.array([50.0, 10.0]))
-    c.insert(np.array([3]), np.array([30.0]))
-    v, miss = table_lookup_keys(c.keys, c.vals, np.array([1, 2, 3, 5, 9]))
-    assert miss.tolist() == [2, 9] and v[[0, 2, 3]].tolist() == [10.0, 30.0, 50.0] and len(c) == 3
+    np.testing.assert_array_equal(c.terms(np.array([3, 1, 3]), compute), [1.5, 0.5, 1.5])
+    assert asked == [[3, 1]] and len(c) == 2                       # a repeated key is computed once
+    np.testing.assert_array_equal(c.terms(np.array([[1, 2], [3, 5]]), compute), [[0.5, 1.0], [1.5, 2.5]])
+    assert asked[-1] == [2, 5] and len(c) == 4 and c.keys.size == 8  # half full: not grown yet
     keys = np.arange(10, 2010, 7)                      # grows past its capacity, keeps every entry
-    c.insert(keys, keys * 0.5)
-    v, miss = table_lookup_keys(c.keys, c.vals, np.r_[keys, 5])
-    assert miss.size == 0 and np.allclose(v, np.r_[keys * 0.5, 50.0]) and len(c) == 3 + keys.size
+    np.testing.assert_array_equal(c.terms(np.r_[keys, 5, keys[:3]], compute), np.r_[keys, 5, keys[:3]] * 0.5)
+    assert asked[-1] == keys.tolist() and len(c) == 4 + keys.size
+    assert c.keys.size == 1024 and (c.keys >= 0).sum() == len(c)
+    n_asked = len(asked)
+    np.testing.assert_array_equal(c.terms(np.r_[1, 2, 3, 5, keys], compute), np.r_[1, 2, 3, 5, keys] * 0.5)
+    assert len(asked) == n_asked                                     # everything was there
+    # population keys ((bin T + t) n1 + i) n1 + j) n1 + k: the same table, the same entries
+    pop, tri = np.array([[0, 1, 2], [2, 1, 0]]), np.array([[0, 1, 2], [2, 0, 1]])
+    got = c.population_terms(pop, np.array([1, 0]), tri, np.array([0, 1]), 3, 2, compute)
+    want = [[((1 * 2 + 0) * 3 + 0) * 3 * 3 + 1 * 3 + 2, ((1 * 2 + 1) * 3 + 2) * 9 + 0 * 3 + 1],
+            [((0 * 2 + 0) * 3 + 2) * 9 + 1 * 3 + 0, ((0 * 2 + 1) * 3 + 0) * 9 + 2 * 3 + 1]]
+    np.testing.assert_array_equal(got, np.asarray(want) * 0.5)
+    # a failed computation leaves no key without its term
+    with pytest.raises(ZeroDivisionError):
+        c.terms(np.array([1, 7777]), lambda k: 1 // 0)
+    assert len(c) == 0 and (c.keys < 0).all()
+    np.testing.assert_array_equal(c.terms(np.array([7777]), compute), [7777 * 0.5])
+    with pytest.raises(ValueError, match="power of two"):
+        TermTable(100)
 
 
 @settings(max_examples=12, deadline=None)

@@ -36,8 +36,7 @@ import numpy as np
 
 from ..model.dtm import TriangulatedModel
 from ..model.features import FULL, MISSING, POSITION_ONLY, STATE_DIM
-from .frame_kernels import (TermTable, allowed_points, facing, frame_geometry, frame_terms, table_fill, table_lookup,
-                            table_lookup_keys)
+from .frame_kernels import TermTable, allowed_points, facing, frame_geometry, frame_terms
 
 
 @dataclass(frozen=True)
@@ -181,23 +180,13 @@ class FrameProblem:
         ts = self._all_triangles if triangles is None else np.atleast_1d(np.asarray(triangles, dtype=np.int64))
         pop = np.ascontiguousarray(pop, dtype=np.int64)
         bins = np.ascontiguousarray(bins, dtype=np.int64)
-        c = self.cache
-        out, miss = table_lookup(c.keys, c.vals, pop, bins, self.tri, ts, self.n + 1, self.T)
-        if miss.size:
-            c.insert(miss, self._compute(miss))
-            table_fill(c.keys, c.vals, pop, bins, self.tri, ts, self.n + 1, self.T, out)
-        return out
+        return self.cache.population_terms(pop, bins, self.tri, ts, self.n + 1, self.T, self._compute)
 
     def triple_terms(self, keys: np.ndarray) -> np.ndarray:
         """Terms of the frame's term-cache ``keys`` (:meth:`term_key`), computed once per frame
         (one kernel call per observation pattern for the new ones). What the max-product DP
         (:mod:`dtm_labeler.search.dtm_dp`) evaluates."""
-        keys = np.ascontiguousarray(keys, dtype=np.int64).reshape(-1)
-        vals, miss = table_lookup_keys(self.cache.keys, self.cache.vals, keys)
-        if miss.size:
-            self.cache.insert(miss, self._compute(miss))
-            vals, _ = table_lookup_keys(self.cache.keys, self.cache.vals, keys)
-        return vals
+        return self.cache.terms(np.asarray(keys, dtype=np.int64).reshape(-1), self._compute)
 
     def term_key(self, bins, ts, i, j, k) -> np.ndarray:
         """Term-cache keys of triangles ``ts`` with points ``(i, j, k)`` (``n`` = missing) at
