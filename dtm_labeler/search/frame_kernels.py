@@ -104,49 +104,51 @@ def allowed_points(dist, ind, bounds, n):  # pragma: no cover - compiled
     return ok
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _read_or_claim(tkeys, tvals, key, out, q, miss, m, room):  # pragma: no cover - compiled
+    """``out[q]`` = ``key``'s term where the table has it; else, with ``room`` > 0, the key
+    claimed (stored with a NaN term, so that a repeat of it is not claimed again), ``out[q]``
+    NaN and the key appended to ``miss`` at ``m``. Returns the misses after, -1 when full."""
+    i = _slot(tkeys, key)
+    if tkeys[i] == key:
+        out[q] = tvals[i]
+        return m
+    if room == 0:
+        return -1
+    tkeys[i] = key
+    tvals[i] = np.nan
+    out[q] = np.nan
+    miss[m] = key
+    return m + 1
+
+
 @njit(cache=True, nogil=True)
 def table_claim(tkeys, tvals, pop, bins, tri, ts, n1, T, out, miss, start, m, room):  # pragma: no cover - compiled
     """Terms of triangles ``ts`` for candidates ``pop`` (P, M) at ``bins`` into ``out`` (P *
-    len(ts),), row-major from cell ``start``: a present key's term, else NaN, the key claimed
-    (stored with a NaN term, so a repeat of it is not claimed again) and appended to ``miss``
-    at ``m``. Stops before the ``room + 1``-th claim. Returns (cells done, misses)."""
+    len(ts),), row-major from cell ``start``, each :func:`_read_or_claim`-ed; stops before the
+    ``room + 1``-th claim. Returns (cells done, misses)."""
     nt = ts.size
+    full = m + room
     for q in range(start, pop.shape[0] * nt):
         r = q // nt
         t = ts[q - r * nt]
         key = (((bins[r] * T + t) * n1 + pop[r, tri[t, 0]]) * n1 + pop[r, tri[t, 1]]) * n1 + pop[r, tri[t, 2]]
-        i = _slot(tkeys, key)
-        if tkeys[i] == key:
-            out[q] = tvals[i]
-        elif room == 0:
+        m2 = _read_or_claim(tkeys, tvals, key, out, q, miss, m, full - m)
+        if m2 < 0:
             return q, m
-        else:
-            tkeys[i] = key
-            tvals[i] = np.nan
-            out[q] = np.nan
-            miss[m] = key
-            m += 1
-            room -= 1
+        m = m2
     return pop.shape[0] * nt, m
 
 
 @njit(cache=True, nogil=True)
 def table_claim_keys(tkeys, tvals, keys, out, miss, start, m, room):  # pragma: no cover - compiled
     """:func:`table_claim` for arbitrary ``keys``."""
+    full = m + room
     for q in range(start, keys.size):
-        key = keys[q]
-        i = _slot(tkeys, key)
-        if tkeys[i] == key:
-            out[q] = tvals[i]
-        elif room == 0:
+        m2 = _read_or_claim(tkeys, tvals, keys[q], out, q, miss, m, full - m)
+        if m2 < 0:
             return q, m
-        else:
-            tkeys[i] = key
-            tvals[i] = np.nan
-            out[q] = np.nan
-            miss[m] = key
-            m += 1
-            room -= 1
+        m = m2
     return keys.size, m
 
 
