@@ -229,7 +229,7 @@ class TermTable:
             self.size += m2 - m
             if q2 == cells:
                 return m2
-            rate = (m2 - m) / (q2 - q) if q2 > q else 1.0
+            rate = (m2 - m) / (q2 - q) if q2 > q else 0.0     # nothing read yet: double
             q, m = q2, m2
             need = 2 * (self.size + int(np.ceil(1.25 * rate * (cells - q))) + 1)
             cap = 2 * self.keys.size
