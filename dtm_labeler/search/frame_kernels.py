@@ -105,6 +105,15 @@ def allowed_points(dist, ind, bounds, n):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _cell_key(pop, bins, tri, ts, n1, T, q):  # pragma: no cover - compiled
+    """Term-cache key of cell ``q`` of a population's (P, len(ts)) table, row-major: candidate
+    ``pop[r]`` at heading ``bins[r]``, triangle ``ts[c]``."""
+    r = q // ts.size
+    t = ts[q - r * ts.size]
+    return (((bins[r] * T + t) * n1 + pop[r, tri[t, 0]]) * n1 + pop[r, tri[t, 1]]) * n1 + pop[r, tri[t, 2]]
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _read_or_claim(tkeys, tvals, key, out, q, miss, m, room):  # pragma: no cover - compiled
     """``out[q]`` = ``key``'s term where the table has it; else, with ``room`` > 0, the key
     claimed (stored with a NaN term, so that a repeat of it is not claimed again), ``out[q]``
@@ -127,17 +136,13 @@ def table_claim(tkeys, tvals, pop, bins, tri, ts, n1, T, out, miss, start, m, ro
     """Terms of triangles ``ts`` for candidates ``pop`` (P, M) at ``bins`` into ``out`` (P *
     len(ts),), row-major from cell ``start``, each :func:`_read_or_claim`-ed; stops before the
     ``room + 1``-th claim. Returns (cells done, misses)."""
-    nt = ts.size
     full = m + room
-    for q in range(start, pop.shape[0] * nt):
-        r = q // nt
-        t = ts[q - r * nt]
-        key = (((bins[r] * T + t) * n1 + pop[r, tri[t, 0]]) * n1 + pop[r, tri[t, 1]]) * n1 + pop[r, tri[t, 2]]
-        m2 = _read_or_claim(tkeys, tvals, key, out, q, miss, m, full - m)
+    for q in range(start, pop.shape[0] * ts.size):
+        m2 = _read_or_claim(tkeys, tvals, _cell_key(pop, bins, tri, ts, n1, T, q), out, q, miss, m, full - m)
         if m2 < 0:
             return q, m
         m = m2
-    return pop.shape[0] * nt, m
+    return pop.shape[0] * ts.size, m
 
 
 @njit(cache=True, nogil=True)
@@ -170,13 +175,9 @@ def table_refill_keys(tkeys, tvals, keys, out):  # pragma: no cover - compiled
 @njit(cache=True, nogil=True)
 def table_refill(tkeys, tvals, pop, bins, tri, ts, n1, T, out):  # pragma: no cover - compiled
     """The NaN entries of ``out`` (from :func:`table_claim`) read again."""
-    nt = ts.size
     for q in range(out.size):
         if out[q] != out[q]:
-            r = q // nt
-            t = ts[q - r * nt]
-            key = (((bins[r] * T + t) * n1 + pop[r, tri[t, 0]]) * n1 + pop[r, tri[t, 1]]) * n1 + pop[r, tri[t, 2]]
-            out[q] = tvals[_slot(tkeys, key)]
+            out[q] = tvals[_slot(tkeys, _cell_key(pop, bins, tri, ts, n1, T, q))]
 
 
 @njit(cache=True, nogil=True)
@@ -205,7 +206,8 @@ class TermTable:
     single-mode searches at 41 markers (CMU 85's breakdance under ``dtm-eval``'s floor-moves
     generic body; 10.2 M new terms, the biggest table 1.66 M): growing and inserting 0.94 ->
     0.33 s (lookups, a sort of the missing keys and a second lookup of every key gone besides),
-    the six searches 8.0-8.4 -> 7.4-7.6 s in alternating runs, the same labelings to the bit."""
+    the six searches 5-9 % faster in five alternating pairs of runs, the same labelings to the
+    bit (``results/fast_path_kernels.md``, 2026-12-06 night)."""
 
     def __init__(self, capacity: int = 4096):
         if capacity < 2 or capacity & (capacity - 1):
