@@ -12,6 +12,7 @@ from dtm_labeler.motion.synthetic import synthesize
 from dtm_labeler.search import label_ops as ops
 from dtm_labeler.search.label_search import (SEARCHES, CBGASearch, ExhaustiveSearch, GASettings, GreedySearch,
                                              SimpleGASearch, guided_sample, make_search, polish)
+from dtm_labeler.search.sample_kernels import gumbel_argmax
 
 NAMES = ("neck", "lshoulder", "rshoulder", "lhip", "rhip", "lknee", "rknee")
 FRAMES = (5, 29, 53, 77, 101, 113)
@@ -160,6 +161,29 @@ def test_heading_snap_scores_near_candidates_at_the_anchor(model, frames):
     z = FrameProblem(model, near, Background(), heading_snap_deg=0.0)
     z.anchor_heading(truth)
     assert z.anchor is None and z.candidate_bins(moved[None])[0] == z.heading_bin(np.array([own_yaw]))[0]
+
+
+@pytest.mark.parametrize("spread", [0.05, 1.0, 30.0, 300.0])
+def test_gumbel_argmax_draws_what_numpys_gumbel_draws(spread):
+    """The pruned Gumbel-max draw picks what ``np.argmax(val / temp + rng.gumbel(...))`` picks from
+    the same generator state -- for scores flat enough that every candidate may win and spread
+    enough that a handful may, with impossible (-inf) candidates and a row of nothing else --
+    and leaves the generator where numpy's draw leaves it."""
+    for seed in range(20):
+        g = np.random.default_rng(seed)
+        val = g.normal(size=(int(g.integers(1, 30)), int(g.integers(1, 4000)))) * spread
+        val[g.random(val.shape) < 0.3] = -np.inf
+        val[0] = -np.inf if seed % 5 == 0 else val[0]
+        temp = g.choice([1.0, 3.0, 10.0], size=len(val))
+        for v in (val, val[-1]):                  # each row its own scores, or one row's for every row
+            a, b = np.random.default_rng(seed + 100), np.random.default_rng(seed + 100)
+            want = np.argmax(v / temp[:, None] + a.gumbel(size=val.shape), axis=1)
+            np.testing.assert_array_equal(gumbel_argmax(v, temp, b), want)
+            assert a.random() == b.random()
+    # a row's winner follows its categorical exp(val / temp): 3 candidates at 1 : 2 : 7
+    g = np.random.default_rng(0)
+    won = gumbel_argmax(np.log([1.0, 2.0, 7.0]), np.ones(20000), g)
+    np.testing.assert_allclose(np.bincount(won, minlength=3) / won.size, [0.1, 0.2, 0.7], atol=0.015)
 
 
 def test_term_table():

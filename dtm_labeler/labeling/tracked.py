@@ -40,7 +40,7 @@ import numpy as np
 
 from ..model.dtm import TriangulatedModel
 from ..model.features import FULL, POSITION_ONLY
-from ..search import dp_kernels, frame_kernels, label_ops, move_kernels
+from ..search import dp_kernels, frame_kernels, label_ops, move_kernels, sample_kernels
 from ..search.dtm_dp import turned_labels, turned_round
 from ..search.upright import BEND_PITCHES_DEG, bent_problems, upright_problems
 from ..search.label_search import CBGASearch, GASearch, LabelSearch, SearchOutcome, make_search, polish
@@ -119,6 +119,7 @@ class Engine:
         frame_kernels.warm_up()
         dp_kernels.warm_up()
         move_kernels.warm_up()
+        sample_kernels.warm_up()
         tracker.warm_up()
         voting.warm_up()
         label_tenure.warm_up()

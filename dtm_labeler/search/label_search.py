@@ -31,6 +31,7 @@ from .dtm_dp import max_product, region_candidates, regions_of, relabel_regions,
 from .evolve import Island, Mating, evolve
 from .ga import Termination
 from .move_kernels import move_rows
+from .sample_kernels import gumbel_argmax
 
 
 @dataclass
@@ -152,7 +153,7 @@ def guided_sample(problem: FrameProblem, P: int, rng: np.random.Generator,
             rows = np.flatnonzero(which == q)
             cand, cbins = _root_triangles(problem, *pairs[q])
             val = problem.triangle_table(cand, cbins, [pairs[q][2]])[:, 0] + gain[cand].sum(1) - gain[n] * (M - 3)
-            pick = np.argmax(val[None, :] / temp[rows, None] + rng.gumbel(size=(rows.size, val.size)), axis=1)
+            pick = gumbel_argmax(val, temp[rows], rng)
             pop[rows] = cand[pick]
             bins[rows] = cbins[pick]
         todo_mask = pop == n
@@ -178,7 +179,7 @@ def guided_sample(problem: FrameProblem, P: int, rng: np.random.Generator,
         cand[:, v] = c
         val = np.full((todo.size, n + 1), -np.inf)
         val[r, c] = problem.triangle_table(cand, bins[todo][r], [t])[:, 0] + gain[c]
-        pop[todo, v] = np.argmax(val / temp[todo, None] + rng.gumbel(size=val.shape), axis=1)
+        pop[todo, v] = gumbel_argmax(val, temp[todo], rng)
     # a candidate built on a pair read the wrong way round is the mirror of a good one
     if base is None and len(problem.mirror_pairs):
         mirrored = ops.mirror(pop, problem.mirror_pairs)
