@@ -128,7 +128,7 @@ def guided_sample(problem: FrameProblem, P: int, rng: np.random.Generator,
        the unused points or "missing" with probability proportional to ``exp(term / T)`` --
        the triangle's conditional given what is already placed (ancestral sampling from the
        DTM under the one-point-one-label constraint).
-    Gumbel-max turns every draw into one vectorised arg max over the population.
+    Gumbel-max turns every draw into one arg max over the population (:func:`.sample_kernels.gumbel_argmax`).
     ``temperature`` may be one value or one per candidate (hotter = more diverse).
 
     With ``base`` (P, M) and ``free`` (P, M) bool, only the free labels are (re)drawn, given

@@ -9,7 +9,8 @@ generator's uniforms as numpy's Gumbel draw does (one double a variate, ``-log(-
 so it draws the same samples, and takes the logarithms only where a candidate can still win:
 no noise of a row exceeds that of its least uniform, so a candidate whose score falls further
 below the best total found than that cannot be the arg max (the shared root-triangle scores
-visited best first, each row stops there).
+visited best first, each row stops there). Those six searches: 0.6 -> 0.34 s, the uniforms
+alone 0.075 s (``results/fast_path_kernels.md``, 2026-12-06 night).
 """
 from __future__ import annotations
 
