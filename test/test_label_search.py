@@ -194,8 +194,8 @@ def test_term_table():
         return keys * 0.5
 
     c = TermTable(capacity=8)
-    np.testing.assert_array_equal(c.terms(np.array([3, 1, 3]), compute), [1.5, 0.5, 1.5])
-    assert asked == [[3, 1]] and len(c) == 2                       # a repeated key is computed once
+    np.testing.assert_array_equal(c.terms(np.array([3, -1, 1, 3]), compute), [1.5, -np.inf, 0.5, 1.5])
+    assert asked == [[3, 1]] and len(c) == 2          # a repeated key is computed once, a negative one never
     np.testing.assert_array_equal(c.terms(np.array([[1, 2], [3, 5]]), compute), [[0.5, 1.0], [1.5, 2.5]])
     assert asked[-1] == [2, 5] and len(c) == 4 and c.keys.size == 8  # half full: not grown yet
     keys = np.arange(10, 2010, 7)                      # grows past its capacity, keeps every entry

@@ -142,10 +142,7 @@ def _dp_assignment(problem: FrameProblem, flat: np.ndarray, off: np.ndarray, hea
     active = np.flatnonzero(multi)
     goff, keys = grid_keys(flat, off, active, tri, problem.dist, problem.bounds, n, problem.T, n + 1,
                            int(heading_bin))
-    vals = np.full(keys.size, -np.inf)
-    valid = keys >= 0
-    if valid.any():
-        vals[valid] = problem.triple_terms(keys[valid])
+    vals = problem.triple_terms(keys)                  # -inf where a key is -1 (outside the bounds)
     pick = dp_solve(vals, goff, active, tri, flat, off, problem.label_gain, M)
     if pick[0] < 0:
         return None

@@ -147,9 +147,12 @@ def table_claim(tkeys, tvals, pop, bins, tri, ts, n1, T, out, miss, start, m, ro
 
 @njit(cache=True, nogil=True)
 def table_claim_keys(tkeys, tvals, keys, out, miss, start, m, room):  # pragma: no cover - compiled
-    """:func:`table_claim` for arbitrary ``keys``."""
+    """:func:`table_claim` for arbitrary ``keys``; a negative key has no term: -inf."""
     full = m + room
     for q in range(start, keys.size):
+        if keys[q] < 0:
+            out[q] = -np.inf
+            continue
         m2 = _read_or_claim(tkeys, tvals, keys[q], out, q, miss, m, full - m)
         if m2 < 0:
             return q, m
@@ -240,8 +243,9 @@ class TermTable:
             self.keys, self.vals = table_grow(self.keys, self.vals, cap)
 
     def terms(self, keys: np.ndarray, compute) -> np.ndarray:
-        """Terms of int64 ``keys`` (any shape, repeats allowed); ``compute(new) -> terms`` of the
-        keys not in the table yet (each once), which are then stored."""
+        """Terms of int64 ``keys`` (any shape, repeats allowed; a negative key -- no triple, e.g.
+        outside the distance bounds -- gives -inf); ``compute(new) -> terms`` of the keys not in
+        the table yet (each once), which are then stored."""
         keys = np.ascontiguousarray(keys, dtype=np.int64)
         flat = keys.reshape(-1)
         out = np.empty(flat.size)

@@ -183,8 +183,8 @@ class FrameProblem:
         return self.cache.population_terms(pop, bins, self.tri, ts, self.n + 1, self.T, self._compute)
 
     def triple_terms(self, keys: np.ndarray) -> np.ndarray:
-        """Terms of the frame's term-cache ``keys`` (:meth:`term_key`), computed once per frame
-        (one kernel call per observation pattern for the new ones). What the max-product DP
+        """Terms of the frame's term-cache ``keys`` (:meth:`term_key`; -1: no triple, -inf), computed
+        once per frame (one kernel call for the new ones). What the max-product DP
         (:mod:`dtm_labeler.search.dtm_dp`) evaluates."""
         return self.cache.terms(np.asarray(keys, dtype=np.int64).reshape(-1), self._compute)
 
