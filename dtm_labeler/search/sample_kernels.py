@@ -18,6 +18,12 @@ import numpy as np
 from numba import njit
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _noise(u):  # pragma: no cover - compiled
+    """The standard Gumbel variate of uniform ``u`` as numpy draws it: ``-log(-log(1 - u))``."""
+    return -np.log(-np.log(1.0 - u))
+
+
 @njit(cache=True, nogil=True)
 def gumbel_pick(val, temp, u):  # pragma: no cover - compiled
     """(R,) per row ``r`` of the scores ``val[r] / temp[r]`` (``val`` (R, K), or (1, K) shared by
@@ -37,7 +43,7 @@ def gumbel_pick(val, temp, u):  # pragma: no cover - compiled
         for k in range(K):
             if u[r, k] < least:
                 least = u[r, k]
-        most = -np.log(-np.log(1.0 - least))                           # no noise of the row exceeds this
+        most = _noise(least)                                           # no noise of the row exceeds this
         best = -np.inf
         arg = 0
         if shared:
@@ -46,7 +52,7 @@ def gumbel_pick(val, temp, u):  # pragma: no cover - compiled
                 sc = row[k] / t
                 if sc + most < best:                                   # nor can any after it
                     break
-                v = sc - np.log(-np.log(1.0 - u[r, k]))
+                v = sc + _noise(u[r, k])
                 if v > best or (v == best and k < arg):
                     best = v
                     arg = k
@@ -55,11 +61,11 @@ def gumbel_pick(val, temp, u):  # pragma: no cover - compiled
             for k in range(K):
                 if row[k] > row[top]:
                     top = k
-            reached = row[top] / t - np.log(-np.log(1.0 - u[r, top]))  # the row's maximum is at least this
+            reached = row[top] / t + _noise(u[r, top])                 # the row's maximum is at least this
             for k in range(K):
                 sc = row[k] / t
                 if sc + most >= reached:
-                    v = sc - np.log(-np.log(1.0 - u[r, k]))
+                    v = sc + _noise(u[r, k])
                     if v > best:
                         best = v
                         arg = k
