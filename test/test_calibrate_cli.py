@@ -122,11 +122,13 @@ def test_dtm_train_calibrate_makes_the_takes_person_model(data_dir, tmp_path, ca
 
 def test_dtm_label_sets_a_training_calibration_aside_for_someone_else(models, data_dir, run, tmp_path):
     """A model calibrated to its training takes' person (subject 55's lambada, as ``dtm-train``
-    makes it): on the rest of that capture and on the same subject's other capture (the whirl)
-    ``--calibrate auto`` keeps the calibration; on another person's capture (subject 5's pirouette) it sets it aside, self-calibrates the
-    generic body as for any generic model and says so -- and where that self-calibration does
-    not hold up, labels with the training person's calibration. Calibrating such a model again
-    starts from its generic body: the same lengths as calibrating the generic model."""
+    makes it): on the rest of that capture ``--calibrate auto`` keeps the calibration; on the
+    same subject's other capture (the whirl) it checks it for markers placed elsewhere (joint
+    centres: none, the calibration as it is) and says whose capture it is; on another person's
+    capture (subject 5's pirouette) it sets it aside, self-calibrates the generic body as for
+    any generic model and says so -- and where that self-calibration does not hold up, labels
+    with the training person's calibration. Calibrating such a model again starts from its
+    generic body: the same lengths as calibrating the generic model."""
     from dtm_labeler.training.calibrate import calibrate, calibrate_on_takes, generic_view
     model_path, _, _ = models
     generic = load_model(model_path)
@@ -138,11 +140,13 @@ def test_dtm_label_sets_a_training_calibration_aside_for_someone_else(models, da
                          "--json", "--quiet").stdout)
     cal = own["inputs"][0]["calibration"]
     assert cal["applied"] is False and "capture the model was trained on" in cal["reason"] and "set_aside" not in cal
-    # another capture of the same CMU subject (55's whirl): the person's calibration, as it is
+    # another capture of the same CMU subject (55's whirl): the person's calibration, checked for
+    # markers placed elsewhere that session -- joint centres move nothing
     same = json.loads(run("dtm-label", path, data_dir / WHIRL, "--frames", "0:120", "--no-take-pass",
                           "--json", "--quiet").stdout)
     cal = same["inputs"][0]["calibration"]
-    assert cal["applied"] is False and "set_aside" not in cal and "CMU subject 55" in cal["reason"], cal
+    assert cal["applied"] is False and "set_aside" not in cal and "CMU subject 55" in cal["person"], cal
+    assert cal["moved"] == [] and "calibration as it is" in cal["reason"]
     assert same["accuracy"] > 0.95
     other = json.loads(run("dtm-label", path, data_dir / PIROUETTE, "--frames", "0:120", "--no-take-pass",
                            "--json", "--quiet").stdout)
@@ -319,3 +323,36 @@ def test_auto_calibration_stops_on_a_window_the_model_does_not_follow(models, da
                                                                           attempts=1),
                              progress=lambda done, total: seen.append(done))
     assert not info.get("not_followed") and len(seen) >= 2 * W and len(seen) % W == 0
+
+
+def test_a_session_check_measures_again_the_segments_whose_markers_moved(case_cell, data_dir):
+    """CMU subject 85's breakdance (41 markers) calibrated to its person, as ``dtm-train`` makes
+    it, checked on the first 2 s of the same subject's jump + twist (unlabelled, shuffled, as
+    ``dtm-label --calibrate auto`` feeds them): the arm markers sit elsewhere in that take (the
+    upper arm marker 2 cm nearer the elbow), so those segments take the take's lengths -- within
+    a few mm of what the true labels measure over the whole take -- and every other length
+    stays the person's; the legs and head moved under 5 mm and are not touched."""
+    from dtm_labeler.evaluation.corruption import corrupt_clip
+    from dtm_labeler.evaluation.generalisation import CASES, case_clips
+    from dtm_labeler.evaluation.pipeline import model_clip
+    from dtm_labeler.model.body import SEGMENT
+    from dtm_labeler.training.calibrate import calibrate_on_takes, session_calibrate, takes_calibration
+    generic, test = case_cell("m_85_12_to_85_02")
+    train, _ = case_clips(data_dir, next(c for c in CASES if c.key == "m_85_12_to_85_02"))
+    person = calibrate_on_takes(generic, train)
+    window = corrupt_clip(model_clip(person, test.slice(0, 240)), seed=0)
+    out, info = session_calibrate(person, [f.xyz for f in window], window.rate)
+    assert info["applied"] and info["kept_share"] >= 0.9, info
+    L, b, nb = person.labels, person.body, out.body
+    moved = {f"{L[u]}-{L[v]}" for (u, v), lo, new in zip(b.pairs, b.lo, nb.lo) if lo != new}
+    assert {"LUPA-LELB", "LELB-LFRM", "RUPA-RELB", "RELB-RFRM"} <= moved, info["moved"]
+    assert not moved & {"LTHI-LKNE", "RTHI-RKNE", "RSHN-RANK", "LBHD-RBHD", "LFHD-RFHD"}, info["moved"]
+    truth = model_clip(person, test).positions
+    for k in np.flatnonzero((b.kind == SEGMENT) & (b.lo != nb.lo)):
+        u, v = b.pairs[k]
+        true = np.nanmedian(np.linalg.norm(truth[:, u] - truth[:, v], axis=-1))
+        assert abs(nb.lo[k] - true) < 0.006 and abs(b.lo[k] - true) > 0.01, (L[u], L[v], b.lo[k], nb.lo[k], true)
+    # the rest of the model is the person's: still their training takes' calibration
+    assert takes_calibration(out) is not None and out.provenance["calibration"]["session"]["moved"] == info["moved"]
+    assert info["rigid_pairs_moved"] >= 2 and not np.array_equal(out.body.rigid_length, b.rigid_length)
+    assert out.mixtures is person.mixtures and np.array_equal(nb.hi[b.kind != SEGMENT], b.hi[b.kind != SEGMENT])

@@ -167,6 +167,11 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
                 "applied": False, "source": "auto (the take's first frames, self-labelled)",
                 "reason": "the take is the capture the model was trained on: the model is of its person"}
         whose = of_training_person(model, job.source) if auto else None
+        kept = keeps_training_calibration(model, job.source) if auto else None
+        if kept is not None:            # the person's own captures, or every capture when asked: as it is
+            auto, res.calibration = False, {
+                "applied": False, "source": "auto (the take's first frames, self-labelled)",
+                "reason": f"the model is calibrated to this capture's person ({kept})"}
         generic = generic_view(model) if auto and whose is None else None
         person, model = (model, generic) if generic is not None else (None, model)
         mi = model_input(clip, model.labels, job.keep_unlabelled, job.ignore_names)
@@ -175,14 +180,14 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
                              gap_frames=job.gap_frames, keep_records=job.keep_records or job.out is not None,
                              extra=mi.extra, named=mi.named, take_votes_s=job.take_votes_s,
                              take_pass=job.take_pass, restart_s=job.restart_s, calibrate_s=AUTO_CALIBRATION_S if auto else 0.0,
-                             calibration_progress=calibration_progress, fallback=person)
+                             calibration_progress=calibration_progress, fallback=person,
+                             session_check=auto and whose is not None)
         if auto:
             res.calibration = run.settings["calibration"]
             if person is not None:
                 res.calibration = res.calibration | training_person_note(res.calibration)
-            elif whose is not None:     # the same person's other capture: their calibration as it is
-                res.calibration = res.calibration | {"reason": f"the model is calibrated to this capture's person "
-                                                               f"({whose})"}
+            elif whose is not None:     # another capture of the person: their calibration, checked for moved markers
+                res.calibration = res.calibration | {"person": f"the model's training takes' person ({whose})"}
         if job.out:
             cap = from_records(run.records, model.labels, clip.n_frames, CaptureFormat.of(clip, a))
             res.out = str(cap.write(job.out))
@@ -214,21 +219,34 @@ def trained_on(model, source: str) -> bool:
 
 def of_training_person(model, source: str) -> str | None:
     """Why the capture ``source`` is of the person a model calibrated on its training takes
-    was calibrated to -- one of those captures, the same CMU subject
-    (:func:`~dtm_labeler.motion.naming.one_subject`), or any capture when the user said the
-    takes were one person (``dtm-train --calibrate``) -- else None (also for a model not
-    calibrated on its training takes). ``--calibrate auto`` keeps such a model's calibration for
-    its person and sets it aside for anyone else (:func:`generic_view`): another person's
-    segment lengths cost right labelings more than they save (:mod:`dtm_labeler.model.body`)."""
+    was calibrated to -- one of those captures, any capture when the user said the takes were
+    one person (``dtm-train --calibrate``; both: :func:`keeps_training_calibration`), or the
+    same CMU subject (:func:`~dtm_labeler.motion.naming.one_subject`) -- else None (also for a
+    model not calibrated on its training takes). ``--calibrate auto`` sets the calibration
+    aside for anyone else (:func:`generic_view`): another person's segment lengths cost right
+    labelings more than they save (:mod:`dtm_labeler.model.body`); on the same subject's other
+    takes it measures the lengths again, the person's calibration the fallback."""
+    kept = keeps_training_calibration(model, source)
+    if kept is not None or takes_calibration(model) is None:
+        return kept
+    sources = [str(s) for s in model.provenance.get("sources") or []]
+    return one_subject(sources + [source]) if sources else None
+
+
+def keeps_training_calibration(model, source: str) -> str | None:
+    """Why ``--calibrate auto`` labels the capture ``source`` with the calibration a model made
+    on its training takes as it is -- one of those captures, or any capture when the user said
+    the takes are the person to label (``dtm-train --calibrate``) -- else None. On another take
+    of the same CMU subject (:func:`of_training_person`) the calibration is checked for markers
+    placed again in that session (:func:`~dtm_labeler.training.calibrate.session_calibrate`);
+    anyone else's capture sets it aside (:func:`training_person_note`)."""
     cal = takes_calibration(model)
     if cal is None:
         return None
     if cal.get("why") == "asked":
         return "the person dtm-train --calibrate was told the takes are"
     sources = [str(s) for s in model.provenance.get("sources") or []]
-    if any(_same_file(source, s) for s in sources):
-        return "one of its training captures"
-    return one_subject(sources + [source]) if sources else None
+    return "one of its training captures" if any(_same_file(source, s) for s in sources) else None
 
 
 #: what labels a take when the self-calibration of a set-aside training calibration fails

@@ -13,16 +13,17 @@ does (labels stripped, points shuffled, stream and single mode), in four variant
 * **dtm-label default** -- what a user gets from ``dtm-train`` then ``dtm-label`` (both
   defaults; :func:`as_dtm_label`): ``dtm-train`` calibrates the model to its training takes'
   person when they are one person (one capture, or CMU takes of one subject:
-  :func:`~dtm_labeler.motion.naming.one_subject`); ``dtm-label --calibrate auto`` labels a
-  capture of that person with that calibration, no window of the test used
-  (:func:`~dtm_labeler.evaluation.archive.of_training_person`), and anyone else's with the
-  generic body self-calibrated on the same window, its points shuffled as the labeler gets
-  them, kept only when the calibrated model keeps >= 90 % of the labels it was measured on
-  (:func:`~dtm_labeler.training.calibrate.auto_calibrate`), else the training person's
-  calibration (the generic model when the training takes are several people). Until
-  2026-12-02 this variant always self-calibrated the generic body: the same person's other
-  take or motion was never labelled with the person's own training calibration, as users
-  get it;
+  :func:`~dtm_labeler.motion.naming.one_subject`); ``dtm-label --calibrate auto`` labels one
+  of the training captures with that calibration, no window of the test used
+  (:func:`~dtm_labeler.evaluation.archive.keeps_training_calibration`); the same subject's
+  other takes with it too, its segments whose markers sit elsewhere on the window measured
+  again there (:func:`~dtm_labeler.training.calibrate.session_calibrate`: markers are placed
+  again each session); anyone else's with the generic body self-calibrated on the same window,
+  its points shuffled as the labeler gets them, kept only when the calibrated model keeps >= 90
+  % of the labels it was measured on (:func:`~dtm_labeler.training.calibrate.auto_calibrate`),
+  else the training person's calibration (the generic model when the training takes are
+  several people). Until 2026-12-06 the same subject's other takes kept the training
+  calibration as it was;
 * **body + calibration** -- that model calibrated on the first seconds of the test recording
   (at most ``calibration_s``, at most a third of it), the frames -- their points shuffled as
   the labeler gets them -- labelled by the model itself and confirmed by their vote confidence
@@ -65,9 +66,10 @@ from ..motion.clip import MotionClip
 from ..motion.load import load_clip
 from ..motion.naming import one_subject
 from ..search.problem import Background, FrameProblem
-from ..training.calibrate import CalibrationError, auto_calibrate, calibrate_on_takes, self_calibrate
+from ..training.calibrate import (CalibrationError, auto_calibrate, calibrate_on_takes, self_calibrate,
+                                  session_calibrate)
 from ..training.train import TrainConfig, train_model
-from .archive import of_training_person
+from .archive import keeps_training_calibration, of_training_person
 from .corruption import corrupt_clip
 from .experiments import SUMMARY_KEYS, label_single, spread_frames
 from .metrics import is_search_error
@@ -264,9 +266,12 @@ def as_dtm_label(model: TriangulatedModel, train: list[MotionClip], window: Moti
             person = None
         else:
             person.provenance["calibration"]["why"] = why
-    if person is not None and of_training_person(person, window.source) is not None:
-        return person, {"applied": False, "person": "training takes' (the same person: " + why + ")"}
+    if person is not None and keeps_training_calibration(person, window.source) is not None:
+        return person, {"applied": False, "person": "training takes' (one of its captures; the same person: " + why + ")"}
     stream = corrupt_clip(model_clip(model, window), seed=seed)
+    if person is not None and of_training_person(person, window.source) is not None:
+        out, summary = session_calibrate(person, [f.xyz for f in stream], stream.rate)
+        return out, summary | {"person": "training takes' (the same person: " + why + "), session check"}
     out, summary = auto_calibrate(model, [f.xyz for f in stream], stream.rate)
     if summary.get("applied"):
         return out, summary | {"person": "self-calibrated on the window"}

@@ -34,7 +34,7 @@ from ..labeling.take_votes import take_votes
 from ..model.dtm import TriangulatedModel
 from ..motion.clip import MotionClip
 from ..motion.pointsets import model_points
-from ..training.calibrate import auto_calibrate
+from ..training.calibrate import auto_calibrate, session_calibrate
 
 Progress = Callable[[int, int], None]
 
@@ -270,21 +270,24 @@ def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: Labeler
                    extra: np.ndarray | None = None, named: bool = True, take_votes_s: float = 0.0,
                    take_pass: bool = False, restart_s: float = 0.0, calibrate_s: float = 0.0,
                    calibration_progress: Progress | None = None,
-                   fallback: TriangulatedModel | None = None) -> ClipRun:
+                   fallback: TriangulatedModel | None = None, session_check: bool = False) -> ClipRun:
     """:func:`label_clip` returning the full :class:`ClipRun`; ``extra`` (F, K, 3): the take's
     unlabelled points; ``named=False``: ``clip`` holds no truth (labelled, not scored).
     ``calibrate_s`` > 0: a generic body is first self-calibrated on the stream's first
     ``calibrate_s`` seconds (:func:`_auto_calibrated`; the points as the labeler gets them, no
     label used) and kept when it holds up (:func:`~dtm_labeler.training.calibrate.auto_calibrate`);
     every frame is then labelled -- by ``fallback``, when given, if the calibration is not
-    kept; ``settings["calibration"]`` says what was done; ``calibration_progress``: the frames
+    kept; ``session_check``: ``model`` is calibrated to the person of the take, whose markers may
+    sit elsewhere this session (:func:`~dtm_labeler.training.calibrate.session_calibrate` instead);
+    ``settings["calibration"]`` says what was done; ``calibration_progress``: the frames
     of each of its self-labellings."""
     mc = clip if not named else model_clip(model, clip)
     stream = corrupt_clip(mc, occlude=occlude, clutter=clutter, noise_mm=noise_mm, seed=seed,
                           gap_frames=gap_frames, extra=extra)
     calibration = None
     if calibrate_s > 0:
-        model, calibration = _auto_calibrated(model, stream, calibrate_s, calibration_progress)
+        model, calibration = _auto_calibrated(model, stream, calibrate_s, calibration_progress,
+                                              session_calibrate if session_check else auto_calibrate)
         if fallback is not None and not calibration["applied"]:
             model = fallback
     run = run_stream(model, stream, settings, use_ids=use_ids, keep_records=keep_records, progress=progress,
@@ -296,8 +299,9 @@ def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: Labeler
 
 
 def _auto_calibrated(model: TriangulatedModel, stream: CorruptedStream, seconds: float,
-                     progress: Progress | None = None):
-    """:func:`~dtm_labeler.training.calibrate.auto_calibrate` on the stream's first ``seconds``;
+                     progress: Progress | None = None, calibrate=auto_calibrate):
+    """:func:`~dtm_labeler.training.calibrate.auto_calibrate` (or ``calibrate``, of the same
+    signature) on the stream's first ``seconds``;
     on a take shorter than three times that, on its first third and on all of its first
     ``seconds`` both, keeping the calibration the model reproduces best (the larger share of its
     confirmed labels kept). Neither window is right for every short take: subject 9's 1.4 s run
@@ -307,7 +311,7 @@ def _auto_calibrated(model: TriangulatedModel, stream: CorruptedStream, seconds:
     full = int(min(round(seconds * stream.rate), len(stream)))
     best = None
     for window in sorted({min(full, len(stream) // 3), full}):
-        out = auto_calibrate(model, [stream[i].xyz for i in range(window)], stream.rate, progress=progress)
+        out = calibrate(model, [stream[i].xyz for i in range(window)], stream.rate, progress=progress)
         if best is None or (out[1]["applied"], out[1].get("kept_share", 0.0)) > \
                 (best[1]["applied"], best[1].get("kept_share", 0.0)):
             best = out
