@@ -327,7 +327,7 @@ def test_auto_calibration_stops_on_a_window_the_model_does_not_follow(models, da
 
 def test_a_session_check_measures_again_the_segments_whose_markers_moved(case_cell, data_dir):
     """CMU subject 85's breakdance (41 markers) calibrated to its person, as ``dtm-train`` makes
-    it, checked on the first 2 s of the same subject's jump + twist (unlabelled, shuffled, as
+    it, checked on the first second of the same subject's jump + twist (unlabelled, shuffled, as
     ``dtm-label --calibrate auto`` feeds them): the arm markers sit elsewhere in that take (the
     upper arm marker 2 cm nearer the elbow), so those segments take the take's lengths -- within
     a few mm of what the true labels measure over the whole take -- and every other length
@@ -340,7 +340,7 @@ def test_a_session_check_measures_again_the_segments_whose_markers_moved(case_ce
     generic, test = case_cell("m_85_12_to_85_02")
     train, _ = case_clips(data_dir, next(c for c in CASES if c.key == "m_85_12_to_85_02"))
     person = calibrate_on_takes(generic, train)
-    window = corrupt_clip(model_clip(person, test.slice(0, 240)), seed=0)
+    window = corrupt_clip(model_clip(person, test.slice(0, 120)), seed=0)
     out, info = session_calibrate(person, [f.xyz for f in window], window.rate)
     assert info["applied"] and info["kept_share"] >= 0.9, info
     L, b, nb = person.labels, person.body, out.body
