@@ -331,7 +331,8 @@ def test_a_session_check_measures_again_the_segments_whose_markers_moved(case_ce
     ``dtm-label --calibrate auto`` feeds them): the arm markers sit elsewhere in that take (the
     upper arm marker 2 cm nearer the elbow), so those segments take the take's lengths -- within
     a few mm of what the true labels measure over the whole take -- and every other length
-    stays the person's; the legs and head moved under 5 mm and are not touched."""
+    stays the person's; the legs and head moved under 5 mm and are not touched. Calibrated on
+    captures of both sessions, the segments span both lengths, and the check moves nothing."""
     from dtm_labeler.evaluation.corruption import corrupt_clip
     from dtm_labeler.evaluation.generalisation import CASES, case_clips
     from dtm_labeler.evaluation.pipeline import model_clip
@@ -356,3 +357,11 @@ def test_a_session_check_measures_again_the_segments_whose_markers_moved(case_ce
     assert takes_calibration(out) is not None and out.provenance["calibration"]["session"]["moved"] == info["moved"]
     assert info["rigid_pairs_moved"] >= 2 and not np.array_equal(out.body.rigid_length, b.rigid_length)
     assert out.mixtures is person.mixtures and np.array_equal(nb.hi[b.kind != SEGMENT], b.hi[b.kind != SEGMENT])
+    # calibrated on both sessions' captures, each segment spans both lengths: the jump + twist
+    # (one of its captures now) moves nothing
+    both = calibrate_on_takes(generic, train + [test.slice(0, 400)])
+    k = next(i for i, (u, v) in enumerate(b.pairs) if (L[u], L[v]) == ("LUPA", "LELB"))
+    assert both.body.lo[k] < 0.11 < 0.12 < both.body.hi[k] < 0.13, (both.body.lo[k], both.body.hi[k])
+    assert both.provenance["calibration"]["session_ranges"] >= 4
+    again, info = session_calibrate(both, [f.xyz for f in window], window.rate)
+    assert again is both and info["moved"] == [] and not info["applied"], info

@@ -498,13 +498,63 @@ def takes_calibration(model: TriangulatedModel) -> dict | None:
 
 def calibrate_on_takes(model: TriangulatedModel, clips: Sequence[MotionClip]) -> TriangulatedModel:
     """``model`` calibrated to the one person of its labelled training ``clips`` (``dtm-train
-    --calibrate``): :func:`calibrate` on all their frames, the labels trusted as an operator's."""
-    P = np.concatenate([labelled_positions(model, c) for c in clips])
+    --calibrate``): :func:`calibrate` on all their frames, the labels trusted as an operator's;
+    with captures of several sessions, each segment's range spans its sessions' lengths
+    (:func:`session_ranges`)."""
+    positions = [labelled_positions(model, c) for c in clips]
+    P = np.concatenate(positions)
     rates = {float(c.rate) for c in clips}
     out = calibrate(model, P, check_labels=False, rate=rates.pop() if len(rates) == 1 else None)
+    captures: dict[str, list[np.ndarray]] = {}
+    for c, x in zip(clips, positions):
+        captures.setdefault(str(c.source), []).append(x)
+    sessions = None
+    if len(captures) > 1 and out.generic_body is not None:
+        body, sessions = session_ranges(out.body, out.generic_body.within_sd,
+                                        [np.concatenate(x) for x in captures.values()])
+        out = out.replace(body=body)
     out.provenance["calibration"] = dict(out.provenance["calibration"], source=TAKES_SOURCE,
                                          captures=[c.source for c in clips])
+    if sessions is not None:
+        out.provenance["calibration"]["session_ranges"] = sessions
     return out
+
+
+def session_ranges(body: BodyModel, within_sd: np.ndarray, captures: Sequence[np.ndarray],
+                   settings: CalibrationSettings | None = None) -> tuple[BodyModel, int]:
+    """A calibrated ``body`` whose measured segments span the lengths of the person's
+    ``captures`` (each (F, M, 3), one per capture session): ``[lo, hi]`` from the smallest to the
+    largest of the captures' median lengths (each seen in ``min_frames`` frames and scattering no
+    more than ``max_spread_m``), the spread the larger of ``within_sd`` (the generic body's) and
+    1.5 x the largest within-capture scatter; and how many segments span more than ``moved_m``.
+
+    Why: the markers are stuck on again for each session (:func:`session_calibrate`), and a
+    median over the pooled frames of two sessions is the larger session's length: CMU 85's
+    breakdance (2250 frames) and jump + twist (810), the left upper arm marker to the elbow 126.9
+    and 104.9 mm, pooled 125.3 mm with a spread of 6.5 mm -- the jump + twist, one of the
+    model's own captures, 3 spreads off it in every frame. As a range (eq. body factor's dead
+    zone, :mod:`dtm_labeler.model.body`) both sessions' lengths cost nothing."""
+    s = settings or CalibrationSettings()
+    rows = np.flatnonzero((body.kind == SEGMENT) & (body.between_sd == 0))
+    u, v = body.pairs[rows, 0], body.pairs[rows, 1]
+    meds, mads = [], []
+    for P in captures:
+        d = np.linalg.norm(P[:, u] - P[:, v], axis=-1)
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(d, axis=0) if d.shape[0] else np.full(rows.size, np.nan)
+            mad = 1.4826 * np.nanmedian(np.abs(d - med), axis=0) if d.shape[0] else np.full(rows.size, np.nan)
+        ok = (np.isfinite(d).sum(0) >= s.min_frames) & (np.nan_to_num(mad, nan=np.inf) <= s.max_spread_m)
+        meds.append(np.where(ok, med, np.nan))
+        mads.append(np.where(ok, mad, np.nan))
+    meds, mads = np.array(meds), np.array(mads)
+    measured = np.isfinite(meds).any(0)
+    rows, meds, mads = rows[measured], meds[:, measured], mads[:, measured]
+    lo, hi, within = body.lo.copy(), body.hi.copy(), body.within_sd.copy()
+    lo[rows], hi[rows] = np.nanmin(meds, 0), np.nanmax(meds, 0)
+    within[rows] = np.maximum(within_sd[rows], s.within_factor * np.nanmax(mads, 0))
+    spans = int(((hi[rows] - lo[rows]) > s.moved_m).sum())
+    return replace(body, lo=lo, hi=hi, within_sd=within), spans
 
 
 def confirmed_positions(labels: np.ndarray, confidence: np.ndarray, xyz: np.ndarray, n_labels: int,
@@ -848,15 +898,15 @@ def _self_calibration_checked(model: TriangulatedModel, clouds: list[np.ndarray]
     return calibrated, summary
 
 
-def moved_pairs(pairs: np.ndarray, length: np.ndarray, spread: np.ndarray, positions: np.ndarray,
+def moved_pairs(pairs: np.ndarray, lo: np.ndarray, hi: np.ndarray, spread: np.ndarray, positions: np.ndarray,
                 settings: CalibrationSettings | None = None, wrong: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Which of a person's label ``pairs`` (P, 2) of known ``length`` and ``spread`` (P,) sit
-    elsewhere in ``positions`` (F, M, 3; the confirmed labels of a new capture of the person):
-    those whose median distance there, seen in at least ``min_frames`` frames and scattering no
-    more than ``max_spread_m``, differs from ``length`` by more than ``moved_m`` and ``moved_sd``
-    spreads, neither label ``wrong`` (M,; on the wrong side of the body, :func:`wrong_side`).
-    Returns (rows, their median distances, their robust spreads)."""
+    """Which of a person's label ``pairs`` (P, 2) of known lengths ``[lo, hi]`` and ``spread``
+    (P,) sit elsewhere in ``positions`` (F, M, 3; the confirmed labels of a new capture of the
+    person): those whose median distance there, seen in at least ``min_frames`` frames and
+    scattering no more than ``max_spread_m``, lies outside ``[lo, hi]`` by more than ``moved_m``
+    and ``moved_sd`` spreads, neither label ``wrong`` (M,; on the wrong side of the body,
+    :func:`wrong_side`). Returns (rows, their median distances, their robust spreads)."""
     s = settings or CalibrationSettings()
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
     d = np.linalg.norm(positions[:, pairs[:, 0]] - positions[:, pairs[:, 1]], axis=-1)      # (F, P)
@@ -865,7 +915,8 @@ def moved_pairs(pairs: np.ndarray, length: np.ndarray, spread: np.ndarray, posit
         warnings.simplefilter("ignore", RuntimeWarning)
         med = np.nanmedian(d, axis=0) if d.size else np.zeros(pairs.shape[0])
         mad = 1.4826 * np.nanmedian(np.abs(d - med), axis=0) if d.size else np.zeros(pairs.shape[0])
-    off = np.abs(np.nan_to_num(med, nan=np.inf) - length)
+    med_ = np.nan_to_num(med, nan=np.inf)
+    off = np.maximum(lo - med_, med_ - hi)
     ok = ~(wrong[pairs[:, 0]] | wrong[pairs[:, 1]]) if wrong is not None else True
     rows = np.flatnonzero((seen >= s.min_frames) & (np.nan_to_num(mad, nan=np.inf) <= s.max_spread_m)
                           & (off > np.maximum(s.moved_m, s.moved_sd * spread)) & ok)
@@ -925,12 +976,13 @@ def session_calibrate(model: TriangulatedModel, clouds: Sequence[np.ndarray] | n
         first = self_label(model, clouds, rate, labeler, s.min_confidence, progress, budget)
         b = model.body
         wrong = wrong_side(first, model.mirror_pairs, model.heading_pairs, s.min_frames)
-        seg = np.flatnonzero(b.kind == SEGMENT)
-        rows, med, mad = moved_pairs(b.pairs[seg], 0.5 * (b.lo + b.hi)[seg], b.within_sd[seg], first, s, wrong)
+        seg = np.flatnonzero((b.kind == SEGMENT) & (b.between_sd == 0))      # the lengths measured on the person
+        rows, med, mad = moved_pairs(b.pairs[seg], b.lo[seg], b.hi[seg], b.within_sd[seg], first, s, wrong)
         rows = seg[rows]
         names = model.labels
-        summary["moved"] = [f"{names[b.pairs[k, 0]]}-{names[b.pairs[k, 1]]} {1000 * b.lo[k]:.1f} -> "
-                            f"{1000 * m:.1f} mm" for k, m in zip(rows, med)]
+        summary["moved"] = [f"{names[b.pairs[k, 0]]}-{names[b.pairs[k, 1]]} {1000 * b.lo[k]:.1f}"
+                            + (f"-{1000 * b.hi[k]:.1f}" if b.hi[k] > b.lo[k] else "") + f" -> {1000 * m:.1f} mm"
+                            for k, m in zip(rows, med)]
         if not rows.size:
             summary["reason"] = "no segment of the person's moved on this capture: their calibration as it is"
             return model, summary
@@ -938,7 +990,8 @@ def session_calibrate(model: TriangulatedModel, clouds: Sequence[np.ndarray] | n
         lo[rows] = hi[rows] = med
         within[rows] = np.maximum(within[rows], s.within_factor * mad)
         # the take pass's ruler (rigid pairs within the clusters) likewise
-        r_rows, r_med, r_mad = moved_pairs(b.rigid_pairs, b.rigid_length, b.rigid_spread, first, s, wrong)
+        r_rows, r_med, r_mad = moved_pairs(b.rigid_pairs, b.rigid_length, b.rigid_length, b.rigid_spread, first, s,
+                                           wrong)
         length, spread = b.rigid_length.copy(), b.rigid_spread.copy()
         length[r_rows], spread[r_rows] = r_med, np.maximum(spread[r_rows], r_mad)
         summary["rigid_pairs_moved"] = int(r_rows.size)
