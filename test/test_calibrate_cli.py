@@ -365,3 +365,13 @@ def test_a_session_check_measures_again_the_segments_whose_markers_moved(case_ce
     assert both.provenance["calibration"]["session_ranges"] >= 4
     again, info = session_calibrate(both, [f.xyz for f in window], window.rate)
     assert again is both and info["moved"] == [] and not info["applied"], info
+
+
+def test_dtm_label_says_which_segments_a_session_check_moved():
+    from dtm_labeler.cli.label import _calibration_line
+    line = _calibration_line({"applied": True, "frames": 100, "kept_share": 1.0,
+                              "moved": ["LUPA-LELB 126.9 -> 104.3 mm", "LELB-LFRM 153.3 -> 171.8 mm"]})
+    assert "2 segment length(s) placed elsewhere" in line and "LELB-LFRM 153.3 -> 171.8 mm" in line, line
+    assert "100 % of the model's confirmed labels kept" in line
+    refused = _calibration_line({"applied": False, "moved": [], "reason": "no segment of the person's moved"})
+    assert refused == "not applied: no segment of the person's moved"

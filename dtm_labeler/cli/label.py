@@ -92,8 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="subject calibration of a model whose body is generic (not yet calibrated to a person): "
                         "'auto' (default) self-calibrates it (not on the one capture a model was trained on: "
                         "that is its person; a model dtm-train calibrated to its takes' person keeps that on "
-                        "their captures and has it set aside for anyone else's, keeping it where that person's own does not hold "
-                        "up) on each take's first 5 s (a shorter take: its first "
+                        "their captures -- on their other takes measuring again the segments whose markers that "
+                        "session placed elsewhere -- and has it set aside for anyone else's, keeping it where "
+                        "that person's own does not hold up) on each take's first 5 s (a shorter take: its first "
                         "third or all of it, whichever the calibrated model reproduces better; the model's own "
                         "confirmed labels, the take's names unused) and keeps the calibration when the "
                         "calibrated model keeps the labels it was measured on (and stops, keeping the model as "
@@ -250,6 +251,9 @@ def _calibration_line(c: dict) -> str:
     frames = c.get("frames")
     where = f"frames {frames[0]}:{frames[1]}" if isinstance(frames, list) else f"the first {frames} frames"
     kept = f", {100 * c['kept_share']:.0f} % of the model's confirmed labels kept" if "kept_share" in c else ""
+    if "moved" in c:            # a session check of the person's calibration (training/calibrate.session_calibrate)
+        return (f"the person's calibration, {len(c['moved'])} segment length(s) placed elsewhere this session set on "
+                f"{where}: {', '.join(c['moved'])}{kept}")
     return f"{c.get('segments', 0)} of {c.get('segments_total', 0)} segment lengths set on {where}{kept}"
 
 
