@@ -145,8 +145,8 @@ def test_dtm_label_sets_a_training_calibration_aside_for_someone_else(models, da
     same = json.loads(run("dtm-label", path, data_dir / WHIRL, "--frames", "0:120", "--no-take-pass",
                           "--json", "--quiet").stdout)
     cal = same["inputs"][0]["calibration"]
-    assert cal["applied"] is False and "set_aside" not in cal and "CMU subject 55" in cal["person"], cal
-    assert cal["moved"] == [] and "calibration as it is" in cal["reason"]
+    assert "set_aside" not in cal and "CMU subject 55" in cal["person"] and cal["moved"] == [], cal
+    assert not cal["applied"] or (cal["broad"] and cal["kept_share"] >= 0.9), cal    # this take's broad weights
     assert same["accuracy"] > 0.95
     other = json.loads(run("dtm-label", path, data_dir / PIROUETTE, "--frames", "0:120", "--no-take-pass",
                            "--json", "--quiet").stdout)
@@ -364,7 +364,7 @@ def test_a_session_check_measures_again_the_segments_whose_markers_moved(case_ce
     assert both.body.lo[k] < 0.11 < 0.12 < both.body.hi[k] < 0.13, (both.body.lo[k], both.body.hi[k])
     assert both.provenance["calibration"]["session_ranges"] >= 4
     again, info = session_calibrate(both, [f.xyz for f in window], window.rate)
-    assert again is both and info["moved"] == [] and not info["applied"], info
+    assert info["moved"] == [] and np.array_equal(again.body.lo, both.body.lo), info
 
 
 def test_dtm_label_says_which_segments_a_session_check_moved():
@@ -375,3 +375,5 @@ def test_dtm_label_says_which_segments_a_session_check_moved():
     assert "100 % of the model's confirmed labels kept" in line
     refused = _calibration_line({"applied": False, "moved": [], "reason": "no segment of the person's moved"})
     assert refused == "not applied: no segment of the person's moved"
+    line = _calibration_line({"applied": True, "frames": 100, "kept_share": 0.99, "moved": [], "broad": {"x": 1}})
+    assert "no marker placed elsewhere" in line and "broad motion weights" in line and "99 %" in line, line

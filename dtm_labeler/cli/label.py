@@ -252,8 +252,10 @@ def _calibration_line(c: dict) -> str:
     where = f"frames {frames[0]}:{frames[1]}" if isinstance(frames, list) else f"the first {frames} frames"
     kept = f", {100 * c['kept_share']:.0f} % of the model's confirmed labels kept" if "kept_share" in c else ""
     if "moved" in c:            # a session check of the person's calibration (training/calibrate.session_calibrate)
-        return (f"the person's calibration, {len(c['moved'])} segment length(s) placed elsewhere this session set on "
-                f"{where}: {', '.join(c['moved'])}{kept}")
+        moved = (f"{len(c['moved'])} segment length(s) placed elsewhere this session set on {where}: "
+                 f"{', '.join(c['moved'])}" if c["moved"] else f"no marker placed elsewhere this session ({where})")
+        broad = "; the broad motion weights from the same frames" if c.get("broad") else ""
+        return f"the person's calibration, {moved}{broad}{kept}"
     return f"{c.get('segments', 0)} of {c.get('segments_total', 0)} segment lengths set on {where}{kept}"
 
 

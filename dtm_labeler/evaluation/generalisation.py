@@ -17,8 +17,9 @@ does (labels stripped, points shuffled, stream and single mode), in four variant
   of the training captures with that calibration, no window of the test used
   (:func:`~dtm_labeler.evaluation.archive.keeps_training_calibration`); the same subject's
   other takes with it too, its segments whose markers sit elsewhere on the window measured
-  again there (:func:`~dtm_labeler.training.calibrate.session_calibrate`: markers are placed
-  again each session); anyone else's with the generic body self-calibrated on the same window,
+  again there and its broad weights fitted to the window's motion
+  (:func:`~dtm_labeler.training.calibrate.session_calibrate`: markers are placed again each
+  session); anyone else's with the generic body self-calibrated on the same window,
   its points shuffled as the labeler gets them, kept only when the calibrated model keeps >= 90
   % of the labels it was measured on (:func:`~dtm_labeler.training.calibrate.auto_calibrate`),
   else the training person's calibration (the generic model when the training takes are
