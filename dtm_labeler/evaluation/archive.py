@@ -225,7 +225,8 @@ def of_training_person(model, source: str) -> str | None:
     model not calibrated on its training takes). ``--calibrate auto`` sets the calibration
     aside for anyone else (:func:`generic_view`): another person's segment lengths cost right
     labelings more than they save (:mod:`dtm_labeler.model.body`); on the same subject's other
-    takes it measures the lengths again, the person's calibration the fallback."""
+    takes it checks the calibration for markers placed elsewhere and fits the broad weights to
+    the take (:func:`~dtm_labeler.training.calibrate.session_calibrate`)."""
     kept = keeps_training_calibration(model, source)
     if kept is not None or takes_calibration(model) is None:
         return kept
