@@ -148,6 +148,13 @@ def test_dtm_label_sets_a_training_calibration_aside_for_someone_else(models, da
     assert "set_aside" not in cal and "CMU subject 55" in cal["person"] and cal["moved"] == [], cal
     assert not cal["applied"] or (cal["broad"] and cal["kept_share"] >= 0.9), cal    # this take's broad weights
     assert same["accuracy"] > 0.95
+    # the takes the user said are the person to label (dtm-train --calibrate): checked the same way
+    asked = load_model(path)
+    asked.provenance["calibration"]["why"] = "asked"
+    asked_path = save_model(asked, tmp_path / "asked.npz")
+    cal = json.loads(run("dtm-label", asked_path, data_dir / WHIRL, "--frames", "0:120", "--no-take-pass",
+                         "--json", "--quiet").stdout)["inputs"][0]["calibration"]
+    assert "told the takes" in cal["person"] and cal["moved"] == [] and "set_aside" not in cal, cal
     other = json.loads(run("dtm-label", path, data_dir / PIROUETTE, "--frames", "0:120", "--no-take-pass",
                            "--json", "--quiet").stdout)
     cal = other["inputs"][0]["calibration"]

@@ -225,10 +225,11 @@ def _main(argv=None) -> int:
               + f"; a point still for longer than {REST_MARGIN:g} x its label's longest rest and {floor:g} s "
               "is scored as possibly a fixed reflection")
     if calibration:
-        kept = ("dtm-label keeps it on every capture" if calibration["why"] == "asked" else
-                "dtm-label keeps it on these captures and on other CMU takes of the same subject (measuring "
-                "again there the segments whose markers that session placed elsewhere), and self-calibrates "
-                "anyone else's capture (keeping this calibration where that does not hold up)")
+        other = ("every other capture" if calibration["why"] == "asked" else "other CMU takes of the same subject")
+        kept = (f"dtm-label keeps it on these captures and on {other} (measuring again there the segments "
+                "whose markers that session placed elsewhere)"
+                + ("" if calibration["why"] == "asked" else ", and self-calibrates anyone else's capture (keeping "
+                   "this calibration where that does not hold up)"))
         print(f"person    calibrated to the takes' person ({calibration['why']}): {calibration['segments']} of "
               f"{calibration['segments_total']} segment lengths from {calibration['frames']} frames (scale "
               f"{calibration['scale']:.3f}); {kept}; --calibrate off: generic")

@@ -219,33 +219,35 @@ def trained_on(model, source: str) -> bool:
 
 def of_training_person(model, source: str) -> str | None:
     """Why the capture ``source`` is of the person a model calibrated on its training takes
-    was calibrated to -- one of those captures, any capture when the user said the takes were
-    one person (``dtm-train --calibrate``; both: :func:`keeps_training_calibration`), or the
+    was calibrated to -- one of those captures (:func:`keeps_training_calibration`), any capture
+    when the user said the takes were the person to label (``dtm-train --calibrate``), or the
     same CMU subject (:func:`~dtm_labeler.motion.naming.one_subject`) -- else None (also for a
     model not calibrated on its training takes). ``--calibrate auto`` sets the calibration
     aside for anyone else (:func:`generic_view`): another person's segment lengths cost right
-    labelings more than they save (:mod:`dtm_labeler.model.body`); on the same subject's other
-    takes it checks the calibration for markers placed elsewhere and fits the broad weights to
-    the take (:func:`~dtm_labeler.training.calibrate.session_calibrate`)."""
+    labelings more than they save (:mod:`dtm_labeler.model.body`); on the person's other
+    captures it checks the calibration for markers placed elsewhere and fits the broad weights
+    to the take (:func:`~dtm_labeler.training.calibrate.session_calibrate`)."""
+    cal = takes_calibration(model)
+    if cal is None:
+        return None
     kept = keeps_training_calibration(model, source)
-    if kept is not None or takes_calibration(model) is None:
+    if kept is not None:
         return kept
+    if cal.get("why") == "asked":
+        return "the person dtm-train --calibrate was told the takes are"
     sources = [str(s) for s in model.provenance.get("sources") or []]
     return one_subject(sources + [source]) if sources else None
 
 
 def keeps_training_calibration(model, source: str) -> str | None:
     """Why ``--calibrate auto`` labels the capture ``source`` with the calibration a model made
-    on its training takes as it is -- one of those captures, or any capture when the user said
-    the takes are the person to label (``dtm-train --calibrate``) -- else None. On another take
-    of the same CMU subject (:func:`of_training_person`) the calibration is checked for markers
-    placed again in that session (:func:`~dtm_labeler.training.calibrate.session_calibrate`);
-    anyone else's capture sets it aside (:func:`training_person_note`)."""
-    cal = takes_calibration(model)
-    if cal is None:
+    on its training takes as it is: one of those captures (measured there on the operator's
+    labels) -- else None. Another capture of the person (:func:`of_training_person`) is another
+    session: the calibration is checked there
+    (:func:`~dtm_labeler.training.calibrate.session_calibrate`); anyone else's capture sets it
+    aside (:func:`training_person_note`)."""
+    if takes_calibration(model) is None:
         return None
-    if cal.get("why") == "asked":
-        return "the person dtm-train --calibrate was told the takes are"
     sources = [str(s) for s in model.provenance.get("sources") or []]
     return "one of its training captures" if any(_same_file(source, s) for s in sources) else None
 
