@@ -168,7 +168,7 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
                 "reason": "the take is the capture the model was trained on: the model is of its person"}
         whose = of_training_person(model, job.source) if auto else None
         kept = keeps_training_calibration(model, job.source) if auto else None
-        if kept is not None:            # the person's own captures, or every capture when asked: as it is
+        if kept is not None:            # one of the captures the calibration was measured on: as it is
             auto, res.calibration = False, {
                 "applied": False, "source": "auto (the take's first frames, self-labelled)",
                 "reason": f"the model is calibrated to this capture's person ({kept})"}
