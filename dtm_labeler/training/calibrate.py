@@ -288,6 +288,22 @@ def symmetric_segments(body: BodyModel, measured: np.ndarray, length: np.ndarray
     return kept, borrowed
 
 
+def pair_lengths(positions: np.ndarray, pairs: np.ndarray, settings: CalibrationSettings | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Median distance and robust (MAD) spread of each label pair (P, 2) over the frames of
+    ``positions`` (F, M, 3; NaN = unseen) where both are seen, and whether it is measured: seen in
+    at least ``min_frames`` frames, scattering no more than ``max_spread_m`` (NaN where never seen)."""
+    s = settings or CalibrationSettings()
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    d = np.linalg.norm(positions[:, pairs[:, 0]] - positions[:, pairs[:, 1]], axis=-1)      # (F, P)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)          # pairs never seen together: NaN
+        med = np.nanmedian(d, axis=0)
+        mad = 1.4826 * np.nanmedian(np.abs(d - med), axis=0)
+    measured = (np.isfinite(d).sum(0) >= s.min_frames) & (np.nan_to_num(mad, nan=np.inf) <= s.max_spread_m)
+    return med, mad, measured
+
+
 def calibrated_body(body: BodyModel, positions: np.ndarray, settings: CalibrationSettings | None = None,
                     mirror_pairs: np.ndarray | None = None, heading_pairs: np.ndarray | None = None,
                     check_labels: bool = True) -> tuple[BodyModel, dict]:
@@ -298,14 +314,8 @@ def calibrated_body(body: BodyModel, positions: np.ndarray, settings: Calibratio
     skips both checks."""
     s = settings or CalibrationSettings()
     u, v = body.pairs[:, 0], body.pairs[:, 1]
-    d = np.linalg.norm(positions[:, u] - positions[:, v], axis=-1)                   # (F, P)
-    seen = np.isfinite(d).sum(0)
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)          # pairs never seen together: NaN
-        med = np.nanmedian(np.where(np.isfinite(d), d, np.nan), axis=0)
-        mad = 1.4826 * np.nanmedian(np.abs(d - med), axis=0)
-    measured = ((body.kind == SEGMENT) & (seen >= s.min_frames)
-                & (np.nan_to_num(mad, nan=np.inf) <= s.max_spread_m))
+    med, mad, measured = pair_lengths(positions, body.pairs, s)
+    measured &= body.kind == SEGMENT
     flipped = (wrong_side(positions, mirror_pairs, heading_pairs, s.min_frames) if check_labels
                else np.zeros(body.n_labels, dtype=bool))
     measured &= ~(flipped[u] | flipped[v])
@@ -536,15 +546,9 @@ def session_ranges(body: BodyModel, within_sd: np.ndarray, captures: Sequence[np
     zone, :mod:`dtm_labeler.model.body`) both sessions' lengths cost nothing."""
     s = settings or CalibrationSettings()
     rows = np.flatnonzero((body.kind == SEGMENT) & (body.between_sd == 0))
-    u, v = body.pairs[rows, 0], body.pairs[rows, 1]
     meds, mads = [], []
     for P in captures:
-        d = np.linalg.norm(P[:, u] - P[:, v], axis=-1)
-        with np.errstate(all="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            med = np.nanmedian(d, axis=0) if d.shape[0] else np.full(rows.size, np.nan)
-            mad = 1.4826 * np.nanmedian(np.abs(d - med), axis=0) if d.shape[0] else np.full(rows.size, np.nan)
-        ok = (np.isfinite(d).sum(0) >= s.min_frames) & (np.nan_to_num(mad, nan=np.inf) <= s.max_spread_m)
+        med, mad, ok = pair_lengths(P, body.pairs[rows], s)
         meds.append(np.where(ok, med, np.nan))
         mads.append(np.where(ok, mad, np.nan))
     meds, mads = np.array(meds), np.array(mads)
@@ -909,17 +913,11 @@ def moved_pairs(pairs: np.ndarray, lo: np.ndarray, hi: np.ndarray, spread: np.nd
     :func:`wrong_side`). Returns (rows, their median distances, their robust spreads)."""
     s = settings or CalibrationSettings()
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-    d = np.linalg.norm(positions[:, pairs[:, 0]] - positions[:, pairs[:, 1]], axis=-1)      # (F, P)
-    seen = np.isfinite(d).sum(0)
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        med = np.nanmedian(d, axis=0) if d.size else np.zeros(pairs.shape[0])
-        mad = 1.4826 * np.nanmedian(np.abs(d - med), axis=0) if d.size else np.zeros(pairs.shape[0])
-    med_ = np.nan_to_num(med, nan=np.inf)
-    off = np.maximum(lo - med_, med_ - hi)
+    med, mad, measured = pair_lengths(positions, pairs, s)
+    length = np.nan_to_num(med, nan=np.inf)
+    off = np.maximum(lo - length, length - hi)
     ok = ~(wrong[pairs[:, 0]] | wrong[pairs[:, 1]]) if wrong is not None else True
-    rows = np.flatnonzero((seen >= s.min_frames) & (np.nan_to_num(mad, nan=np.inf) <= s.max_spread_m)
-                          & (off > np.maximum(s.moved_m, s.moved_sd * spread)) & ok)
+    rows = np.flatnonzero(measured & (off > np.maximum(s.moved_m, s.moved_sd * spread)) & ok)
     return rows, med[rows], np.nan_to_num(mad[rows])
 
 
