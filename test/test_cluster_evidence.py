@@ -165,6 +165,7 @@ def test_a_calibration_labels_its_window_without_the_memory():
     assert (used.seed, used.hold_nats, used.window) == (3, 7.0, given.window)
     assert calibration_labeling(None).cluster_memory_s == 0.0
     assert given.full.wide_sweeps > 0 and used.full.wide_sweeps == 0      # nor the wide sweeps
+    assert given.full.mirror_sweeps > 0 and used.full.mirror_sweeps == 0  # nor the mirrored ones
     assert (used.full.population, used.full.fresh_starts) == (given.full.population, given.full.fresh_starts)
 
 

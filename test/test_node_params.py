@@ -48,9 +48,11 @@ def test_mapping_of_each_labeler_parameter():
         time_budget_ms=25.0, warm_population=10, warm_generations=4, warm_stagnation=2, refit_drop=3.0,
         accept_drop=2.0, seed=9, gate_m=0.1, gate_speed_factor=0.2, max_misses=4, clutter_volume_m3=20.0,
         clutter_max_speed_mps=2.0, detection_probability=0.9, max_points=40, max_gap_s=1.5,
-        sweep_branches=6, region_branches=4, wide_sweeps=2))
+        sweep_branches=6, region_branches=4, wide_sweeps=2, mirror_sweeps=1, mirror_branches=5))
     assert (s.method, s.mode, s.window, s.seed, s.max_points) == ("greedy", "single", 3, 9, 40)
     assert (s.full.wide_sweeps, s.warm.wide_sweeps, LabelerSettings().full.wide_sweeps) == (2, 0, 1)
+    assert (s.full.mirror_sweeps, s.full.mirror_branches, s.warm.mirror_sweeps) == (1, 5, 0)
+    assert LabelerSettings().full.mirror_sweeps == 3
     assert P.settings_equal(P.settings_from_params(params_from_settings(s)), s)      # and back
     assert (s.full.region_branches, s.region_branches, LabelerSettings().full.region_branches) == (6, 4, 0)
     assert (s.full.population, s.full.max_generations, s.full.stagnation) == (30, 7, 2)

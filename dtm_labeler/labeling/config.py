@@ -109,7 +109,7 @@ class Param:
         return value
 
 
-_FULL = GASettings(population=64, max_generations=80, stagnation=10, wide_sweeps=1, fresh_starts=3)
+_FULL = GASettings(population=64, max_generations=80, stagnation=10, wide_sweeps=1, mirror_sweeps=3, fresh_starts=3)
 _WARM = GASettings(population=24, max_generations=10, stagnation=3, polish=True, polish_rounds=1, p_recreate=0.15,
                    fresh_fraction=0.0, region_sweeps=0)
 
@@ -159,6 +159,15 @@ PARAMS: Tuple[Param, ...] = (
           "ghosts, corruption seed 3, cold searches from 12 random seeds: right at the end 10 -> 12, "
           "median time to the first right labeling 0.9 -> 0.43 s; single-frame mode 85.3 -> 87.6 % "
           "(~13 % more time).", range=(0, 16)),
+    Param("mirror_sweeps", _FULL.mirror_sweeps, "Marker sets: then at most this many sweeps over every label's body "
+          "neighbourhood joined with its mirror image (both hands', both feet's markers), each relabelled exactly "
+          "as a whole over 20 shared points, a point the DP gives to two labels branched on (mirror_branches): "
+          "a crouched body's two arm chains interleaved, which the one-sided regions do not hold, are put right. "
+          "dtm-eval's 41-marker single-frame cells (cold searches from scratch): CMU 85 breakdance 79.3 -> 97.6 %, "
+          "HDM05 96.8 -> 98.4 % (0 = none).", range=(0, 16)),
+    Param("mirror_branches", _FULL.mirror_branches, "Extra DP solves each mirrored neighbourhood of mirror_sweeps may "
+          "spend where its best relabelling gives one point to two labels (each claimant keeps it in turn, then "
+          "none).", range=(0, 64)),
     Param("fresh_starts", _FULL.fresh_starts, "A search from scratch also finishes (polish, sweeps, the "
           "labels read through the turned-round body) the bests of this many fresh model-guided "
           "populations, beside the GA's: a refined start is right or not by the luck of its population, "
@@ -508,7 +517,8 @@ def settings_from_params(values: Mapping[str, Any]) -> LabelerSettings:
                    stagnation=v["stagnation"], n_elite=min(_FULL.n_elite, v["population"] - 1),
                    time_budget_s=budget, region_size=v["region_size"], fresh_fraction=v["fresh_fraction"],
                    region_sweeps=v["region_sweeps"], region_branches=v["sweep_branches"],
-                   wide_sweeps=v["wide_sweeps"], fresh_starts=v["fresh_starts"])
+                   wide_sweeps=v["wide_sweeps"], mirror_sweeps=v["mirror_sweeps"],
+                   mirror_branches=v["mirror_branches"], fresh_starts=v["fresh_starts"])
     warm = replace(_WARM, population=v["warm_population"], max_generations=v["warm_generations"],
                    stagnation=v["warm_stagnation"], n_elite=min(_WARM.n_elite, v["warm_population"] - 1),
                    time_budget_s=budget)
@@ -533,7 +543,8 @@ def params_from_settings(settings: LabelerSettings) -> Dict[str, Any]:
                time_budget_ms=(s.full.time_budget_s or 0.0) * 1e3, warm_population=s.warm.population,
                warm_generations=s.warm.max_generations, warm_stagnation=s.warm.stagnation,
                fresh_fraction=s.full.fresh_fraction, region_sweeps=s.full.region_sweeps,
-               wide_sweeps=s.full.wide_sweeps, sweep_branches=s.full.region_branches,
+               wide_sweeps=s.full.wide_sweeps, mirror_sweeps=s.full.mirror_sweeps,
+               mirror_branches=s.full.mirror_branches, sweep_branches=s.full.region_branches,
                fresh_starts=s.full.fresh_starts,
                gate_m=s.tracker.gate_m, known_gate_m=s.tracker.known_gate_m,
                gate_speed_factor=s.tracker.gate_speed_factor,

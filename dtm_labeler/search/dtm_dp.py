@@ -304,6 +304,25 @@ def regions_of(model, max_size: int, partner: bool = True) -> list[np.ndarray]:
     return cache[key]
 
 
+def mirrored_regions(model, max_size: int) -> list[np.ndarray]:
+    """Each label's body neighbourhood (:func:`model_regions` without the partner: the label and
+    its nearest ``max_size - 1`` on the mean body) joined with its left/right mirror image: both
+    hands' or both feet's markers in one region. For :func:`shared_candidates`, whose labels may
+    each take any of the region's points: a search from scratch of a crouched body with its hands
+    together settles on the two arms' chains interleaved (CMU 85's breakdance, 41 markers: RELB
+    read as LFIN, LFIN as RELB, LWRB as LUPA, RWRB as LWRB ... 62 nats below the truth), which
+    no region of one side undoes. Computed once per model and size."""
+    cache = model.__dict__.setdefault("_regions", {})
+    key = ("mirrored", max_size)
+    if key not in cache:
+        M = model.n_labels
+        mirror = np.arange(M)
+        mp = np.asarray(model.mirror_pairs, dtype=np.int64).reshape(-1, 2)
+        mirror[mp[:, 0]], mirror[mp[:, 1]] = mp[:, 1], mp[:, 0]
+        cache[key] = [np.unique(np.concatenate([r, mirror[r]])) for r in regions_of(model, max_size, partner=False)]
+    return cache[key]
+
+
 def relabel_regions(problem: FrameProblem, ind: np.ndarray, fit: float, regions: list[np.ndarray],
                     centres, refine=None, branches: int = 0,
                     candidates=region_candidates) -> tuple[np.ndarray, float, int]:

@@ -27,7 +27,7 @@ import numpy as np
 
 from .problem import FrameProblem
 from . import label_ops as ops
-from .dtm_dp import max_product, region_candidates, regions_of, relabel_regions, shared_candidates
+from .dtm_dp import max_product, mirrored_regions, region_candidates, regions_of, relabel_regions, shared_candidates
 from .evolve import Island, Mating, evolve
 from .ga import Termination
 from .move_kernels import move_rows
@@ -68,6 +68,9 @@ class GASettings:
     wide_sweeps: int = 0                # then: sweeps over every label's body neighbourhood, relabelled as a whole
     wide_size: int = 7                  # labels per neighbourhood of those sweeps
     wide_candidates: int = 12           # points each neighbourhood's labels share
+    mirror_sweeps: int = 0              # then (marker sets): the neighbourhoods joined with their mirror images
+    mirror_candidates: int = 20         # points each of those shares
+    mirror_branches: int = 8            # DP solves each may spend on a point given to two labels
     fresh_starts: int = 0               # a labeler's cold search: bests of fresh populations, each finished
 
     def __post_init__(self) -> None:
@@ -83,6 +86,8 @@ class GASettings:
             raise ValueError("region_sweeps and region_branches must be >= 0 and region_size >= 2")
         if self.wide_sweeps < 0 or self.wide_size < 2 or self.wide_candidates < 1 or self.fresh_starts < 0:
             raise ValueError("wide_sweeps and fresh_starts must be >= 0, wide_size >= 2 and wide_candidates >= 1")
+        if self.mirror_sweeps < 0 or self.mirror_candidates < 1 or self.mirror_branches < 0:
+            raise ValueError("mirror_sweeps and mirror_branches must be >= 0 and mirror_candidates >= 1")
 
 
 class LabelSearch(ABC):
@@ -381,6 +386,10 @@ class GASearch(LabelSearch):
             ind, f, e2 = sweep_regions(problem, ind, f, s.wide_sweeps, s.wide_size, s.polish_rounds, deadline,
                                        wide=s.wide_candidates)
             e += e2
+        if s.mirror_sweeps and problem.model.marker_set:
+            ind, f, e2 = sweep_regions(problem, ind, f, s.mirror_sweeps, s.wide_size, s.polish_rounds, deadline,
+                                       s.mirror_branches, wide=s.mirror_candidates, mirrored=True)
+            e += e2
         return ind, f, evals + e
 
     def _sweep_regions(self, problem, ind, f, deadline):
@@ -392,16 +401,19 @@ class GASearch(LabelSearch):
 
 def sweep_regions(problem: FrameProblem, ind: np.ndarray, f: float, sweeps: int, region_size: int,
                   polish_rounds: int, deadline: float | None = None,
-                  branches: int = 0, wide: int = 0) -> tuple[np.ndarray, float, int]:
+                  branches: int = 0, wide: int = 0, mirrored: bool = False) -> tuple[np.ndarray, float, int]:
     """``sweeps`` passes of :func:`relabel_regions` over every label's region, each accepted
     relabelling polished; stops early when a pass changes nothing. The GA and polish leave
     labelings that are wrong over a few neighbouring labels at once (a limb shifted along its
-    markers); this settles them exactly (``branches``: see :func:`relabel_regions`). Returns
-    (ind, fitness, evaluations)."""
+    markers); this settles them exactly (``branches``: see :func:`relabel_regions`). ``wide``:
+    each label's body neighbourhood instead, its labels sharing ``wide`` points;
+    ``mirrored``: those neighbourhoods joined with their mirror images
+    (:func:`~.dtm_dp.mirrored_regions`). Returns (ind, fitness, evaluations)."""
     evals = 0
     if sweeps <= 0 or problem.M <= 3 or problem.n == 0:
         return ind, f, evals
-    regions = regions_of(problem.model, region_size, partner=not wide)
+    regions = mirrored_regions(problem.model, region_size) if mirrored else \
+        regions_of(problem.model, region_size, partner=not wide)
     # wide: each label's body neighbourhood, its labels sharing ``wide`` points
     candidates = functools.partial(shared_candidates, max_candidates=wide) if wide else region_candidates
 
