@@ -904,10 +904,15 @@ class TrackedLabeler(FastPath):
             yield from self._fresh_starts(search, problem, np.random.default_rng([self._interim.request.seed, 1]))
 
     def _refined(self, search: GASearch, problem: FrameProblem, ind: np.ndarray, f: float):
-        """``ind`` finished (polish, mirror, region sweeps), then read through the turned-round
-        body and swept (:func:`turned_labels`) when the turned-round check is on; each step
-        yielded as ``(assignment, fitness, evaluations)``."""
-        yield search._finish(problem, ind, f, None)
+        """``ind`` finished (polish, mirror, region sweeps; a marker set's mirrored sweeps too
+        unless in a worker's interim steps), then read through the turned-round body and swept
+        (:func:`turned_labels`) when the turned-round check is on; each step yielded as
+        ``(assignment, fitness, evaluations)``. A worker's stream waits for these steps (the
+        first finished labeling joins it), and at 41 markers the mirrored sweeps are up to a
+        second more: with them the demo's 41-marker flicker stream (HDM05, 3 flickering + 2
+        ghosts) was first right at frame 66-102 instead of 38-41 (five runs); the worker's
+        GA still ends with them (:meth:`~dtm_labeler.search.label_search.GASearch._finish`)."""
+        yield search._finish(problem, ind, f, None, mirrored=self._interim is None)
         if self.settings.turn_check and self.settings.method == "cbga" and problem.M > 3:
             yield turned_labels(problem, ind, f, lambda y, fy: search._sweep_regions(problem, y, fy, None))
 

@@ -369,9 +369,10 @@ class GASearch(LabelSearch):
             return problem.fitness
         return lambda pop: np.where(valid(pop), problem.fitness(pop), -np.inf)
 
-    def _finish(self, problem: FrameProblem, ind: np.ndarray, f: float, deadline) -> tuple[np.ndarray, float, int]:
+    def _finish(self, problem: FrameProblem, ind: np.ndarray, f: float, deadline,
+                mirrored: bool = True) -> tuple[np.ndarray, float, int]:
         """Polish the best and its mirror image (a flipped body is a deep local optimum),
-        then the region sweeps."""
+        then the region sweeps (the mirrored ones with ``mirrored``: :meth:`_mirror_sweeps`)."""
         evals = 0
         starts = [ind] + ([ops.mirror(ind[None], problem.mirror_pairs)[0]] if len(problem.mirror_pairs) else [])
         for start in starts:
@@ -386,11 +387,19 @@ class GASearch(LabelSearch):
             ind, f, e2 = sweep_regions(problem, ind, f, s.wide_sweeps, s.wide_size, s.polish_rounds, deadline,
                                        wide=s.wide_candidates)
             e += e2
-        if s.mirror_sweeps and problem.model.marker_set:
-            ind, f, e2 = sweep_regions(problem, ind, f, s.mirror_sweeps, s.wide_size, s.polish_rounds, deadline,
-                                       s.mirror_branches, wide=s.mirror_candidates, mirrored=True)
+        if mirrored:
+            ind, f, e2 = self._mirror_sweeps(problem, ind, f, deadline)
             e += e2
         return ind, f, evals + e
+
+    def _mirror_sweeps(self, problem: FrameProblem, ind: np.ndarray, f: float, deadline) -> tuple[np.ndarray, float, int]:
+        """A marker set's sweeps over the body neighbourhoods joined with their mirror images
+        (``mirror_sweeps``; :func:`sweep_regions` with ``mirrored``); nothing for joint centres."""
+        s = self.settings
+        if not s.mirror_sweeps or not problem.model.marker_set:
+            return ind, f, 0
+        return sweep_regions(problem, ind, f, s.mirror_sweeps, s.wide_size, s.polish_rounds, deadline,
+                             s.mirror_branches, wide=s.mirror_candidates, mirrored=True)
 
     def _sweep_regions(self, problem, ind, f, deadline):
         """:func:`sweep_regions` with this search's settings."""
