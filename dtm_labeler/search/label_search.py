@@ -394,9 +394,10 @@ class GASearch(LabelSearch):
 
     def _mirror_sweeps(self, problem: FrameProblem, ind: np.ndarray, f: float, deadline) -> tuple[np.ndarray, float, int]:
         """A marker set's sweeps over the body neighbourhoods joined with their mirror images
-        (``mirror_sweeps``; :func:`sweep_regions` with ``mirrored``); nothing for joint centres."""
+        (``mirror_sweeps``; :func:`sweep_regions` with ``mirrored``); nothing for joint centres
+        or a marker set without left/right pairs (its wide sweeps covered those regions)."""
         s = self.settings
-        if not s.mirror_sweeps or not problem.model.marker_set:
+        if not s.mirror_sweeps or not problem.model.marker_set or not len(problem.mirror_pairs):
             return ind, f, 0
         return sweep_regions(problem, ind, f, s.mirror_sweeps, s.wide_size, s.polish_rounds, deadline,
                              s.mirror_branches, wide=s.mirror_candidates, mirrored=True)
