@@ -203,8 +203,8 @@ def test_the_first_interim_result_is_finished_at_once(model, walker):
     worker = StreamLabeler(model, LabelerSettings(recovery="inline"))
     sent, calls = [], []
     finish = worker.full_search._finish
-    def spy(problem, ind, f, deadline):
-        out = finish(problem, ind, f, deadline)
+    def spy(problem, ind, f, deadline, **kw):
+        out = finish(problem, ind, f, deadline, **kw)
         calls.append((len(sent), ind.copy(), f, out))
         return out
     worker.full_search._finish = spy
@@ -232,9 +232,9 @@ def test_fresh_starts_are_refined_and_kept_when_better(model, walker):
                                                       full=replace(LabelerSettings().full, fresh_starts=fresh)))
         calls, sent, gas = [], [], []
         finish, ga = worker.full_search._finish, worker._ga
-        def spy(problem, ind, f, deadline, finish=finish, calls=calls):
+        def spy(problem, ind, f, deadline, finish=finish, calls=calls, **kw):
             calls.append(f)
-            return finish(problem, ind, f, deadline)
+            return finish(problem, ind, f, deadline, **kw)
         def ga_spy(*a, ga=ga, gas=gas, **k):
             out = ga(*a, **k)
             gas.append({m: c.assignment.copy() for m, c in out.candidates.items()})

@@ -177,7 +177,7 @@ def _cold_bent(model, clip, f: int, bend_starts: int, alone: bool = False) -> tu
     settings = dataclasses.replace(LabelerSettings(), mode="single", seed=f, bend_starts=bend_starts)
     if alone:                            # the GA and its region sweeps only
         settings = dataclasses.replace(settings, full=dataclasses.replace(settings.full, wide_sweeps=0,
-                                                                          fresh_starts=0))
+                                                                          mirror_sweeps=0, fresh_starts=0))
     labeler = StreamLabeler(model, settings)
     labeler.tracker.update(xp[ok][perm], -1.0 / clip.rate)
     res = labeler.process(x[ok][perm], 0.0)
@@ -188,7 +188,7 @@ def test_a_cold_search_labels_a_body_bent_at_the_hips(floor, data_dir):
     """CMU 85's breakdance stand-up (``dtm-eval``'s jump + twist -> breakdance test frames), the
     trunk bent 60-100 deg forward, under the floor cell's model of standing takes (a marker
     set): the GA and its region sweeps alone read the trunk upside down (44-46 % right, fitting
-    89-149 nats below the whole cold search); with the wide sweeps, the fresh starts and the bend
+    89-149 nats below the whole cold search); with the wide and mirrored sweeps, the fresh starts and the bend
     check most of it is right (90-93 %), and the bend check never makes a frame fit worse."""
     model, _ = floor
     assert model.marker_set

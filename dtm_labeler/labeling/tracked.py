@@ -33,7 +33,7 @@ build it on another thread and hand it over with :meth:`TrackedLabeler.update_se
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
@@ -43,7 +43,7 @@ from ..model.features import FULL, POSITION_ONLY
 from ..search import dp_kernels, frame_kernels, label_ops, move_kernels, sample_kernels
 from ..search.dtm_dp import turned_labels, turned_round
 from ..search.upright import BEND_PITCHES_DEG, bent_problems, upright_problems
-from ..search.label_search import CBGASearch, GASearch, LabelSearch, SearchOutcome, make_search, polish
+from ..search.label_search import CBGASearch, GASearch, GASettings, LabelSearch, SearchOutcome, make_search, polish
 from ..search.problem import FrameProblem
 from .config import LabelerSettings
 from .cluster_evidence import ClusterEvidence
@@ -276,6 +276,17 @@ def frame_weight(problem: FrameProblem) -> float:
     return max(full + POSITION_ONLY_WEIGHT * min(int((codes == POSITION_ONLY).sum()), problem.M - full), 1.0)
 
 
+def full_settings(settings) -> GASettings:
+    """The full search's settings of a labeler's ``settings``: the mirrored sweeps
+    (``mirror_sweeps``) in single-frame mode only, where every frame is a search from scratch.
+    In a stream the full searches are cold starts and recoveries, which tracking then carries:
+    there they cost the suite a minute and the 12 upper-body markers half hidden their take
+    pass's lift (80.65 -> 80.14 % after the second pass, a mirrored neighbourhood being the whole
+    body), the 55-marker Qualisys walk's gapped halves 99.49 -> 99.29 % while HDM05's rose 99.01 ->
+    99.18 % (``results/search_errors.md``, 2026-12-07)."""
+    return settings.full if settings.mode == "single" else replace(settings.full, mirror_sweeps=0)
+
+
 class TrackedLabeler(FastPath):
     """The per-frame pipeline (module doc). Subclasses call :meth:`_init_engine` and fill
     the hooks; ``result_type`` is the dataclass of :meth:`process`'s result."""
@@ -338,7 +349,7 @@ class TrackedLabeler(FastPath):
         self.tenure = LabelTenure(self.n_labels)
         self.cluster_evidence = ClusterEvidence(self.models[0].rigid_clusters, s.cluster_memory_s)
         method = "cbga" if s.method == "tracker" else s.method
-        self.full_search: LabelSearch = make_search(method, s.full)
+        self.full_search: LabelSearch = make_search(method, full_settings(s))
         self.warm_search: LabelSearch = make_search(method, s.warm)
         self.reset()
 
@@ -410,7 +421,7 @@ class TrackedLabeler(FastPath):
             self._fresh_search = True
         if (settings.tracker, settings.window, settings.mode, settings.method) == \
                 (old.tracker, old.window, old.mode, old.method):
-            self.full_search.settings = settings.full
+            self.full_search.settings = full_settings(settings)
             self.warm_search.settings = settings.warm
             if settings.seed != old.seed:
                 self.rng = np.random.default_rng(settings.seed)
