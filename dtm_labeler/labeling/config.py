@@ -164,7 +164,8 @@ PARAMS: Tuple[Param, ...] = (
           "as a whole over 20 shared points, a point the DP gives to two labels branched on (mirror_branches): "
           "a crouched body's two arm chains interleaved, which the one-sided regions do not hold, are put right. "
           "dtm-eval's 41-marker single-frame cells (cold searches from scratch): CMU 85 breakdance 79.3 -> 97.6 %, "
-          "HDM05 96.8 -> 98.4 % (0 = none).", range=(0, 16)),
+          "HDM05 96.8 -> 98.4 %. Single-frame mode only: a stream's full searches (cold starts, recoveries) "
+          "search as without them (0 = none).", range=(0, 16)),
     Param("mirror_branches", _FULL.mirror_branches, "Extra DP solves each mirrored neighbourhood of mirror_sweeps may "
           "spend where its best relabelling gives one point to two labels (each claimant keeps it in turn, then "
           "none).", range=(0, 64)),
