@@ -33,12 +33,10 @@ def test_mirrored_regions_hold_both_sides(floor):
     one_sided = regions_of(model, 7, partner=False)
     both = mirrored_regions(model, 7)
     assert len(both) == model.n_labels and mirrored_regions(model, 7) is both      # computed once
+    partner = {int(a): int(b) for p in model.mirror_pairs for a, b in (p, p[::-1])}
     for lab, (r1, r2) in enumerate(zip(one_sided, both)):
         assert set(r1) <= set(r2) and lab in r2
-        for m in r1:                                  # every label's mirror partner is in the region too
-            name = L[m]
-            if name[0] in "LR" and (name[0] == "L" and "R" + name[1:] in L or name[0] == "R" and "L" + name[1:] in L):
-                assert L.index(("R" if name[0] == "L" else "L") + name[1:]) in r2
+        assert {partner[m] for m in r1 if m in partner} <= set(r2)   # every label's mirror partner too
     lfin = both[L.index("LFIN")]
     assert {"LFIN", "RFIN", "LWRA", "RWRA"} <= {L[i] for i in lfin}
 

@@ -920,9 +920,10 @@ class TrackedLabeler(FastPath):
         (:func:`turned_labels`) when the turned-round check is on; each step yielded as
         ``(assignment, fitness, evaluations)``. A worker's stream waits for these steps (the
         first finished labeling joins it), and at 41 markers the mirrored sweeps are up to a
-        second more: with them the demo's 41-marker flicker stream (HDM05, 3 flickering + 2
-        ghosts) was first right at frame 66-102 instead of 38-41 (five runs); the worker's
-        GA still ends with them (:meth:`~dtm_labeler.search.label_search.GASearch._finish`)."""
+        second more (measured while streams had them too: the demo's 41-marker flicker stream was
+        first right at frame 66-102 instead of 38-41); the worker's GA still ends with them
+        (:meth:`~dtm_labeler.search.label_search.GASearch._finish`). Streams have none at all
+        (:func:`full_settings`): this matters for a worker of a single-frame labeler."""
         yield search._finish(problem, ind, f, None, mirrored=self._interim is None)
         if self.settings.turn_check and self.settings.method == "cbga" and problem.M > 3:
             yield turned_labels(problem, ind, f, lambda y, fy: search._sweep_regions(problem, y, fy, None))

@@ -283,10 +283,7 @@ def model_regions(model, max_size: int = 8, partner: bool = True) -> list[np.nda
     M = model.n_labels
     pos = mean_shape(model)
     D = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
-    mirror = np.full(M, -1, dtype=np.int64)
-    if partner:
-        mp = np.asarray(model.mirror_pairs, dtype=np.int64).reshape(-1, 2)
-        mirror[mp[:, 0]], mirror[mp[:, 1]] = mp[:, 1], mp[:, 0]
+    mirror = mirror_partners(model) if partner else np.full(M, -1, dtype=np.int64)
     regions = []
     for lab in range(M):
         first = [lab] + ([int(mirror[lab])] if mirror[lab] >= 0 else [])
@@ -315,12 +312,18 @@ def mirrored_regions(model, max_size: int) -> list[np.ndarray]:
     cache = model.__dict__.setdefault("_regions", {})
     key = ("mirrored", max_size)
     if key not in cache:
-        M = model.n_labels
-        mirror = np.arange(M)
-        mp = np.asarray(model.mirror_pairs, dtype=np.int64).reshape(-1, 2)
-        mirror[mp[:, 0]], mirror[mp[:, 1]] = mp[:, 1], mp[:, 0]
-        cache[key] = [np.unique(np.concatenate([r, mirror[r]])) for r in regions_of(model, max_size, partner=False)]
+        partner = mirror_partners(model)
+        cache[key] = [np.unique(np.concatenate([r, partner[r][partner[r] >= 0]]))
+                      for r in regions_of(model, max_size, partner=False)]
     return cache[key]
+
+
+def mirror_partners(model) -> np.ndarray:
+    """(M,) each label's left/right mirror partner (``model.mirror_pairs``), -1 for none."""
+    partner = np.full(model.n_labels, -1, dtype=np.int64)
+    mp = np.asarray(model.mirror_pairs, dtype=np.int64).reshape(-1, 2)
+    partner[mp[:, 0]], partner[mp[:, 1]] = mp[:, 1], mp[:, 0]
+    return partner
 
 
 def relabel_regions(problem: FrameProblem, ind: np.ndarray, fit: float, regions: list[np.ndarray],
