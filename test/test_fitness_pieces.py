@@ -83,3 +83,45 @@ def test_moves_need_their_gain(stretch):
         wrong[f][truth[f] == ia] = ib
     out, moves = _run(stretch, wrong, [truth, truth], min_gain=1e9)
     assert moves == 0 and all((o == w).all() for o, w in zip(out, wrong))
+
+
+def _forearm(n: int = 60, seed: int = 0):
+    """A partner marker P (label 2) and two markers on one rigid body with it: A (label 0,
+    0.138 m from P) and B (label 1, 0.131 m from P, as the elbow and the wrist bar's end are
+    from the forearm marker), turning over ``n`` frames with 0.3 mm of noise. B is seen in the
+    first half only; A's marker is a new track in the second half."""
+    rng = np.random.default_rng(seed)
+    xyz, ids, labels = [], [], []
+    for f in range(n):
+        t = 0.02 * f
+        c, s = np.cos(t), np.sin(t)
+        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        P = np.array([0.5, 0.2, 1.0]) + [0.001 * f, 0.0, 0.0]
+        pts = [P + R @ [0.138, 0.0, 0.0], P + R @ [0.0, 0.131, 0.0], P]
+        if f < n // 2:
+            xyz.append(np.array(pts) + rng.normal(0, 3e-4, (3, 3)))
+            ids.append(np.array([0, 1, 2]))
+            labels.append(np.array([0, 1, 2]))
+        else:
+            xyz.append(np.array([pts[0], pts[2]]) + rng.normal(0, 3e-4, (2, 3)))
+            ids.append(np.array([3, 2]))
+            labels.append(np.array([0, 2]))
+    return xyz, ids, labels
+
+
+def test_a_label_whose_partner_fits_only_roughly_is_no_candidate():
+    """The rigid gate weighs what every partner says unclipped too: A's piece of the second half
+    matches its partner's 0.138 m in every frame and the candidate B's 0.131 m only roughly
+    (2.3 spreads), both clipped to the same +10 nats. B is a candidate only while the unclipped
+    evidence may fall by any amount."""
+    from dtm_labeler.labeling.fitness_pieces import _candidates
+    from dtm_labeler.labeling.rigid_tracks import PieceEvidence, track_pieces
+    xyz, ids, labels = _forearm()
+    ev = PieceEvidence(xyz, track_pieces(ids, labels), labels, 3)
+    assert ev.pairs.rigid[0, 2] and ev.pairs.rigid[1, 2]
+    piece = int(ev.pid[-1][0])
+    assert ev.score[piece, 0] == ev.score[piece, 1] == 10.0              # both clipped alike
+    searched = [[np.where(lab == 0, 1, lab) if f >= 30 else lab for f, lab in enumerate(labels)]]
+    loose = _candidates(ev, labels, searched, 5, 3, 20.0, np.inf)
+    assert loose.get(piece) == [1]
+    assert piece not in _candidates(ev, labels, searched, 5, 3, 20.0, 10.0)
