@@ -92,7 +92,8 @@ RECORDINGS = {
 }
 SKELETAL = ("W1", "R1", "D1", "D2", "D3")
 GROUPS = ("same person, other take", "same person, other motion", "other person",
-          "other person, generic model of every other shared person", "41 markers")
+          "other person, generic model of every other shared person", "41 markers",
+          "other person, other motion, a model of one walk")
 #: the marker takes' people (14 points derived from their markers): with the skeletal clips of
 #: the other CMU subjects, every person of the shared data but the one labelled
 MARKER_PEOPLE = ("mct_walk1", "mct_dance1", "qualisys", "85_02", "85_12", "hdm05")
@@ -146,6 +147,14 @@ CASES = (
          SKELETAL + MARKER_PEOPLE_NOT_MCT, "mct_dance1", note=GENERIC_MCT_NOTE),
     Case("generic_mct_walk", GROUPS[3], "MoCap Toolbox walker (14 points derived from 28 surface markers)",
          SKELETAL + MARKER_PEOPLE_NOT_MCT, "mct_walk1", note=GENERIC_MCT_NOTE),
+    # a lab's first model is often one take of one motion: subject 7's walk alone, labelling other
+    # people's dances and run (the arms in poses a walk never shows; ASF skeletons: other joint centres)
+    Case("w7_to_D2", GROUPS[5], "subject 55 lambada; model: subject 7's walk", ("W1",), "D2",
+         note="cgspeed -> ASF skeleton"),
+    Case("w7_to_D1", GROUPS[5], "subject 55 whirl; model: subject 7's walk", ("W1",), "D1"),
+    Case("w7_to_D3", GROUPS[5], "subject 5 pirouette; model: subject 7's walk", ("W1",), "D3",
+         note="cgspeed -> ASF skeleton"),
+    Case("w7_to_R1", GROUPS[5], "subject 9 run; model: subject 7's walk", ("W1",), "R1"),
     Case("m_85_02_to_85_12", GROUPS[4], "subject 85: jump + twist -> breakdance (standing part)",
          ("85_02",), "85_12@0.2:0.35", "all"),
     Case("m_85_12_to_85_02", GROUPS[4], "subject 85: breakdance -> jump + twist", ("85_12@0:0.5",), "85_02", "all"),
