@@ -340,6 +340,10 @@ class TriangulatedModel:
     # a calibrated model's body before its calibration: what dtm-label sets the calibration to the
     # training takes' person aside for on a capture of someone else (None: not kept)
     generic_body: BodyModel | None = None
+    # the broad part applies before a calibration too: a self-calibration's first labelling of a
+    # motion the generic body's training never showed (training/calibrate.py ``broad_first_round``).
+    # Not stored in a model file, not carried by :meth:`replace` unless given.
+    broad_open: bool = False
 
     def __post_init__(self) -> None:
         self.labels = tuple(self.labels)
@@ -375,8 +379,10 @@ class TriangulatedModel:
         self.body_twist = twist if twist is not None and twist.active else None     # trunk's twist limit
         if self.broad is not None and len(self.broad.gaussians) != len(self.mixtures):
             raise ValueError(f"{len(self.broad.gaussians)} broad components for {len(self.mixtures)} triangles")
-        # the broad part applies once the body is calibrated to a person (model/body.py, "Whose lengths")
-        self.broad_applied = self.broad is not None and self.body is not None and bool(self.body.calibration)
+        # the broad part applies once the body is calibrated to a person (model/body.py, "Whose lengths"),
+        # or where asked before that (``broad_open``)
+        self.broad_applied = self.broad is not None and self.body is not None and \
+            (bool(self.body.calibration) or self.broad_open)
         self.broad_terms = None if not self.broad_applied else \
             [shared_triangle_terms(g, first=(t == 0)) for t, g in enumerate(self.broad.gaussians)]
 
