@@ -238,7 +238,8 @@ def passed(records: list[FrameRecord], labels: Sequence[str], rate: float, take_
                                        [r.track_ids for r in records], [r.labels for r in records], rate, half,
                                        region_size=settings.full.region_size,
                                        polish_rounds=settings.full.polish_rounds,
-                                       heading_snap_deg=settings.heading_snap_deg, progress=progress)
+                                       heading_snap_deg=settings.heading_snap_deg, progress=progress,
+                                       hold_nats=settings.hold_nats, hold_s=settings.hold_s)
     return _rescored(records, labels, rate, new_labels, new_conf, scored)
 
 

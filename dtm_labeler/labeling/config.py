@@ -218,7 +218,9 @@ PARAMS: Tuple[Param, ...] = (
           "carried it (a trajectory keeps its label; eq. 32 read as a hidden Markov chain). Stops a ghost riding beside a marker from "
           "taking its label (41 HDM05 markers, 3 flickering + 2 ghosts, four seeds: wrong labels after the "
           "first right frame 0.47-0.98 -> 0.36-0.58 %), and a ghost beside a hidden marker (14 points with "
-          "gaps + ghosts, three seeds: search errors 242 -> 208). 0 = off.", range=(0.0, 1000.0)),
+          "gaps + ghosts, three seeds: search errors 242 -> 208). Offline, the take pass's searches keep it "
+          "for a label a track carries in hold_s of the take (a walk model on a whirl: 94.2 -> 100 %). "
+          "0 = off.", range=(0.0, 1000.0)),
     Param("hold_s", 1.0, "Stream time (s) a track must have carried a label before hold_nats protects "
           "it, and by which it must out-hold the point it would go to. Shorter also protects a wrong point "
           "that took a hidden marker's label during its gap (0.2 s: 41 markers with gaps -0.3 points).",
