@@ -280,9 +280,7 @@ def test_auto_calibration_keeps_the_model_when_it_cannot_or_should_not_calibrate
     same, info = auto_calibrate(generic, clouds, 120.0, CalibrationSettings(min_kept=1.01, attempts=1))
     assert same is generic and info["attempts"] == 1
     seen = []
-    # (its first round leaves a label out: without the broad round that would then follow)
-    calibrated, info = auto_calibrate(generic, clouds, 120.0, CalibrationSettings(broad_first_round=False),
-                                      progress=lambda done, total: seen.append((done, total)))
+    calibrated, info = auto_calibrate(generic, clouds, 120.0, progress=lambda done, total: seen.append((done, total)))
     assert info["applied"] and calibrated.body.calibration and SEGMENT in calibrated.body.applied_kinds
     assert info["attempts"] == 1
     # every frame of each self-labelling (two rounds and the check) shows in the progress
@@ -319,32 +317,6 @@ def test_a_failed_self_calibration_is_tried_again_with_the_broad_part_open(data_
     assert calibrated.broad_applied and not calibrated.broad_open    # applied for its calibration
     run = label_clip_run(calibrated, whirl.slice(300, 600), LabelerSettings(), keep_records=False)
     assert run.metrics.accuracy > 0.98
-
-
-def test_a_first_round_that_left_labels_out_gives_way_to_the_broad_one(data_dir):
-    """``dtm-train``'s model of subject 7's walk (calibrated to the walker, seen as generic on
-    another person's capture, as ``dtm-label`` does) on subject 55's lambada, a 600-frame window:
-    the first round with the broad part held back confirms no elbow and the right wrist only on
-    the elbow's point; that calibration passes its check and the calibrated model labels the
-    right elbow and wrist exchanged (85.7 % of the next 480 frames, measured). The broad round
-    confirms more of the window, passes, and is kept: 100 %."""
-    from dtm_labeler.evaluation.pipeline import label_clip_run
-    from dtm_labeler.labeling.stream import LabelerSettings
-    from dtm_labeler.training.calibrate import (CalibrationSettings, auto_calibrate, calibrate_on_takes,
-                                                clip_clouds, generic_view)
-    walk = load_clip(data_dir / "cmu_skeletal" / "bvh_from_fbx" / "cmu_07_01_walk_s07.bvh", points="body14")
-    lambada = load_clip(data_dir / "cmu_skeletal" / "asf_amc" / "cmu_55_02_lambada-dance_s55.amc", points="body14")
-    model, _ = train_model([walk], TrainConfig())
-    model = generic_view(calibrate_on_takes(model, [walk]))
-    clouds = clip_clouds(model, lambada.slice(0, 600))
-    after = lambada.slice(600, 1080)
-    plain, info = auto_calibrate(model, clouds, lambada.rate, CalibrationSettings(broad_first_round=False, attempts=1))
-    assert info["applied"] and info["first_round"] == "generic" and {"lelbow", "relbow"} <= set(info["unconfirmed"])
-    wrong = label_clip_run(plain, after, LabelerSettings(), keep_records=False).metrics
-    assert wrong.per_label["relbow"] < 0.5 and wrong.per_label["rwrist"] < 0.5
-    broad, info2 = auto_calibrate(model, clouds, lambada.rate, CalibrationSettings(attempts=1))
-    assert info2["applied"] and info2["first_round"] == "broad" and info2["first_confirmed"] > info["first_confirmed"]
-    assert label_clip_run(broad, after, LabelerSettings(), keep_records=False).metrics.accuracy > 0.99
 
 
 def test_auto_calibration_stops_on_a_window_the_model_does_not_follow(models, data_dir):

@@ -154,9 +154,8 @@ class CalibrationSettings:
                                      # calibrated model must keep on the same frames (auto_calibrate)
     attempts: int = 2                # auto calibration: self-labellings tried, each with its own search seed,
                                      # before the generic model is kept (auto_calibrate)
-    broad_first_round: bool = True   # auto calibration: a self-calibration that fails its check, or whose first
-                                     # round left a label out, is tried with the broad motion part open in its
-                                     # first round (auto_calibrate)
+    broad_first_round: bool = True   # auto calibration: a self-calibration that fails its check is tried again
+                                     # with the broad motion part open in its first round (auto_calibrate)
     placement_relevance: float = 20.0    # frames: MAP relevance of the motion means' placement adaptation
                                          # (training/placement.py); 0: the motion mixtures are kept as they are
     max_search_share: float = 0.5    # auto calibration: a self-labelling that needs a full search in more of
@@ -846,36 +845,26 @@ def auto_calibrate(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.n
     round) and now stops after about 30 s (gap seed 4: about 55 s), the generic model kept as it
     was then.
 
-    The broad motion part opened in the first round (``broad_first_round``; ``first_round`` in
-    the summary says which calibration was kept). The generic body holds the broad part back
-    until a calibration (:mod:`dtm_labeler.model.body`, "Whose lengths": with no person's lengths
-    its tails let a ghost take a hidden label), so a model of one motion cannot label a pose that
-    motion never showed: ``dtm-train``'s model of subject 7's walk (its structure hangs the legs'
-    triangles on the wrists, which a walk swings against them) leaves arms out of a dance's
-    window, and the calibration then measures them wrong or not at all. Open in the first round
-    only: the window is labelled by votes and confirmed, the lengths measured there hold the
-    calibrated model's ghosts off, and the check judges the result as before. It is tried
-
-    * where the first round (with the broad part held back) left a label out of the window --
-      confirmed in under ``complete_below`` of its frames (``unconfirmed`` in the summary) -- and
-      kept where it passes its check having confirmed more of the window (``first_confirmed``):
-      subject 55's lambada, 600-frame window, the walk model's first round confirmed no elbow
-      and the right wrist only on the elbow's point (199 frames), the calibration measured that
-      and passed its check, and the calibrated model labelled the right elbow and wrist
-      exchanged for the whole take: ``dtm-label`` 86.8 -> 100 %;
-    * when every attempt fails its check: subject 55's whirl, the first round left both arms out
-      (the truth 700 nats below that labeling a frame; the broad part bounds it to -15), the
-      check failed (kept 90 %), and ``dtm-label`` fell back to the walker's calibration: 54.7 ->
-      94.2 % (100 % with the take pass keeping held labels,
-      :func:`~dtm_labeler.labeling.take_pass.take_pass`).
-
-    Never as the only hypothesis: on subject 5's pirouette it fails its check (kept 69 %) where
-    the first round's calibration passes (99.9 %; alone it would have given 38.8 %). Measured
-    on every case of ``bench_auto_calibration.py`` (``results/auto_calibration.md``): the walk
-    model's pirouette and run 99.13 -> 100, 99.91 -> 100 %, every other cell the same (the
-    walk model with ``dtm-eval``'s hand-given structure on the whirl fails either way, kept 2 %
-    with it); the self-calibrations of the 41-marker cells take 0-30 s longer where one of
-    their labels went unconfirmed.
+    When every attempt fails its check, the self-calibration is tried once more with the broad
+    motion part open in its first round (``broad_first_round``; ``first_round`` in the summary
+    says which was kept, ``attempts`` counts it).
+    The generic body holds the broad part back until a calibration (:mod:`dtm_labeler.model.body`,
+    "Whose lengths": with no person's lengths its tails let a ghost take a hidden label), and a
+    model of one motion then cannot label a pose that motion never showed: ``dtm-train``'s model
+    of subject 7's walk (its structure hangs the legs' triangles on the wrists, which a walk
+    swings against them) left both arms of subject 55's whirl unlabelled in the window -- the
+    truth 700 nats below that labeling a frame, the broad part bounding it to -15 -- so the
+    calibration measured no arm and failed its check (kept 90 %), and ``dtm-label`` fell back to
+    the walker's calibration: 54.7 %. Open in the first round only: the window is labelled by
+    votes and confirmed, the lengths measured there hold the calibrated model's ghosts off, and
+    the check judges the result as before. Tried again that way: kept 94 %, the whirl 94.2 %
+    (100 % with the take pass keeping held labels, :func:`~dtm_labeler.labeling.take_pass.
+    take_pass`). Only after a failed check: as the first hypothesis it overturned a passing one
+    (the same walk model on subject 5's pirouette: kept 69 %, 99.9 -> 38.8 %), and at 41
+    markers a second self-calibration costs 25-40 s. Measured on every case of
+    ``bench_auto_calibration.py`` (``results/auto_calibration.md``): no cell changed -- the
+    one failing check there (``dtm-eval``'s walk model, the paper's hand-given structure, on the
+    whirl) fails again with it (kept 2 %).
     """
     s = settings or CalibrationSettings()
     clouds = [np.asarray(x, dtype=np.float64).reshape(-1, 3) for x in clouds]
@@ -894,11 +883,6 @@ def auto_calibrate(model: TriangulatedModel, clouds: Sequence[np.ndarray] | np.n
     for attempt in range(attempts):
         out, info = _self_calibration_checked(model, clouds, rate, s, dict(summary, attempts=attempt + 1), attempt,
                                               budget, progress)
-        if info["applied"] and info["unconfirmed"] and s.broad_first_round and model.broad is not None:
-            broad = _self_calibration_checked(model, clouds, rate, s, dict(summary, attempts=attempt + 1), attempt,
-                                              budget, progress, broad=True)
-            if broad[1]["applied"] and broad[1]["first_confirmed"] > info["first_confirmed"]:
-                return broad
         if info["applied"]:
             return out, info
         first = first or (out, info)
@@ -941,10 +925,8 @@ def _self_calibration_checked(model: TriangulatedModel, clouds: list[np.ndarray]
         summary["not_followed"] = isinstance(e, WindowNotFollowed)
         return model, summary
     info = calibrated.provenance["calibration"]
-    share = np.isfinite(rounds[0][..., 0]).mean(0)
     summary.update({k: info[k] for k in ("segments", "segments_total", "scale", "completed") if k in info},
-                   kept_share=kept, first_confirmed=float(share.mean()),
-                   unconfirmed=[model.labels[m] for m in np.flatnonzero(share < s.complete_below)])
+                   kept_share=kept)
     if kept < s.min_kept:
         summary["reason"] = (f"the calibrated model relabels {100 * (1 - kept):.0f} % of the labels it was "
                              f"measured on (at most {100 * (1 - s.min_kept):.0f} %): {KEPT_AS_IT_IS}")
