@@ -43,7 +43,11 @@ too: with the generic body its tails also make a ghost near the body cheap to la
 demo: ghosts rejected 91 % without, 67 % with it), with the person's segment lengths they do
 not (2 hidden + 2 ghosts: 99.5 / 99.6 % calibrated with it), and the poses the training never
 showed stop being vetoed (leave-one-subject-out, calibrated: subject 5 37.5 -> 99.5 %, subject
-55 82.2 -> 100 %, subject 9 74.2 -> 84.6 %; 240 stream frames).
+55 82.2 -> 100 %, subject 9 74.2 -> 84.6 %; 240 stream frames). One labelling opens it before a
+calibration (:attr:`TriangulatedModel.broad_open <dtm_labeler.model.dtm.TriangulatedModel>`): the
+first round of a self-calibration tried again after every attempt failed its check
+(:func:`dtm_labeler.training.calibrate.auto_calibrate`) -- a model of one motion otherwise never
+labels, and so never measures, a limb in a pose that motion did not show.
 
 Missing markers (eq. 30-31): an edge with an unobserved end point has no term (factor 1). This
 is exact where the motion density of the missing point lies inside the distances the body
