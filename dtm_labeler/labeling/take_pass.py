@@ -253,7 +253,7 @@ def _searched(model, background, states, rests, labels, region_size, polish_roun
               hold_nats: float = 0.0) -> list[np.ndarray]:
     """Per frame, the labels (-1 none) of its points after the region sweeps from ``labels``:
     at each candidate's own facing (``yaw`` None), else every candidate at ``yaw[f]``. ``held``
-    (per frame, (n,) bool): the points whose start label their track holds (:func:`held_labels`);
+    (per frame, (n,) bool; None: no hold): the points whose start label their track holds (:func:`held_labels`);
     a search that leaves such a label on no point and its point unlabelled gives it back unless
     that costs ``hold_nats`` or more (:func:`kept_holds`)."""
     out = []
@@ -270,7 +270,7 @@ def _searched(model, background, states, rests, labels, region_size, polish_roun
                 problem.anchor, problem.snap = float(yaw[f]), np.pi      # every candidate at the take's facing
             start = ind.copy()
             ind, fit, _ = sweep_regions(problem, ind, float(problem.fitness(ind)[0]), sweeps, region_size, polish_rounds)
-            if held is not None and hold_nats > 0:
+            if held is not None:
                 ind = kept_holds(problem, start, ind, fit, np.asarray(held[f], dtype=bool), hold_nats)
         res = np.full(problem.n, -1, dtype=np.int64)
         given = ind < problem.n
