@@ -75,6 +75,11 @@ def _ms(v):
     return "-" if v is None else round(v)
 
 
+def _kinds(r: dict) -> str:
+    """The search errors' kinds of a row (``metrics`` module doc): 'ghost 40, left out 12, relabelled 110'."""
+    return ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in (r.get("search_error_kinds") or {}).items())
+
+
 def load_case(name: str, max_frames: int | None):
     """(model, stream clip) of a case. The model as ``dtm-train`` makes it by default
     (``--calibrate auto``): calibrated to the takes' person when they are one person
@@ -141,6 +146,7 @@ def run(model, clip, cond: str, recovery: str, seed: int = 1) -> dict:
     st = slice((first or 0) + STEADY, None)
     return dict(frames=len(frames), accuracy=m.accuracy, ghost_rejection=m.ghost_rejection,
                 search_errors=m.search_errors, search_errors_held=m.search_errors_held, search_checked=m.search_checked,
+                search_error_kinds=m.search_error_kinds,
                 ece=m.calibration_error, reliability=m.reliability,
                 full_searches=int(round((m.full_search_rate or 0) * m.frames)), doubtful_frames=doubtful,
                 startup_ms=None if first is None else first * 1e3 / clip.rate,
@@ -177,7 +183,7 @@ def main() -> None:
                 w, c = r["steady_wall_ms"], r["steady_cpu_ms"]
                 print(f"{case:9s} {cond:28s} {rec:10s} {r['frames']:5d} fr  acc {100 * r['accuracy']:6.2f} %  "
                       f"p50 {w['p50']:5.2f}  p99 {w['p99']:6.2f}  max {w['max']:7.1f} ms  cpu p99 {c['p99']:5.2f} ms  "
-                      f"search errors {r['search_errors']} ({r['search_errors_held']} held)  ECE {100 * (r['ece'] or 0):.1f} %  "
+                      f"search errors {r['search_errors']} ({r['search_errors_held']} held; {_kinds(r)})  ECE {100 * (r['ece'] or 0):.1f} %  "
                       f"start-up {r['startup_ms']} ms, right at {r['right_ms']} ms", flush=True)
     commit = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True).stdout.strip()
@@ -196,15 +202,17 @@ def main() -> None:
              f"right at = first frame with {RIGHT:.0%} of its visible markers labelled right.", "",
              "Search errors: frames whose true labeling the model scores higher than the published one; "
              "held: of them, those the fast path's priors (the tracks' and the rigid clusters' memory) charge "
-             "the truth more than it gains (the labeler's own objective preferred what it published).", "",
-             "| case | labels | condition | recovery | frames | accuracy % | ghosts rejected % | search errors (held) | "
+             "the truth more than it gains (the labeler's own objective preferred what it published); then the frames "
+             "whose search labeling put a label on a ghost, left a visible marker out, or gave one another label "
+             "(a frame under each kind it shows).", "",
+             "| case | labels | condition | recovery | frames | accuracy % | ghosts rejected % | search errors (held; kinds) | "
              "ECE % | doubtful frames | p50 ms | p99 ms | max ms | CPU p99 ms | start-up ms | right at ms |",
              "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         w, c = r["steady_wall_ms"], r["steady_cpu_ms"]
         gr = "-" if r["ghost_rejection"] is None else f"{100 * r['ghost_rejection']:.1f}"
         lines.append(f"| {r['case']} | {r['labels']} | {r['condition']} | {r['recovery']} | {r['frames']} | "
-                     f"{100 * r['accuracy']:.2f} | {gr} | {r['search_errors']} / {r['search_checked']} ({r['search_errors_held']}) | "
+                     f"{100 * r['accuracy']:.2f} | {gr} | {r['search_errors']} / {r['search_checked']} ({r['search_errors_held']}; {_kinds(r)}) | "
                      f"{100 * (r['ece'] or 0):.1f} | {r['doubtful_frames']} | {w['p50']:.2f} | {w['p99']:.2f} | "
                      f"{w['max']:.1f} | {c['p99']:.2f} | {_ms(r['startup_ms'])} | {_ms(r.get('right_ms'))} |")
     (RESULTS / "stream_latency.md").write_text("\n".join(lines) + "\n")

@@ -113,6 +113,24 @@ def test_search_errors_the_priors_held():
     assert merged.search_errors == 2 and merged.as_dict()["search_errors_held"] == 1
 
 
+def test_search_errors_by_kind():
+    """A search-error frame counts under each kind of wrong label its search labeling shows (a
+    label on a clutter point, a visible marker left out, one under another label); frames that
+    are no search error, and search errors without the search's labels, count under none."""
+    acc = MetricsAccumulator(LABELS, rate=10.0)
+    err = dict(log_likelihood=5.0, truth_fitness=7.0)
+    acc.add([0, -1], [0, -1], search_labels=[-1, 0], **err)          # marker 0 left out, a ghost holds 0
+    acc.add([0, 1], [0, 1], search_labels=[1, 0], **err)             # swapped
+    acc.add([0, 1], [0, 1], search_labels=[1, 0], log_likelihood=5.0, truth_fitness=4.0)    # not an error
+    acc.add([0, -1], [0, -1], **err)                                 # an error, no search labels
+    acc.add([0, -1, 1], [0, -1, 1], search_labels=[0, 1, -1], valid=[True, False, True], **err)  # only left out
+    m = acc.metrics()
+    assert m.search_errors == 4
+    assert m.search_error_kinds == {"ghost": 1, "left_out": 2, "relabelled": 1}
+    merged = MetricsAccumulator.merge([acc, acc]).metrics()
+    assert merged.as_dict()["search_error_kinds"] == {"ghost": 2, "left_out": 4, "relabelled": 2}
+
+
 def test_search_accuracy_uses_search_labels():
     acc = MetricsAccumulator(LABELS, rate=10.0)
     acc.add([0, 1], [0, 1], search_labels=[1, 0])

@@ -44,7 +44,7 @@ EPILOG = """examples:
   dtm-label m41.npz archive/ --out labelled/ --jobs 2 --json     # one labelled file per take
   dtm-label m41.npz archive/ --out labelled/ --dask tcp://scheduler:8786
 output (--json): method, mode, frames, labels, accuracy, ghosts, ghost_rejection, swaps_per_min, search_errors,
-  search_errors_held, search_error_rate, latency_ms {p50, p99, max, mean}, fps, per_label, inputs (one entry per input: source,
+  search_errors_held, search_error_kinds {ghost, left_out, relabelled}, search_error_rate, latency_ms {p50, p99, max, mean}, fps, per_label, inputs (one entry per input: source,
   frame_range, named, unlabelled_points, worker, out, error, and its own figures).
 """
 
@@ -462,8 +462,10 @@ def _print_summary(args, settings, model, m: Metrics, runs: list) -> None:
           f"{_pct(m.frame_accuracy)} of frames; search alone {_pct(m.search_accuracy)}")
     print("ghosts         " + (f"{_pct(m.ghost_rejection)} of {m.ghosts} left unlabelled" if m.ghosts else "none"))
     print(f"swaps          {m.swaps} ({_fmt(m.swaps_per_min)} per min)")
+    kinds = ", ".join(f"{k.replace('_', ' ')} in {v}" for k, v in m.search_error_kinds.items() if v)
     print(f"search errors  {m.search_errors} of {m.search_checked} frames ({_pct(m.search_error_rate)}); "
-          f"{m.search_errors_held} of them held by the tracks' priors")
+          f"{m.search_errors_held} of them held by the tracks' priors" + (f"; a label on a ghost / a marker left "
+                                                                         f"out / relabelled: {kinds}" if kinds else ""))
     print(f"latency        p50 {_fmt(lat['p50'])} ms, p99 {_fmt(lat['p99'])} ms, max {_fmt(lat['max'])} ms; "
           f"{_fmt(m.fps)} frames/s; full searches in {_pct(m.full_search_rate)} of frames")
     worst = sorted(((v, k) for k, v in m.per_label.items() if v is not None))[:4]

@@ -19,7 +19,13 @@ Definitions (per frame, over the points that were actually in the input and fini
   Markov chain, :meth:`~dtm_labeler.labeling.fast_path.FastPath._move_cost`) charge more than
   it gains: ``truth_fitness - truth_prior <= log_likelihood + 1e-6`` -- the labeler's objective
   preferred what it published (the memory held it; whether rightly is the accuracy's question),
-  where the others are labelings the search did not reach.
+  where the others are labelings the search did not reach. **search_error_kinds**: of the search
+  errors with the search's own labels given, the frames in which the search's labeling put a
+  label on a clutter point (``ghost``: a ghost holding a hidden marker's label, most often),
+  left a visible true marker unlabelled (``left_out``) or gave one another label
+  (``relabelled``: swaps, a limb's chain read one marker along); a frame counts under each kind
+  it shows. What a search error is made of says where to look: a ghost's label wants a release,
+  a chain shifted a region check.
 * **latency** -- per-frame processing time (p50 / p99 / max, ms); **fps** -- frames per
   second of total processing time (sum of the per-frame latencies unless a wall time is
   given).
@@ -39,6 +45,8 @@ from typing import Iterable, Sequence
 import numpy as np
 
 SEARCH_ERROR_TOL = 1e-6
+#: what a search-error frame's labeling got wrong (module doc, *search_error_kinds*)
+SEARCH_ERROR_KINDS = ("ghost", "left_out", "relabelled")
 CONFIDENCE_BINS = 10
 
 
@@ -96,13 +104,14 @@ class Metrics:
     calibration_error: float | None = None
     reliability: list = field(default_factory=list)     # [lo, hi, labels, mean confidence, fraction right]
     search_errors_held: int = 0    # of the search errors, frames the fast path's priors held (module doc)
+    search_error_kinds: dict = field(default_factory=dict)   # frames per kind of wrong label (module doc)
 
     def as_dict(self, confusion: bool = False) -> dict:
         """JSON-ready dict (confusion matrix only when asked: it is (M+1)^2 numbers)."""
         d = {k: getattr(self, k) for k in (
             "frames", "duration_s", "points", "correct", "accuracy", "frame_accuracy", "search_accuracy",
             "ghosts", "ghost_rejection", "swaps", "swaps_per_min", "search_errors", "search_errors_held",
-            "search_checked", "search_error_rate", "latency_ms", "fps", "full_search_rate", "calibration_error", "reliability",
+            "search_error_kinds", "search_checked", "search_error_rate", "latency_ms", "fps", "full_search_rate", "calibration_error", "reliability",
             "per_label")}
         d["labels"] = len(self.labels)
         d["label_names"] = list(self.labels)
@@ -150,6 +159,7 @@ class MetricsAccumulator:
         self.swaps = 0
         self.search_errors = 0
         self.search_errors_held = 0
+        self.search_error_kinds = np.zeros(len(SEARCH_ERROR_KINDS), dtype=np.int64)
         self.search_checked = 0
         self.full_searches = 0
         self.full_known = 0
@@ -213,6 +223,10 @@ class MetricsAccumulator:
             missed = is_search_error(truth_fitness, log_likelihood)
             self.search_errors += int(missed)
             self.search_errors_held += int(missed and not is_search_error(truth_fitness - truth_prior, log_likelihood))
+            if missed and search_labels is not None:
+                s = np.asarray(search_labels, dtype=np.int64)
+                self.search_error_kinds += [((t < 0) & (s >= 0)).any(), (vis & (s < 0)).any(),
+                                            (vis & (s >= 0) & (s != t)).any()]
         if latency_ms is not None:
             self.latencies.append(float(latency_ms))
         if full_search is not None:
@@ -243,6 +257,7 @@ class MetricsAccumulator:
                 raise ValueError("accumulators have different labels")
             out.confusion += a.confusion
             out.conf_bins += a.conf_bins
+            out.search_error_kinds += a.search_error_kinds
             for k in ("search_confusion_diag", "search_points", "frames", "duration_s", "frames_all_correct",
                       "frames_with_points", "swaps", "search_errors", "search_errors_held", "search_checked", "full_searches",
                       "full_known"):
@@ -273,6 +288,7 @@ class MetricsAccumulator:
             ghosts=ghosts, ghost_rejection=ratio(int(c[M, M]), ghosts), swaps=self.swaps,
             swaps_per_min=ratio(self.swaps * 60.0, self.duration_s),
             search_errors=self.search_errors, search_errors_held=self.search_errors_held,
+            search_error_kinds=dict(zip(SEARCH_ERROR_KINDS, self.search_error_kinds.tolist())),
             search_checked=self.search_checked,
             search_error_rate=ratio(self.search_errors, self.search_checked),
             latency_ms=percentile_summary(self.latencies), fps=fps,
