@@ -49,6 +49,10 @@ output (--json): method, mode, frames, labels, accuracy, ghosts, ghost_rejection
 """
 
 
+#: how the summary names the kinds of search errors (:data:`~dtm_labeler.evaluation.metrics.SEARCH_ERROR_KINDS`)
+_KIND_WORDS = {"ghost": "a label on a ghost", "left_out": "a marker left out", "relabelled": "a marker relabelled"}
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="dtm-label", formatter_class=HelpFormatter, epilog=EPILOG,
                                 description="Label recordings (labels stripped, points shuffled per frame, their unlabelled "
@@ -462,10 +466,9 @@ def _print_summary(args, settings, model, m: Metrics, runs: list) -> None:
           f"{_pct(m.frame_accuracy)} of frames; search alone {_pct(m.search_accuracy)}")
     print("ghosts         " + (f"{_pct(m.ghost_rejection)} of {m.ghosts} left unlabelled" if m.ghosts else "none"))
     print(f"swaps          {m.swaps} ({_fmt(m.swaps_per_min)} per min)")
-    kinds = ", ".join(f"{k.replace('_', ' ')} in {v}" for k, v in m.search_error_kinds.items() if v)
+    kinds = ", ".join(f"{_KIND_WORDS[k]} in {v}" for k, v in m.search_error_kinds.items() if v)
     print(f"search errors  {m.search_errors} of {m.search_checked} frames ({_pct(m.search_error_rate)}); "
-          f"{m.search_errors_held} of them held by the tracks' priors" + (f"; a label on a ghost / a marker left "
-                                                                         f"out / relabelled: {kinds}" if kinds else ""))
+          f"{m.search_errors_held} of them held by the tracks' priors" + (f"; by kind: {kinds}" if kinds else ""))
     print(f"latency        p50 {_fmt(lat['p50'])} ms, p99 {_fmt(lat['p99'])} ms, max {_fmt(lat['max'])} ms; "
           f"{_fmt(m.fps)} frames/s; full searches in {_pct(m.full_search_rate)} of frames")
     worst = sorted(((v, k) for k, v in m.per_label.items() if v is not None))[:4]
