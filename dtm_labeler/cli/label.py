@@ -23,7 +23,7 @@ from ..evaluation.archive import LabelJob, TakeResult, default_workers, label_ta
 from ..evaluation.labelled_capture import OUTPUT_SUFFIXES
 from ..evaluation.pipeline import ClipRun, model_clip
 from ..evaluation.switching import label_clip_bank
-from ..evaluation.metrics import Metrics, MetricsAccumulator
+from ..evaluation.metrics import SEARCH_ERROR_KINDS, Metrics, MetricsAccumulator
 from ..labeling import config
 from ..labeling.bank_labeler import BankSettings, bank_settings_from_params
 from ..labeling.config import LabelerSettings
@@ -47,10 +47,6 @@ output (--json): method, mode, frames, labels, accuracy, ghosts, ghost_rejection
   search_errors_held, search_error_kinds {ghost, left_out, relabelled}, search_error_rate, latency_ms {p50, p99, max, mean}, fps, per_label, inputs (one entry per input: source,
   frame_range, named, unlabelled_points, worker, out, error, and its own figures).
 """
-
-
-#: how the summary names the kinds of search errors (:data:`~dtm_labeler.evaluation.metrics.SEARCH_ERROR_KINDS`)
-_KIND_WORDS = {"ghost": "a label on a ghost", "left_out": "a marker left out", "relabelled": "a marker relabelled"}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -466,7 +462,7 @@ def _print_summary(args, settings, model, m: Metrics, runs: list) -> None:
           f"{_pct(m.frame_accuracy)} of frames; search alone {_pct(m.search_accuracy)}")
     print("ghosts         " + (f"{_pct(m.ghost_rejection)} of {m.ghosts} left unlabelled" if m.ghosts else "none"))
     print(f"swaps          {m.swaps} ({_fmt(m.swaps_per_min)} per min)")
-    kinds = ", ".join(f"{_KIND_WORDS[k]} in {v}" for k, v in m.search_error_kinds.items() if v)
+    kinds = ", ".join(f"{SEARCH_ERROR_KINDS[k]} in {v}" for k, v in m.search_error_kinds.items() if v)
     print(f"search errors  {m.search_errors} of {m.search_checked} frames ({_pct(m.search_error_rate)}); "
           f"{m.search_errors_held} of them held by the tracks' priors" + (f"; by kind: {kinds}" if kinds else ""))
     print(f"latency        p50 {_fmt(lat['p50'])} ms, p99 {_fmt(lat['p99'])} ms, max {_fmt(lat['max'])} ms; "

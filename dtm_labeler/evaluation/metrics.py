@@ -45,8 +45,9 @@ from typing import Iterable, Sequence
 import numpy as np
 
 SEARCH_ERROR_TOL = 1e-6
-#: what a search-error frame's labeling got wrong (module doc, *search_error_kinds*)
-SEARCH_ERROR_KINDS = ("ghost", "left_out", "relabelled")
+#: what a search-error frame's labeling got wrong (module doc, *search_error_kinds*), and its words
+SEARCH_ERROR_KINDS = {"ghost": "a label on a ghost", "left_out": "a marker left out",
+                      "relabelled": "a marker relabelled"}
 CONFIDENCE_BINS = 10
 
 
@@ -223,8 +224,7 @@ class MetricsAccumulator:
             missed = is_search_error(truth_fitness, log_likelihood)
             self.search_errors += int(missed)
             self.search_errors_held += int(missed and not is_search_error(truth_fitness - truth_prior, log_likelihood))
-            if missed and search_labels is not None:
-                s = np.asarray(search_labels, dtype=np.int64)
+            if missed and search_labels is not None:          # ``s``: the search's labels, read above
                 self.search_error_kinds += [((t < 0) & (s >= 0)).any(), (vis & (s < 0)).any(),
                                             (vis & (s >= 0) & (s != t)).any()]
         if latency_ms is not None:
