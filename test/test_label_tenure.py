@@ -39,3 +39,26 @@ def test_broadcast_lookup():
     assert held.tolist() == [[1.0, 0.0], [0.0, 1.0]]
     t.reset()
     assert len(t) == 0 and t.held_for([7], [3], 2.0).tolist() == [0.0]
+
+
+def test_clutter_runs_count_unbroken_frames_left_unlabelled():
+    t = LabelTenure(n_labels=3)
+    t.update([1, 2], [0, -1], [], 0.0)
+    t.update([1, 2, 3], [-1, -1, -1], [], 0.5)          # track 1 loses its label, 3 is new
+    assert t.clutter_for([1, 2, 3, 9], 1.0).tolist() == [0.5, 1.0, 0.5, 0.0]
+    t.update([2, 3], [1, -1], [], 1.0)                  # 2 labelled: its run ends; 1 unseen keeps its run
+    assert t.clutter_for([1, 2, 3], 1.5).tolist() == [1.0, 0.0, 1.0]
+    t.update([2], [-1], [3], 2.0)                       # 3 lost: forgotten; 2 starts a new run
+    assert t.clutter_for([1, 2, 3], 2.5).tolist() == [2.0, 0.5, 0.0]
+    assert t.held_for([2], [1], 2.5).tolist() == [1.5]  # the label's tenure is kept beside
+    t.reset()
+    assert t.clutter_for([1, 2], 3.0).tolist() == [0.0, 0.0]
+
+
+def test_clutter_runs_start_and_the_labels_last_publication():
+    t = LabelTenure(n_labels=3)
+    t.update([1, 2], [0, -1], [], 0.0)
+    t.update([2], [-1], [1], 0.5)                       # track 1 (label 0) lost
+    assert np.isnan(t.clutter_since([1, 7])).all()
+    assert t.clutter_since([2]).tolist() == [0.0]
+    assert t.last_published.tolist() == [0.0, -np.inf, -np.inf]

@@ -363,6 +363,42 @@ def test_a_ghost_beside_a_hidden_marker_does_not_take_its_label(model):
         assert took[default] == 0 and back[default] == hide.stop, name
 
 
+def test_a_ghost_left_unlabelled_does_not_take_a_label_freed_by_a_long_gap(model):
+    """labeling/fast_path.py _hold_cost and _settled_clutter_released: a track left unlabelled for
+    hold_s is in the chain's clutter state, and giving it a label pays hold_nats, in the fast
+    path's moves and in a recovery search's result alike. A ghost rides 8 cm beside a marker from
+    the stream's start (left unlabelled: the marker holds its label); the marker then hides for
+    longer than its track coasts (``max_misses`` frames), so no track holds the label any more.
+    Without the prior the ghost takes the label for most of the gap and the marker gets it back
+    frames after it reappears; with it the ghost never has it and the label is back in the frame
+    the marker is."""
+    clip = synthesize(duration=1.8, seed=7, heading=-2.0, noise_mm=2, start_xy=(1.0, 2.0))
+    hide = range(170, 200)
+    default = LabelerSettings().hold_nats
+    assert hide.stop - hide.start > 2 * LabelerSettings().tracker.max_misses
+    for name in ("head", "lshoulder"):
+        target = model.labels.index(name)
+        before, took, back = {}, {}, {}
+        for hold in (0.0, default):
+            lab = StreamLabeler(model, LabelerSettings(hold_nats=hold))
+            before[hold] = took[hold] = 0
+            back[hold] = None
+            for f in range(hide.stop + 6):
+                pts = np.vstack([clip.positions[f], clip.positions[f][target] + np.array([0.0, 0.08, 0.0])])
+                if f in hide:
+                    pts = np.delete(pts, target, 0)
+                r = lab.process(pts, f / clip.rate)
+                if f < hide.start:
+                    before[hold] += int(r.labels[-1] >= 0)
+                else:
+                    took[hold] += int(f in hide and r.labels[-1] == target)
+                if f >= hide.stop and back[hold] is None and r.labels[target] == target:
+                    back[hold] = f
+        assert before[0.0] == before[default] == 0, name           # the ghost was clutter before the gap
+        assert took[0.0] >= 10 and back[0.0] > hide.stop, name
+        assert took[default] == 0 and back[default] == hide.stop, name
+
+
 def test_a_held_label_pays_to_be_left_on_no_point(model):
     """labeling/fast_path.py _hold_cost: a label whose track, seen this frame, has carried it for
     hold_s pays hold_nats for a move that leaves it on no point -- as for one that hands it to a

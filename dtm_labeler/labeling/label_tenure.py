@@ -5,7 +5,9 @@ Markov chain over a track's label, a trajectory keeps the label it has carried u
 evidence outweighs the prior against changing it. :class:`LabelTenure` keeps, for every (track,
 label) pair the labeler has published, the stream time it was first published -- also while the
 label is briefly elsewhere, so a label that flickers to a neighbour and back keeps the tenure it
-had. Pairs go when their track does. Sorted int64 keys, no Python loop over tracks; a lookup
+had. Pairs go when their track does. Beside them, the chain's other state: since when each track
+has been left unlabelled without a break (:meth:`LabelTenure.clutter_for`; eq. 18-20's background
+class, which a ghost holds while the body's markers hold their labels). Sorted int64 keys, no Python loop over tracks; a lookup
 (:meth:`LabelTenure.held_for`, asked 5-8 times a frame by the fast path's priors and the
 published confidence) is one compiled loop (:func:`_held`; in numpy 8-12 us each).
 """
@@ -25,6 +27,9 @@ class LabelTenure:
     def reset(self) -> None:
         self._keys = np.zeros(0, dtype=np.int64)     # track * n_labels + label, sorted
         self._first = np.zeros(0)                    # stream time of each key's first publication
+        self._idle = np.zeros(0, dtype=np.int64)     # tracks left unlabelled since ``_since``, sorted
+        self._since = np.zeros(0)
+        self.last_published = np.full(self.n_labels, -np.inf)   # stream time each label was last on a track
 
     def __len__(self) -> int:
         return self._keys.size
@@ -50,12 +55,38 @@ class LabelTenure:
             at = np.searchsorted(keys, new)
             keys, first = np.insert(keys, at, new), np.insert(first, at, float(stamp))
         self._keys, self._first = keys, first
+        self.last_published[labels[has]] = float(stamp)
+        idle = np.unique(track_ids[~has & (track_ids >= 0)])
+        keep = ~np.isin(self._idle, np.concatenate([track_ids[has], lost]))      # labelled again, or gone
+        runs, since = self._idle[keep], self._since[keep]
+        new = idle[~np.isin(idle, runs)]
+        if new.size:
+            at = np.searchsorted(runs, new)
+            runs, since = np.insert(runs, at, new), np.insert(since, at, float(stamp))
+        self._idle, self._since = runs, since
 
     def held_for(self, track_ids, labels, stamp: float) -> np.ndarray:
         """Seconds each track (broadcast with ``labels``) has carried that label by ``stamp``;
         0 for a pair never published."""
         key = self._key(track_ids, labels)
         return _held(self._keys, self._first, key.ravel(), float(stamp)).reshape(key.shape)
+
+    def clutter_since(self, track_ids) -> np.ndarray:
+        """Stream time each track's unbroken run of frames left unlabelled began (NaN for a
+        track labelled in its last published frame)."""
+        track_ids = np.asarray(track_ids, dtype=np.int64)
+        out = np.full(track_ids.shape, np.nan)
+        if self._idle.size:
+            at = np.minimum(np.searchsorted(self._idle, track_ids), self._idle.size - 1)
+            found = self._idle[at] == track_ids
+            out[found] = self._since[at[found]]
+        return out
+
+    def clutter_for(self, track_ids, stamp: float) -> np.ndarray:
+        """Seconds each track has been published unlabelled without a break by ``stamp`` (while
+        seen or coasting); 0 for a track labelled in its last published frame."""
+        track_ids = np.asarray(track_ids, dtype=np.int64)
+        return _held(self._idle, self._since, track_ids.ravel(), float(stamp)).reshape(track_ids.shape)
 
 
 @njit(cache=True, nogil=True)

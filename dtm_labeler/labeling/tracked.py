@@ -544,6 +544,7 @@ class TrackedLabeler(FastPath):
         start = self._start_labeling(inp.upd.track_ids, n)
         if joined is not None:
             labeling, full = joined
+            labeling = self._readings_released(problems, searched, labeling)
             carried, seeds = seeds, self._prefer(problems, searched, seeds, labeling)
             if full and (carried is None or not np.array_equal(seeds[0], carried[0])):
                 self._since_search = 0          # a full search changed the labeling: check it region by region
@@ -563,7 +564,8 @@ class TrackedLabeler(FastPath):
                 return self._maybe_audit(problems, inp, searched, fast)
         if self.recovery.inline:
             res = self.recover(self._request(problems, inp, searched, seeds, "recover"), problems=problems)
-            found = FrameSearch({m: Candidate(a, f) for m, (a, f) in res.candidates.items()}, res.full,
+            found = FrameSearch({m: Candidate(*self._settled_clutter_released(problems[m], a, f))
+                                 for m, (a, f) in res.candidates.items()}, res.full,
                                 res.generations, res.evaluations)
             if found.full or found.generations > 0:
                 self._since_search = 0
@@ -864,6 +866,17 @@ class TrackedLabeler(FastPath):
         free = ~tracker.member(carried[0], out) & (out == n)
         filled[free] = carried[0][free]
         return (np.stack([filled, out]) if free.any() and not self._vouched else filled[None]), res.full
+
+    def _readings_released(self, problems, searched, readings: np.ndarray) -> np.ndarray:
+        """A joined search's readings (:meth:`_join`), each with the labels it puts on tracks in
+        the clutter state released as an inline search's result is
+        (:meth:`~.fast_path.FastPath._settled_clutter_released`, under the model it fits best)."""
+        out = readings.copy()
+        for i, a in enumerate(readings):
+            f = [float(problems[m].fitness(a[None])[0]) for m in searched]
+            k = int(np.argmax(f))
+            out[i] = self._settled_clutter_released(problems[searched[k]], a, f[k])[0]
+        return out
 
     def _prefer(self, problems, searched, seeds, joined) -> np.ndarray:
         """Seeds with the best of the carried labeling and a joined search's readings
