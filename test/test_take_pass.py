@@ -7,7 +7,10 @@ import pytest
 
 from dtm_labeler.evaluation.pipeline import label_clip_run, passed
 from dtm_labeler.labeling.stream import LabelerSettings
-from dtm_labeler.labeling.take_pass import filled_trajectories, held_labels, take_heading, track_states
+from dtm_labeler.labeling.take_pass import (clutter_points, filled_trajectories, held_labels, kept_clutter, take_heading,
+                                           track_states)
+from dtm_labeler.motion.synthetic import synthesize
+from dtm_labeler.search.problem import FrameProblem
 from dtm_labeler.model.features import lateral_yaw
 from dtm_labeler.motion.load import load_clip
 from dtm_labeler.motion.pointsets import to_point_set
@@ -87,6 +90,43 @@ def test_held_labels_count_each_tracks_frames_under_its_label():
     held = held_labels(tracks, labels, hold_frames=2)
     # track 3 carries label 0 twice and label 1 once; track 4 label 1 twice, label 0 once
     assert [h.tolist() for h in held] == [[True, True, False], [True, True], [False, False]]
+
+
+def test_clutter_points_count_each_tracks_frames_left_unlabelled():
+    tracks = [np.array([3, 4, -1]), np.array([3, 4]), np.array([4, 3])]
+    labels = [np.array([0, -1, -1]), np.array([-1, -1]), np.array([-1, 1])]
+    clutter = clutter_points(tracks, labels, hold_frames=2)
+    # track 4 is unlabelled in all three frames, track 3 in one; an untracked point never counts
+    assert [c.tolist() for c in clutter] == [[False, True, False], [False, True], [True, False]]
+
+
+def test_the_second_pass_gives_back_a_label_it_put_on_a_tracks_clutter():
+    """take_pass.kept_clutter: a label a search moved onto a point whose track the start leaves
+    unlabelled for hold_s of the take (a real capture's ghost) goes back to the start's point
+    where keeping it gains less than hold_nats -- not where the point is not such clutter, and
+    not where the start's point fits far worse (a label the frame's evidence moves)."""
+    clip = synthesize(duration=0.5, seed=3, heading=0.5, noise_mm=2)
+    model, _ = train_model([synthesize(duration=3.0, seed=s, heading=h, noise_mm=2) for s, h in [(0, 0.0), (1, 1.0)]],
+                           TrainConfig(mixture="fixed", k_fixed=2, structure="given"))
+    background = LabelerSettings().background
+    hold = LabelerSettings().hold_nats
+    head = model.labels.index("head")
+    pos = clip.positions[30]
+    for ghost_offset, true_offset, given_back in ((0.01, 0.0, True), (0.0, 0.6, False)):
+        xyz = np.vstack([pos, pos[head] + [ghost_offset, 0.0, 0.0]])
+        xyz[head] += [true_offset, 0.0, 0.0]
+        states = np.hstack([xyz, np.full_like(xyz, np.nan)])
+        problem = FrameProblem(model, states, background)
+        start = np.arange(model.n_labels)                        # each label on its point; the ghost last
+        ind = start.copy()
+        ind[head] = problem.n - 1                                # a search gave the head's label to the ghost
+        problem.anchor_heading(start)
+        fit = float(problem.fitness(ind[None])[0])
+        ghost = np.zeros(problem.n, dtype=bool)
+        ghost[-1] = True
+        out = kept_clutter(problem, start, ind, fit, ghost, hold)
+        assert bool(out[head] == head) == given_back
+        assert np.array_equal(kept_clutter(problem, start, ind, fit, np.zeros(problem.n, dtype=bool), hold), ind)
 
 
 def test_the_second_pass_keeps_a_label_its_track_holds(data_dir):
