@@ -302,6 +302,8 @@ class FastPath:
         clutter state against its prior -- the track has been left unlabelled for ``hold_s``
         without a break, and the label was on another track since that began (the tracks judged
         it not that label while the label was there to take); None when no track is such."""
+        if self.tenure.longest_clutter(now) < self.settings.hold_s:
+            return None
         since = self.tenure.clutter_since(track_ids)
         settled = np.isfinite(since) & (now - np.nan_to_num(since, nan=now) >= self.settings.hold_s)
         if not settled.any():

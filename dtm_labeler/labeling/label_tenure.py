@@ -56,20 +56,17 @@ class LabelTenure:
             keys, first = np.insert(keys, at, new), np.insert(first, at, float(stamp))
         self._keys, self._first = keys, first
         self.last_published[labels[has]] = float(stamp)
-        idle = np.unique(track_ids[~has & (track_ids >= 0)])
-        keep = ~np.isin(self._idle, np.concatenate([track_ids[has], lost]))      # labelled again, or gone
-        runs, since = self._idle[keep], self._since[keep]
-        new = idle[~np.isin(idle, runs)]
-        if new.size:
-            at = np.searchsorted(runs, new)
-            runs, since = np.insert(runs, at, new), np.insert(since, at, float(stamp))
-        self._idle, self._since = runs, since
+        self._idle, self._since = _runs(self._idle, self._since, track_ids, has, lost, float(stamp))
 
     def held_for(self, track_ids, labels, stamp: float) -> np.ndarray:
         """Seconds each track (broadcast with ``labels``) has carried that label by ``stamp``;
         0 for a pair never published."""
         key = self._key(track_ids, labels)
         return _held(self._keys, self._first, key.ravel(), float(stamp)).reshape(key.shape)
+
+    def longest_clutter(self, stamp: float) -> float:
+        """Seconds the longest unbroken run of frames left unlabelled has lasted by ``stamp``."""
+        return float(stamp - self._since.min()) if self._since.size else 0.0
 
     def clutter_since(self, track_ids) -> np.ndarray:
         """Stream time each track's unbroken run of frames left unlabelled began (NaN for a
@@ -100,10 +97,48 @@ def _held(keys, first, query, stamp):  # pragma: no cover - compiled
     return out
 
 
+@njit(cache=True, nogil=True)
+def _runs(idle, since, track_ids, labelled, lost, stamp):  # pragma: no cover - compiled
+    """The unlabelled runs (sorted track ids ``idle``, each run's start ``since``) after a frame:
+    runs of labelled and lost tracks end, unlabelled tracks without a run start one at ``stamp``."""
+    keep = np.ones(idle.size, dtype=np.bool_)
+    new = np.empty(track_ids.size, dtype=np.int64)
+    k = 0
+    for i in range(track_ids.size):
+        t = track_ids[i]
+        if t < 0:
+            continue
+        pos = np.searchsorted(idle, t)
+        found = pos < idle.size and idle[pos] == t
+        if labelled[i]:
+            if found:
+                keep[pos] = False
+        elif not found:
+            new[k] = t
+            k += 1
+    for j in range(lost.size):
+        pos = np.searchsorted(idle, lost[j])
+        if pos < idle.size and idle[pos] == lost[j]:
+            keep[pos] = False
+    new = np.unique(new[:k])
+    old_ids, old_since = idle[keep], since[keep]
+    out_ids = np.empty(old_ids.size + new.size, dtype=np.int64)
+    out_since = np.empty(out_ids.size)
+    a = b = 0
+    for o in range(out_ids.size):
+        if b >= new.size or (a < old_ids.size and old_ids[a] < new[b]):
+            out_ids[o], out_since[o] = old_ids[a], old_since[a]
+            a += 1
+        else:
+            out_ids[o], out_since[o] = new[b], stamp
+            b += 1
+    return out_ids, out_since
+
+
 def warm_up() -> None:
     """Compile (or load) the lookup once, before a stream."""
     tenure = LabelTenure(2)
-    tenure.update(np.array([0]), np.array([1]), np.zeros(0, dtype=np.int64), 0.0)
+    tenure.update(np.array([0, 1]), np.array([1, -1]), np.zeros(0, dtype=np.int64), 0.0)
     tenure.held_for(np.array([0, 1]), np.array([1, 0]), 1.0)
 
 
