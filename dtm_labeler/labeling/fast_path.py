@@ -277,10 +277,10 @@ class FastPath:
 
     def _settled_clutter_released(self, problem: FrameProblem, assignment: np.ndarray, f: float
                                   ) -> tuple[np.ndarray, float]:
-        """A search's labeling with each label it puts on a track left unlabelled for ``hold_s``
-        (:meth:`~.label_tenure.LabelTenure.clutter_for`) left missing instead, where that costs
-        the fit less than ``hold_nats``: the hold prior's clutter state, for a search's result
-        that no move prior judged."""
+        """A search's labeling with each label it puts on a track in the clutter state
+        (:meth:`_clutter_price`) left missing instead, one at a time, where that costs the fit less
+        than ``hold_nats``: the hold prior's clutter half, for a search's result that no move
+        prior judged. Returns (labeling, its fitness)."""
         c, n = self.settings.hold_nats, problem.n
         if c <= 0 or self._frame_tracks.size != n:
             return assignment, f

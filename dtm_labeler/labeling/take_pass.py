@@ -301,46 +301,47 @@ def kept_clutter(problem: FrameProblem, start: np.ndarray, ind: np.ndarray, fit:
     given back to ``start``'s point (or left on no point, where that point is taken or there was
     none) where the fitness loses under ``hold_nats`` (the smallest loss first, one at a time)."""
     n = problem.n
-    moved = [int(l) for l in np.flatnonzero(ind < n) if clutter[ind[l]]]
-    while moved:
+
+    def back(cur: np.ndarray, labels: list[int]) -> np.ndarray:
         taken = np.zeros(n + 1, dtype=bool)
-        taken[ind[ind < n]] = True
-        cand = np.repeat(ind[None], len(moved), 0)
-        back = np.array([start[l] if start[l] < n and not taken[start[l]] else n for l in moved])
-        cand[np.arange(len(moved)), moved] = back
-        f = problem.fitness(cand)
-        k = int(np.argmax(f))
-        if f[k] <= fit - hold_nats:
-            break
-        ind, fit = cand[k], float(f[k])
-        moved.pop(k)
-    return ind
+        taken[cur[cur < n]] = True
+        return np.array([start[l] if start[l] < n and not taken[start[l]] else n for l in labels])
+    return _given_back(problem, ind, fit, [int(l) for l in np.flatnonzero(ind < n) if clutter[ind[l]]], back,
+                       hold_nats)
 
 
 def clutter_points(track_ids: Sequence[np.ndarray], labels: Sequence[np.ndarray], hold_frames: int) -> list[np.ndarray]:
     """Per frame, (n,) whether each point is left unlabelled (``labels`` -1) on a track
     (``track_ids``, -1 untracked) left unlabelled in at least ``hold_frames`` frames of the take."""
-    tids = np.concatenate([np.asarray(t, dtype=np.int64) for t in track_ids]) if len(track_ids) else np.zeros(0, int)
-    labs = np.concatenate([np.asarray(x, dtype=np.int64) for x in labels]) if len(labels) else np.zeros(0, int)
+    tids, labs = _flat(track_ids), _flat(labels)
     idle = (tids >= 0) & (labs < 0)
-    uniq, counts = np.unique(tids[idle], return_counts=True)
-    n_of = np.zeros(tids.size, dtype=np.int64)
-    n_of[idle] = counts[np.searchsorted(uniq, tids[idle])]
-    return np.split(idle & (n_of >= hold_frames), np.cumsum([len(t) for t in track_ids])[:-1])
+    return _per_frame(idle & (_counted(tids, idle) >= hold_frames), track_ids)
 
 
 def held_labels(track_ids: Sequence[np.ndarray], labels: Sequence[np.ndarray], hold_frames: int) -> list[np.ndarray]:
     """Per frame, (n,) whether each point's label (``labels``, -1 none) is one its track
     (``track_ids``, -1 untracked) carries in at least ``hold_frames`` frames of the take."""
-    tids = np.concatenate([np.asarray(t, dtype=np.int64) for t in track_ids]) if len(track_ids) else np.zeros(0, int)
-    labs = np.concatenate([np.asarray(x, dtype=np.int64) for x in labels]) if len(labels) else np.zeros(0, int)
+    tids, labs = _flat(track_ids), _flat(labels)
     ok = (tids >= 0) & (labs >= 0)
     keys = tids * (int(labs.max(initial=0)) + 1) + labs
+    return _per_frame(ok & (_counted(keys, ok) >= hold_frames), track_ids)
+
+
+def _flat(per_frame: Sequence[np.ndarray]) -> np.ndarray:
+    """Per-frame integer arrays concatenated."""
+    return np.concatenate([np.asarray(x, dtype=np.int64) for x in per_frame]) if len(per_frame) else np.zeros(0, int)
+
+
+def _counted(keys: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """For each entry where ``ok``, how many ``ok`` entries share its key (0 elsewhere)."""
     uniq, counts = np.unique(keys[ok], return_counts=True)
     n_of = np.zeros(keys.size, dtype=np.int64)
     n_of[ok] = counts[np.searchsorted(uniq, keys[ok])]
-    held = ok & (n_of >= hold_frames)
-    return np.split(held, np.cumsum([len(t) for t in track_ids])[:-1])
+    return n_of
+
+
+def _per_frame(flat: np.ndarray, like: Sequence[np.ndarray]) -> list[np.ndarray]:
+    return np.split(flat, np.cumsum([len(t) for t in like])[:-1])
 
 
 def kept_holds(problem: FrameProblem, start: np.ndarray, ind: np.ndarray, fit: float, held: np.ndarray,
@@ -352,13 +353,21 @@ def kept_holds(problem: FrameProblem, start: np.ndarray, ind: np.ndarray, fit: f
     free = np.ones(n + 1, dtype=bool)
     free[ind[ind < n]] = False
     dropped = [int(l) for l in np.flatnonzero((ind == n) & (start < n)) if held[start[l]] and free[start[l]]]
-    while dropped:
-        cand = np.repeat(ind[None], len(dropped), 0)
-        cand[np.arange(len(dropped)), dropped] = start[dropped]
+    return _given_back(problem, ind, fit, dropped, lambda cur, labels: start[labels], hold_nats)
+
+
+def _given_back(problem: FrameProblem, ind: np.ndarray, fit: float, labels: list[int], to, hold_nats: float
+                ) -> np.ndarray:
+    """``ind`` with ``labels`` moved, one at a time, each to ``to(current, labels)``'s point: the
+    move that loses least first, while it loses under ``hold_nats``."""
+    labels = list(labels)
+    while labels:
+        cand = np.repeat(ind[None], len(labels), 0)
+        cand[np.arange(len(labels)), labels] = to(ind, labels)
         f = problem.fitness(cand)
         k = int(np.argmax(f))
         if f[k] <= fit - hold_nats:
             break
         ind, fit = cand[k], float(f[k])
-        dropped.pop(k)
+        labels.pop(k)
     return ind

@@ -871,6 +871,8 @@ class TrackedLabeler(FastPath):
         """A joined search's readings (:meth:`_join`), each with the labels it puts on tracks in
         the clutter state released as an inline search's result is
         (:meth:`~.fast_path.FastPath._settled_clutter_released`, under the model it fits best)."""
+        if self.tenure.longest_clutter(self.last_stamp) < self.settings.hold_s:
+            return readings
         out = readings.copy()
         for i, a in enumerate(readings):
             f = [float(problems[m].fitness(a[None])[0]) for m in searched]
