@@ -6,7 +6,7 @@ evidence outweighs the prior against changing it. :class:`LabelTenure` keeps, fo
 label) pair the labeler has published, the stream time it was first published -- also while the
 label is briefly elsewhere, so a label that flickers to a neighbour and back keeps the tenure it
 had. Pairs go when their track does. Beside them, the chain's other state: since when each track
-has been left unlabelled without a break (:meth:`LabelTenure.clutter_for`; eq. 18-20's background
+has been left unlabelled without a break (:meth:`LabelTenure.clutter_since`; eq. 18-20's background
 class, which a ghost holds while the body's markers hold their labels). Sorted int64 keys, no Python loop over tracks; a lookup
 (:meth:`LabelTenure.held_for`, asked 5-8 times a frame by the fast path's priors and the
 published confidence) is one compiled loop (:func:`_held`; in numpy 8-12 us each).
@@ -82,8 +82,7 @@ class LabelTenure:
     def clutter_for(self, track_ids, stamp: float) -> np.ndarray:
         """Seconds each track has been published unlabelled without a break by ``stamp`` (while
         seen or coasting); 0 for a track labelled in its last published frame."""
-        track_ids = np.asarray(track_ids, dtype=np.int64)
-        return _held(self._idle, self._since, track_ids.ravel(), float(stamp)).reshape(track_ids.shape)
+        return np.nan_to_num(float(stamp) - self.clutter_since(track_ids), nan=0.0)
 
 
 @njit(cache=True, nogil=True)
