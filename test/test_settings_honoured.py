@@ -65,6 +65,7 @@ CHANGES = {
     "hold_nats": 1000.0,
     "hold_s": 0.0,
     "cluster_memory_s": 0.0,
+    "bar_order_gain": 25.0,
     "cluster_turns": False,
     "turn_check": False,
     "upright_deg": 1.0,
@@ -145,6 +146,11 @@ TURNED_CLUSTER = {"cluster_turns"}
 #: against what its tracks' frames preferred: compared on what the fast path would pay for every
 #: arrangement of a cluster after 30 frames, the models given the right arm as their one cluster
 ARRANGED_CLUSTER = {"cluster_memory_s"}
+#: fields that act only where a calibrated body has marker bars (this walker has none): compared on
+#: what the fast path would pay for the right elbow and wrist exchanged after 27 frames (the wrist is
+#: hidden in the next four), the models given the shoulders' order of that pair as their bar rows
+#: (two partners: 20 nats at most), the labels read once held for 0.1 s
+BARRED = {"bar_order_gain"}
 #: fields that act only on labels of tracks begun after the stream's first frame, less than
 #: ``YOUNG_S`` ago (this stream's labelled points keep the tracks they began with): compared on the
 #: fast path's climb with the stream made older, every track young, from a frame's labeling with
@@ -257,6 +263,19 @@ def arrangement_prices(kind, models, settings, stream) -> list | None:
     return None if price is None else np.round(price(cand), 6).tolist()
 
 
+def bar_prices(kind, models, settings, stream) -> list | None:
+    """What the fast path would pay for the right elbow's and wrist's points exchanged after 27
+    frames (None: nothing to pay)."""
+    lab = make(kind, models, settings)
+    with lab:
+        p, a = frame_after(lab, stream, 27)
+        ends = [p.model.labels.index(n) for n in ("relbow", "rwrist")]
+        cand = np.stack([a, a])
+        cand[1, ends] = a[ends[::-1]]
+        price = lab.bar_votes.cost(a, lab._frame_tracks)
+    return None if price is None else price(cand).tolist()
+
+
 def test_every_field_has_a_change():
     assert set(CHANGES) == {f.name for f in dataclasses.fields(LabelerSettings)}
 
@@ -267,7 +286,7 @@ def test_every_setting_changes_both_labelers(kind, models, stream, monkeypatch):
     assert trace(make(kind, models, BASE), stream) == base          # deterministic
     ignored = [name for name, value in CHANGES.items()
                if name not in BACKGROUND_ONLY | WHOLE_BODY_REGIONS | MIRRORED_CARRY | HELD_CARRY | TURNED_CLUSTER |
-               YOUNG_TRACKS | YOUNG_REGION | POOR_MARKER_COLD | ARRANGED_CLUSTER and
+               YOUNG_TRACKS | YOUNG_REGION | POOR_MARKER_COLD | ARRANGED_CLUSTER | BARRED and
                trace(make(kind, models, dataclasses.replace(BASE, **{name: value})), stream, base) == base]
     bg = dataclasses.replace(BASE, recovery="background")
     for name in BACKGROUND_ONLY:
@@ -305,6 +324,17 @@ def test_every_setting_changes_both_labelers(kind, models, stream, monkeypatch):
         assert base_arranged is not None and max(base_arranged) > 0      # the arm's frames preferred one arrangement
         for name in ARRANGED_CLUSTER:
             if arrangement_prices(kind, models, dataclasses.replace(BASE, **{name: CHANGES[name]}), stream) == base_arranged:
+                ignored.append(name)
+    with monkeypatch.context() as patch:
+        def shoulders_order(model):
+            names = ("rshoulder", "lshoulder", "relbow", "rwrist")
+            rs, ls, el, wr = (model.labels.index(n) for n in names)
+            return np.array([[rs, el, wr], [ls, el, wr]])
+        patch.setattr(tracked, "take_bar_orders", shoulders_order)
+        base_barred = bar_prices(kind, models, short_hold, stream)
+        assert base_barred is not None and max(base_barred) > 0         # the shoulders decided the pair
+        for name in BARRED:
+            if bar_prices(kind, models, dataclasses.replace(short_hold, **{name: CHANGES[name]}), stream) == base_barred:
                 ignored.append(name)
     with monkeypatch.context() as patch:
         patch.setattr(FastPath, "_young_centres", lambda self, p, ind: [int(np.flatnonzero(ind < p.n)[0])])

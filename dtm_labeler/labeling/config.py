@@ -234,6 +234,12 @@ PARAMS: Tuple[Param, ...] = (
           "hidden Markov chain over the cluster's arrangement). Keeps a wrist bar's ends from following a "
           "motion mixture that prefers them exchanged for a phase of each movement. 0 = off.",
           range=(0.0, 3600.0)),
+    Param("bar_order_gain", 15.0, "Evidence (nats, ORDER_NATS per frame clipped per partner) by which a "
+          "marker bar's order must say its two tracked ends are the other way round before the labeler "
+          "exchanges them and holds them so: a wrist bar's ends (radial / ulnar) lie nearer or farther the "
+          "shoulder, upper arm and finger whatever the motion, where the motion mixtures of a pose not in the "
+          "training may prefer them exchanged. A body calibrated to a person only (its bar rows). 0 = off.",
+          range=(0.0, 1000.0)),
     Param("turn_check", True, "A search from scratch also tries the body turned round: the model's "
           "exact whole-body max-product at the facing opposite to the search's result, kept when it fits "
           "better (a cold start under a model of another lab settled on the body seen from behind: CMU 85 "
@@ -477,6 +483,7 @@ class LabelerSettings:
     hold_nats: float = DEFAULTS["hold_nats"]
     hold_s: float = DEFAULTS["hold_s"]
     cluster_memory_s: float = DEFAULTS["cluster_memory_s"]
+    bar_order_gain: float = DEFAULTS["bar_order_gain"]
     turn_check: bool = DEFAULTS["turn_check"]
     upright_deg: float = DEFAULTS["upright_deg"]
     bend_starts: int = DEFAULTS["bend_starts"]

@@ -7,7 +7,8 @@ In ``stream`` mode most frames are labelled here and nowhere else (:meth:`FastPa
    point within the distance bounds, releases of labels on young tracks), each move paying the
    priors of eq. 32 read as a hidden Markov chain over each track's label
    (:meth:`FastPath._move_cost`: the whole body read mirrored, a newcomer taking a held label, a
-   rigid cluster rearranged against what its tracks' frames preferred);
+   rigid cluster rearranged against what its tracks' frames preferred, a marker bar's ends given
+   against the order their tracks showed, :mod:`.bar_order_votes`);
 2. *chain shifts* (a limb's labels passed one marker along) and *cluster turns* (a rigid
    cluster's labels turned as a block), which single moves cannot undo;
 3. *region checks*: the exact relabelling of a body region given the rest
@@ -18,7 +19,7 @@ In ``stream`` mode most frames are labelled here and nowhere else (:meth:`FastPa
 
 :class:`FastPath` is the half of :class:`~.tracked.TrackedLabeler` that does this; it reads the
 stream state the labeler keeps (``settings``, ``tracker``, ``tenure``, ``cluster_evidence``,
-``engine``, the frame's track ids ``_frame_tracks``, the coasting labels ``_coasting`` /
+``bar_votes``, ``engine``, the frame's track ids ``_frame_tracks``, the coasting labels ``_coasting`` /
 ``_coast_track``, ``last_stamp``, ``_stream_start``, ``_since_search``, ``_frame_no``,
 ``_event_points``), notes its move prior per problem in ``_frame_priors`` (what the truth would
 pay, for evaluation) and keeps its own cursors (``_region_cursor``, ``_young_cursor``,
@@ -149,12 +150,14 @@ class FastPath:
 
     def _move_cost(self, problem: FrameProblem, seed: np.ndarray):
         """The prior the hill-climb's moves pay against the carried labeling ``seed``: the
-        mirror switch (:meth:`_mirror_cost`), the hold (:meth:`_hold_cost`) and the rigid
-        clusters' arrangements (:meth:`~.cluster_evidence.ClusterEvidence.cost`); None when
-        none applies."""
+        mirror switch (:meth:`_mirror_cost`), the hold (:meth:`_hold_cost`), the rigid
+        clusters' arrangements (:meth:`~.cluster_evidence.ClusterEvidence.cost`) and the bars'
+        decided orders (:meth:`~.bar_order_votes.BarOrderVotes.cost`); None when none applies."""
         costs = [c for c in (self._mirror_cost(problem, seed), self._hold_cost(problem, seed),
                              self.cluster_evidence.cost(seed, problem.n, self._frame_tracks,
-                                                         self._frame_track_began(), self.last_stamp))
+                                                         self._frame_track_began(), self.last_stamp),
+                             self.bar_votes.cost(seed, self._frame_tracks)
+                             if self._frame_tracks.size == problem.n else None)
                  if c is not None]
         return (lambda cand: sum(c(cand) for c in costs)) if costs else None
 

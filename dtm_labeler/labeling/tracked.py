@@ -38,6 +38,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..model.body import segment_clusters
 from ..model.dtm import TriangulatedModel
 from ..model.features import FULL, POSITION_ONLY
 from ..search import dp_kernels, frame_kernels, label_ops, move_kernels, sample_kernels
@@ -46,6 +47,8 @@ from ..search.upright import BEND_PITCHES_DEG, bent_problems, upright_problems
 from ..search.label_search import CBGASearch, GASearch, GASettings, LabelSearch, SearchOutcome, make_search, polish
 from ..search.problem import FrameProblem
 from .config import LabelerSettings
+from .bar_flips import take_bar_orders
+from .bar_order_votes import SETTLED_S, BarOrderVotes
 from .cluster_evidence import ClusterEvidence
 from .confidence import CONFIRMATION_POWER, ClutterShare, label_posteriors, published_confidence, unlabelled_posteriors
 from .fast_path import RESUMED_EVENT_REGIONS, RESUMED_EVENT_S, FastPath
@@ -348,10 +351,29 @@ class TrackedLabeler(FastPath):
         self.votes = VoteBook(s.window if s.mode == "stream" else 1, self.n_labels)
         self.tenure = LabelTenure(self.n_labels)
         self.cluster_evidence = ClusterEvidence(self.models[0].rigid_clusters, s.cluster_memory_s)
+        self.bar_votes = self._bar_votes()
         method = "cbga" if s.method == "tracker" else s.method
         self.full_search: LabelSearch = make_search(method, full_settings(s))
         self.warm_search: LabelSearch = make_search(method, s.warm)
         self.reset()
+
+    def _bar_votes(self) -> BarOrderVotes:
+        """The bar orders' votes (:mod:`.bar_order_votes`) of the first model's body: rows only
+        for a body calibrated to a person (:func:`~.bar_flips.take_bar_orders`)."""
+        m = self.models[0]
+        orders = take_bar_orders(m)
+        groups = segment_clusters(m.n_labels, m.body.segments) if orders.shape[0] and m.body is not None else None
+        return BarOrderVotes(orders, m.n_labels, groups, self.settings.bar_order_gain)
+
+    def _settled(self, assignment: np.ndarray, n: int) -> np.ndarray:
+        """(n_labels,) bool: the labels ``assignment`` puts on points whose tracks have carried them
+        for :data:`~.bar_order_votes.SETTLED_S` (:mod:`.label_tenure`), as published this frame."""
+        on = np.flatnonzero(assignment < n)
+        out = np.zeros(len(assignment), dtype=bool)
+        if on.size and self._frame_tracks.size == n:
+            held = self.tenure.held_for(self._frame_tracks[assignment[on]], on, self.last_stamp)
+            out[on] = held >= SETTLED_S
+        return out
 
     def reset(self) -> None:
         """Forget tracks, votes and fitness levels (the next frame is searched afresh)."""
@@ -359,6 +381,7 @@ class TrackedLabeler(FastPath):
         self.votes.reset()
         self.tenure.reset()
         self.cluster_evidence.reset()
+        self.bar_votes.reset()
         self.track_label: dict[int, int] = {}      # label each track carries (also while coasting)
         self._frame_tracks = np.zeros(0, dtype=np.int64)   # this frame's points' track ids
         self._frame_priors = {}            # id(problem) -> the fast path's move prior this frame (or None)
@@ -419,6 +442,7 @@ class TrackedLabeler(FastPath):
             # (a person's calibrated body) may rank below another, and a warm search from it
             # stays in its basin (:attr:`_fresh_search`)
             self._fresh_search = True
+            self.bar_votes = self._bar_votes()      # the new body's bar rows (a calibration's)
         if (settings.tracker, settings.window, settings.mode, settings.method) == \
                 (old.tracker, old.window, old.mode, old.method):
             self.full_search.settings = full_settings(settings)
@@ -426,6 +450,7 @@ class TrackedLabeler(FastPath):
             if settings.seed != old.seed:
                 self.rng = np.random.default_rng(settings.seed)
             self.cluster_evidence.set_memory(settings.cluster_memory_s)
+            self.bar_votes.min_gain = float(settings.bar_order_gain)
         else:
             self._build()
         self._configure_recovery()
@@ -499,7 +524,7 @@ class TrackedLabeler(FastPath):
         self._frame_priors = {}
         problems = [FrameProblem(m, inp.upd.states, s.background, self.heading, s.heading_snap_deg, inp.upd.rest_s)
                     for m in self.models]
-        found = self._search_frame(problems, inp, self._join(inp))
+        found = self._bar_orders_kept(problems, self._search_frame(problems, inp, self._join(inp)))
         self.last_frame = (problems, inp, found)             # for diagnostics: what this frame saw
         m_pub = found.best_model
         self._learn(problems, found)
@@ -525,6 +550,18 @@ class TrackedLabeler(FastPath):
             posterior=scatter(post, keep, n_in, np.nan), vote_share=scatter(share, keep, n_in, 0.0),
             confirmation=scatter(confirmation, keep, n_in, 0.0),
             **self._result_fields(m_pub))
+
+    def _bar_orders_kept(self, problems: list[FrameProblem], found: FrameSearch) -> FrameSearch:
+        """``found`` with each candidate that gives a bar's ends the other way round from what
+        their tracks' order votes decided exchanged back (:meth:`.bar_order_votes.BarOrderVotes.kept`):
+        a search's result, which no move prior judged, or a chain shift's."""
+        if not self.bar_votes.active:
+            return found
+        for m, c in found.candidates.items():
+            kept = self.bar_votes.kept(c.assignment, self._frame_tracks)
+            if kept is not c.assignment:
+                found.candidates[m] = Candidate(kept, float(problems[m].fitness(kept[None])[0]))
+        return found
 
     def _search_frame(self, problems: list[FrameProblem], inp: FrameInput,
                       joined: tuple[np.ndarray, bool] | None) -> FrameSearch:
@@ -1456,6 +1493,8 @@ class TrackedLabeler(FastPath):
         if not doubtful:
             self._vouched = True
             self.cluster_evidence.measure(problem, assignment, upd.track_ids, began, self.last_stamp)
+            if self.bar_votes.active:
+                self.bar_votes.update(assignment, inp.pts, upd.track_ids, self.last_stamp, self._settled(assignment, n))
         self.track_label = {t: lab for t, lab in self.track_label.items()
                             if t not in seen and t not in lost and lab not in taken}
         self.track_label.update(published)
