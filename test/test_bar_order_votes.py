@@ -123,3 +123,14 @@ def test_a_real_stream_decides_both_wrist_bars_and_a_search_result_exchanged_is_
             problems, _, found = off.last_frame
             assert off._bar_orders_kept(problems, FrameSearch({m: Candidate(swapped, f)}, full=True)
                                         ).best.assignment.tolist() == swapped.tolist()
+
+
+def test_single_frame_mode_has_no_bar_votes(hdm05_calibrated):
+    """Every frame labelled on its own: no track memory, so no votes (as no fast-path prior)."""
+    from dtm_labeler.labeling.config import LabelerSettings
+    from dtm_labeler.labeling.stream import StreamLabeler
+    with StreamLabeler(hdm05_calibrated, LabelerSettings(mode="single")) as single, \
+            StreamLabeler(hdm05_calibrated, LabelerSettings()) as stream:
+        assert not single.bar_votes.active and stream.bar_votes.active
+        stream.update_settings(LabelerSettings(bar_order_gain=0.0))
+        assert not stream.bar_votes.active

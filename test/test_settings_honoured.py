@@ -147,9 +147,10 @@ TURNED_CLUSTER = {"cluster_turns"}
 #: arrangement of a cluster after 30 frames, the models given the right arm as their one cluster
 ARRANGED_CLUSTER = {"cluster_memory_s"}
 #: fields that act only where a calibrated body has marker bars (this walker has none): compared on
-#: what the fast path would pay for the right elbow and wrist exchanged after 27 frames (the wrist is
-#: hidden in the next four), the models given the shoulders' order of that pair as their bar rows
-#: (two partners: 20 nats at most), the labels read once held for 0.1 s
+#: what the fast path would pay for the right knee and ankle exchanged after the stream's 40 frames
+#: (labels are read once their tracks have held them 0.25 s: the legs are never hidden here), the
+#: models given the left knee's and ankle's order of that pair as their bar rows, each label a
+#: partner of its own (two partners: 20 nats at most)
 BARRED = {"bar_order_gain"}
 #: fields that act only on labels of tracks begun after the stream's first frame, less than
 #: ``YOUNG_S`` ago (this stream's labelled points keep the tracks they began with): compared on the
@@ -264,12 +265,12 @@ def arrangement_prices(kind, models, settings, stream) -> list | None:
 
 
 def bar_prices(kind, models, settings, stream) -> list | None:
-    """What the fast path would pay for the right elbow's and wrist's points exchanged after 27
-    frames (None: nothing to pay)."""
+    """What the fast path would pay for the right knee's and ankle's points exchanged after the
+    stream's 40 frames (None: nothing to pay)."""
     lab = make(kind, models, settings)
     with lab:
-        p, a = frame_after(lab, stream, 27)
-        ends = [p.model.labels.index(n) for n in ("relbow", "rwrist")]
+        p, a = frame_after(lab, stream, FRAMES)
+        ends = [p.model.labels.index(n) for n in ("rknee", "rankle")]
         cand = np.stack([a, a])
         cand[1, ends] = a[ends[::-1]]
         price = lab.bar_votes.cost(a, lab._frame_tracks)
@@ -326,15 +327,15 @@ def test_every_setting_changes_both_labelers(kind, models, stream, monkeypatch):
             if arrangement_prices(kind, models, dataclasses.replace(BASE, **{name: CHANGES[name]}), stream) == base_arranged:
                 ignored.append(name)
     with monkeypatch.context() as patch:
-        def shoulders_order(model):
-            names = ("rshoulder", "lshoulder", "relbow", "rwrist")
-            rs, ls, el, wr = (model.labels.index(n) for n in names)
-            return np.array([[rs, el, wr], [ls, el, wr]])
-        patch.setattr(tracked, "take_bar_orders", shoulders_order)
-        base_barred = bar_prices(kind, models, short_hold, stream)
-        assert base_barred is not None and max(base_barred) > 0         # the shoulders decided the pair
+        def legs_order(model):
+            lk, la, rk, ra = (model.labels.index(n) for n in ("lknee", "lankle", "rknee", "rankle"))
+            return np.array([[lk, rk, ra], [la, ra, rk]])
+        patch.setattr(tracked, "take_bar_orders", legs_order)
+        patch.setattr(tracked, "segment_clusters", lambda M, segments: np.full(M, -1))
+        base_barred = bar_prices(kind, models, BASE, stream)
+        assert base_barred is not None and max(base_barred) > 0         # the left leg decided the pair
         for name in BARRED:
-            if bar_prices(kind, models, dataclasses.replace(short_hold, **{name: CHANGES[name]}), stream) == base_barred:
+            if bar_prices(kind, models, dataclasses.replace(BASE, **{name: CHANGES[name]}), stream) == base_barred:
                 ignored.append(name)
     with monkeypatch.context() as patch:
         patch.setattr(FastPath, "_young_centres", lambda self, p, ind: [int(np.flatnonzero(ind < p.n)[0])])

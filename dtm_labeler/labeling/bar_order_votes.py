@@ -72,6 +72,7 @@ class _Bar:
         _, self.partner = np.unique(keys, return_inverse=True)
         self.n_partners = int(self.partner.max()) + 1
         self.counts: dict[int, np.ndarray] = {}      # track -> frames saying it is ``a`` minus ``b``, per partner
+        self.evidence: dict[int, float] = {}         # track -> E_t of its counts (module doc)
         self.seen: dict[int, float] = {}             # track -> stamp it was last seen carrying an end
 
 
@@ -97,6 +98,7 @@ class BarOrderVotes:
     def reset(self) -> None:
         for bar in self.bars:
             bar.counts.clear()
+            bar.evidence.clear()
             bar.seen.clear()
 
     def update(self, assignment: np.ndarray, pts: np.ndarray, point_tracks: np.ndarray, stamp: float,
@@ -127,18 +129,18 @@ class BarOrderVotes:
                 if track < 0:
                     continue
                 c = bar.counts.get(track)
-                bar.counts[track] = sign * votes if c is None else c + sign * votes
+                c = sign * votes if c is None else c + sign * votes
+                bar.counts[track] = c
+                bar.evidence[track] = float(np.clip(ORDER_NATS * c, -self.partner_cap, self.partner_cap).sum())
                 bar.seen[track] = float(stamp)
             if len(bar.seen) > 8:
                 for track in [t for t, s in bar.seen.items() if stamp - s > FORGET_S]:
-                    del bar.seen[track], bar.counts[track]
+                    del bar.seen[track], bar.counts[track], bar.evidence[track]
 
     def _evidence(self, bar: _Bar, track: int) -> float:
-        """``E_t``: what track ``track`` has shown of being the bar's end ``a`` (module doc)."""
-        c = bar.counts.get(int(track))
-        if c is None:
-            return 0.0
-        return float(np.clip(ORDER_NATS * c, -self.partner_cap, self.partner_cap).sum())
+        """``E_t``: what track ``track`` has shown of being the bar's end ``a`` (module doc), kept
+        as the counts change."""
+        return bar.evidence.get(int(track), 0.0)
 
     def decided(self, assignment: np.ndarray, point_tracks: np.ndarray) -> list[tuple[int, int, int, int]]:
         """``[(a, b, point of a, point of b)]``: the bars whose ends ``assignment`` puts on two

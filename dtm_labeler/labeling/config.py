@@ -238,7 +238,7 @@ PARAMS: Tuple[Param, ...] = (
           "marker bar's order must say its two tracked ends are the other way round before the labeler "
           "exchanges them and holds them so: a wrist bar's ends (radial / ulnar) lie nearer or farther the "
           "shoulder, upper arm and finger whatever the motion, where the motion mixtures of a pose not in the "
-          "training may prefer them exchanged. A body calibrated to a person only (its bar rows). 0 = off.",
+          "training may prefer them exchanged. A body calibrated to a person only (its bar rows), stream mode only. 0 = off.",
           range=(0.0, 1000.0)),
     Param("turn_check", True, "A search from scratch also tries the body turned round: the model's "
           "exact whole-body max-product at the facing opposite to the search's result, kept when it fits "

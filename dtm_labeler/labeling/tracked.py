@@ -363,7 +363,12 @@ class TrackedLabeler(FastPath):
         m = self.models[0]
         orders = take_bar_orders(m)
         groups = segment_clusters(m.n_labels, m.body.segments) if orders.shape[0] and m.body is not None else None
-        return BarOrderVotes(orders, m.n_labels, groups, self.settings.bar_order_gain)
+        return BarOrderVotes(orders, m.n_labels, groups, self._bar_gain())
+
+    def _bar_gain(self) -> float:
+        """``bar_order_gain`` in ``stream`` mode; 0 (off) in ``single`` mode, where every frame is
+        labelled on its own: the votes are the tracks' memory, as the fast path's priors are."""
+        return float(self.settings.bar_order_gain) if self.settings.mode == "stream" else 0.0
 
     def _settled(self, assignment: np.ndarray, n: int) -> np.ndarray:
         """(n_labels,) bool: the labels ``assignment`` puts on points whose tracks have carried them
@@ -450,7 +455,7 @@ class TrackedLabeler(FastPath):
             if settings.seed != old.seed:
                 self.rng = np.random.default_rng(settings.seed)
             self.cluster_evidence.set_memory(settings.cluster_memory_s)
-            self.bar_votes.min_gain = float(settings.bar_order_gain)
+            self.bar_votes.min_gain = self._bar_gain()
         else:
             self._build()
         self._configure_recovery()
