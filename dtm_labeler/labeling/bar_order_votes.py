@@ -90,6 +90,19 @@ class BarOrderVotes:
         groups = None if groups is None else np.asarray(groups, dtype=np.int64)
         self.bars = [_Bar(a, b, r, groups, n_labels) for (a, b), r in sorted(rows.items())]
         self.min_gain, self.partner_cap = float(min_gain), float(partner_cap)
+        # every bar's rows in one table, read in one pass a frame (:meth:`update`): each row's bar,
+        # partner label, sign and slot (its bar's first slot plus its partner index)
+        sizes = [bar.x.size for bar in self.bars]
+        self._ends = np.array([[bar.a, bar.b] for bar in self.bars], dtype=np.int64).reshape(-1, 2)
+        self._row_bar = np.repeat(np.arange(len(self.bars)), sizes)
+        self._row_x = np.concatenate([bar.x for bar in self.bars]) if self.bars else np.zeros(0, np.int64)
+        self._row_sign = np.concatenate([bar.sign for bar in self.bars]) if self.bars else np.zeros(0)
+        first = np.cumsum([0] + [bar.n_partners for bar in self.bars])
+        self._slots = [(int(first[i]), int(first[i + 1])) for i in range(len(self.bars))]
+        self._row_slot = (np.concatenate([bar.partner + first[i] for i, bar in enumerate(self.bars)])
+                          if self.bars else np.zeros(0, np.int64))
+        #: the labels the votes read (ends and partners): whether they are settled is all they ask
+        self.labels = np.unique(np.concatenate([self._ends.ravel(), self._row_x]))
 
     @property
     def active(self) -> bool:
@@ -112,26 +125,34 @@ class BarOrderVotes:
         n = len(pts)
         if point_tracks.size != n:
             return
-        for bar in self.bars:
-            ia, ib = int(assignment[bar.a]), int(assignment[bar.b])
-            if ia >= n or ib >= n or (settled is not None and not (settled[bar.a] and settled[bar.b])):
-                continue
-            xs = assignment[bar.x]
-            shown = (xs < n) if settled is None else (xs < n) & settled[bar.x]
-            if not shown.any():
-                continue
-            near = pts[xs[shown]]
-            da = np.linalg.norm(near - pts[ia], axis=1)
-            db = np.linalg.norm(near - pts[ib], axis=1)
-            says = np.where(da < db, bar.sign[shown], -bar.sign[shown])     # +1: ``ia``'s track is ``a``
-            votes = np.bincount(bar.partner[shown], weights=says, minlength=bar.n_partners)
+        ends = assignment[self._ends]                                   # (bars, 2) points of the ends
+        ok = (ends < n).all(1)
+        if settled is not None:
+            ok &= settled[self._ends].all(1)
+        xs = assignment[self._row_x]
+        rows = ok[self._row_bar] & (xs < n)
+        if settled is not None:
+            rows &= settled[self._row_x]
+        if not rows.any():
+            return
+        bar_of = self._row_bar[rows]
+        near = pts[xs[rows]]
+        da = ((near - pts[ends[bar_of, 0]]) ** 2).sum(1)               # squared: only their order counts
+        db = ((near - pts[ends[bar_of, 1]]) ** 2).sum(1)
+        says = np.where(da < db, self._row_sign[rows], -self._row_sign[rows])   # +1: the ``a`` end's track is ``a``
+        votes_all = np.bincount(self._row_slot[rows], weights=says, minlength=self._slots[-1][1])
+        cap = self.partner_cap
+        for i in np.flatnonzero(np.bincount(bar_of, minlength=len(self.bars))).tolist():
+            bar = self.bars[i]
+            votes = votes_all[self._slots[i][0]:self._slots[i][1]]
+            ia, ib = ends[i]
             for track, sign in ((int(point_tracks[ia]), 1.0), (int(point_tracks[ib]), -1.0)):
                 if track < 0:
                     continue
                 c = bar.counts.get(track)
                 c = sign * votes if c is None else c + sign * votes
                 bar.counts[track] = c
-                bar.evidence[track] = float(np.clip(ORDER_NATS * c, -self.partner_cap, self.partner_cap).sum())
+                bar.evidence[track] = sum(min(max(ORDER_NATS * v, -cap), cap) for v in c.tolist())
                 bar.seen[track] = float(stamp)
             if len(bar.seen) > 8:
                 for track in [t for t, s in bar.seen.items() if stamp - s > FORGET_S]:

@@ -371,9 +371,11 @@ class TrackedLabeler(FastPath):
         return float(self.settings.bar_order_gain) if self.settings.mode == "stream" else 0.0
 
     def _settled(self, assignment: np.ndarray, n: int) -> np.ndarray:
-        """(n_labels,) bool: the labels ``assignment`` puts on points whose tracks have carried them
-        for :data:`~.bar_order_votes.SETTLED_S` (:mod:`.label_tenure`), as published this frame."""
-        on = np.flatnonzero(assignment < n)
+        """(n_labels,) bool: of the labels the bar votes read, those ``assignment`` puts on points
+        whose tracks have carried them for :data:`~.bar_order_votes.SETTLED_S`
+        (:mod:`.label_tenure`), as published this frame."""
+        read = self.bar_votes.labels
+        on = read[assignment[read] < n]
         out = np.zeros(len(assignment), dtype=bool)
         if on.size and self._frame_tracks.size == n:
             held = self.tenure.held_for(self._frame_tracks[assignment[on]], on, self.last_stamp)
