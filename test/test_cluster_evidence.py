@@ -161,7 +161,7 @@ def test_a_calibration_labels_its_window_without_the_memory():
     given = LabelerSettings(seed=3, hold_nats=7.0)
     assert given.cluster_memory_s > 0
     used = calibration_labeling(given)
-    assert used.cluster_memory_s == 0.0
+    assert used.cluster_memory_s == 0.0 and used.bar_order_gain == 0.0 and given.bar_order_gain > 0
     assert (used.seed, used.hold_nats, used.window) == (3, 7.0, given.window)
     assert calibration_labeling(None).cluster_memory_s == 0.0
     assert given.full.wide_sweeps > 0 and used.full.wide_sweeps == 0      # nor the wide sweeps
