@@ -27,20 +27,24 @@ the take pass. Halved so that a pair that was seen together counts its frames on
 back from a gap beside one that stayed is judged on what the one that stayed has shown.
 
 A frame counts only where the bar's two labels and the partner's are *settled* -- their tracks
-have carried them for ``hold_s`` (the hold prior's tenure, :mod:`.label_tenure`): the votes read
-which track is which end from where the labeling puts the partner and the ends, and a labeling's
-passing mistakes (a chain shifted for a few frames puts the elbow's track on the forearm's label)
-would count for the wrong tracks. Counted on every labelled frame, HDM05's gapped halves (half of
-the samples hidden, tracks of a fraction of a second) decided a track of the elbow as an end of a
-bar; the live pass of gap seed 1 lost 1.5 points.
+have carried them for :data:`SETTLED_S` (the hold prior's tenure, :mod:`.label_tenure`): the votes
+read which track is which end from where the labeling puts the partner and the ends, and a
+labeling's passing mistakes (a chain shifted for a few frames puts the elbow's track on the
+forearm's label) would count for the wrong tracks. Counted on every labelled frame, HDM05's gapped
+halves (half of the samples hidden, tracks of a fraction of a second) decided a track of the elbow
+as an end of a bar; the live pass of gap seed 1 lost 1.5 points. ``hold_s`` (1 s) instead of 0.25
+s left a flicker stream's bar exchanged through its first second (41 markers, seed 1, 99.75 ->
+99.73 %; the labels the stream starts with are no surer than later ones).
 
 What it does (:class:`BarOrderVotes`): a decided pair puts a price on every labeling of the fast
 path that gives the bar's ends the other way round (:meth:`~BarOrderVotes.cost`:
 :data:`VETO_NATS`, more than any frame's or memory's preference of the motion terms: the
 decision is the take pass's, which no fitness overrules), and a search's result that gives them
 so has them exchanged (:meth:`~BarOrderVotes.kept`). Only for a body calibrated to a person, whose
-bar rows are that lab's (:func:`~.bar_flips.take_bar_orders`). Pure numpy; a frame's update is
-a few distances per bar.
+bar rows are that lab's (:func:`~.bar_flips.take_bar_orders`), in stream mode, and not in a
+calibration's self-labelling (it measures the person frame by frame, without the tracks' memory:
+:func:`~dtm_labeler.training.calibrate.calibration_labeling`). Pure numpy; a frame's update is
+one pass over every bar's rows (30 us at 41 markers).
 """
 from __future__ import annotations
 
@@ -62,7 +66,8 @@ FORGET_S = 2.0
 
 class _Bar:
     """One bar ``(a, b)`` (``a < b``), its rows as partner labels, the sign of each row (+1: the
-    partner lies nearer ``a``), each row's partner index, and each track's counts per partner."""
+    partner lies nearer ``a``), each row's partner index, and each track's counts per partner
+    with their clipped sum ``E_t``."""
 
     def __init__(self, a: int, b: int, rows: list[tuple[int, int]], groups: np.ndarray | None, n_labels: int):
         self.a, self.b = a, b
