@@ -47,7 +47,7 @@ import numpy as np
 from ..model.body import ORDER_NATS
 from .rigid_tracks import label_positions, track_pieces
 
-__all__ = ["bar_stretches", "flip_bars", "take_bar_orders"]
+__all__ = ["bar_rows", "bar_stretches", "flip_bars", "partner_keys", "take_bar_orders"]
 
 
 def take_bar_orders(model) -> np.ndarray:
@@ -61,6 +61,23 @@ def take_bar_orders(model) -> np.ndarray:
         return np.zeros((0, 3), dtype=np.int64)
     rows = np.vstack([body.orders, body.take_orders]).astype(np.int64)
     return np.unique(rows, axis=0) if rows.shape[0] else rows
+
+
+def bar_rows(orders: np.ndarray) -> dict[tuple[int, int], list[tuple[int, int]]]:
+    """Each bar of the order rows ``(x, near, far)`` once, as ``(a, b)`` with ``a < b``, and its
+    rows as ``(x, sign)``: +1 where ``x`` lies nearer ``a``, -1 nearer ``b``."""
+    bars: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for x, near, far in np.asarray(orders, dtype=np.int64).reshape(-1, 3).tolist():
+        key = (min(near, far), max(near, far))
+        bars.setdefault(key, []).append((x, 1 if near == key[0] else -1))
+    return bars
+
+
+def partner_keys(xs: np.ndarray, groups: np.ndarray | None, n_labels: int) -> np.ndarray:
+    """The partner each label of ``xs`` counts as: its rigid segment's (``groups``, module doc of
+    :func:`flip_bars`), or itself (``n_labels + x``) where it is on none or ``groups`` is None."""
+    xs = np.asarray(xs, dtype=np.int64)
+    return xs if groups is None else np.where(groups[xs] >= 0, groups[xs], n_labels + xs)
 
 
 def bar_stretches(pieces: Sequence[np.ndarray], labels: Sequence[np.ndarray], ends: tuple[int, int]
@@ -103,10 +120,7 @@ def flip_bars(xyz: Sequence[np.ndarray], track_ids: Sequence[np.ndarray], labels
     groups = None if groups is None else np.asarray(groups, dtype=np.int64)
     if not orders.shape[0] or not labels:
         return labels, 0
-    bars: dict[tuple[int, int], list[tuple[int, int]]] = {}
-    for x, near, far in orders.tolist():                   # each bar once, its rows as (x, sign)
-        key = (min(near, far), max(near, far))
-        bars.setdefault(key, []).append((x, 1 if near == key[0] else -1))
+    bars = bar_rows(orders)
     flips = 0
     for _ in range(max(1, rounds)):
         flipped = 0
@@ -123,9 +137,7 @@ def flip_bars(xyz: Sequence[np.ndarray], track_ids: Sequence[np.ndarray], labels
             if not says.any():
                 continue
             cum = np.concatenate([np.zeros((len(rows), 1)), np.cumsum(says, axis=1)], axis=1)
-            xs = np.array([x for x, _ in rows])
-            if groups is not None:                              # one partner per rigid segment
-                xs = np.where(groups[xs] >= 0, groups[xs], n_labels + xs)
+            xs = partner_keys([x for x, _ in rows], groups, n_labels)   # one partner per rigid segment
             for first, last in bar_stretches(pieces, labels, (a, b)):
                 per_row = cum[:, last + 1] - cum[:, first]            # held minus reversed, per row
                 per_x = np.array([per_row[xs == x].sum() for x in np.unique(xs)])

@@ -51,6 +51,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.body import ORDER_NATS
+from .bar_flips import bar_rows, partner_keys
 
 __all__ = ["BarOrderVotes", "VETO_NATS", "FORGET_S", "SETTLED_S"]
 
@@ -73,8 +74,7 @@ class _Bar:
         self.a, self.b = a, b
         self.x = np.array([x for x, _ in rows], dtype=np.int64)
         self.sign = np.array([s for _, s in rows], dtype=float)
-        keys = self.x if groups is None else np.where(groups[self.x] >= 0, groups[self.x], n_labels + self.x)
-        _, self.partner = np.unique(keys, return_inverse=True)
+        _, self.partner = np.unique(partner_keys(self.x, groups, n_labels), return_inverse=True)
         self.n_partners = int(self.partner.max()) + 1
         self.counts: dict[int, np.ndarray] = {}      # track -> frames saying it is ``a`` minus ``b``, per partner
         self.evidence: dict[int, float] = {}         # track -> E_t of its counts (module doc)
@@ -88,12 +88,8 @@ class BarOrderVotes:
 
     def __init__(self, orders: np.ndarray, n_labels: int, groups: np.ndarray | None = None,
                  min_gain: float = 15.0, partner_cap: float = 10.0):
-        rows: dict[tuple[int, int], list[tuple[int, int]]] = {}
-        for x, near, far in np.asarray(orders, dtype=np.int64).reshape(-1, 3).tolist():
-            key = (min(near, far), max(near, far))
-            rows.setdefault(key, []).append((x, 1 if near == key[0] else -1))
         groups = None if groups is None else np.asarray(groups, dtype=np.int64)
-        self.bars = [_Bar(a, b, r, groups, n_labels) for (a, b), r in sorted(rows.items())]
+        self.bars = [_Bar(a, b, r, groups, n_labels) for (a, b), r in sorted(bar_rows(orders).items())]
         self.min_gain, self.partner_cap = float(min_gain), float(partner_cap)
         # every bar's rows in one table, read in one pass a frame (:meth:`update`): each row's bar,
         # partner label, sign and slot (its bar's first slot plus its partner index)
