@@ -1,7 +1,7 @@
 """Release moves (``TrackedLabeler._releasable``, setting ``release_moves``): the fast path may
 leave missing a label whose point's track began less than ``RELEASE_S`` ago -- a ghost that
 took a hidden marker's label gives it back -- never a label of the tracks the stream began with,
-and none of a marker set; on a real dance with gaps and ghosts the published labeling falls
+and none of a marker set, whose labels pay ``hold_nats`` to be left on no point; on a real dance with gaps and ghosts the published labeling falls
 below the truth in fewer frames."""
 import dataclasses
 
@@ -52,6 +52,33 @@ def test_no_releases_on_a_marker_set(hdm05_markers):
     unsided = model.replace(body=dataclasses.replace(model.body, quads=np.zeros((0, 4), dtype=np.int64),
                                                      quad_sign=np.zeros(0)))
     assert set().union(*releasable_per_frame(unsided, test, hidden, settings, HIDDEN[1] + 30)) == set(hidden)
+
+
+def test_on_a_marker_set_every_label_pays_to_be_left_on_no_point(hdm05_markers):
+    """labeling/fast_path.py _hold_cost on a marker set: from the stream's first frame, a label
+    on a seen point pays ``hold_nats`` for a relabelling (a region check's, a cluster turn's) that
+    leaves it on no point, whether or not its track has carried it ``hold_s``: a marker set has no
+    releases, and its labels are not dropped for a few nats. A body of joint centres pays only for
+    labels held ``hold_s``
+    (``test_stream_labeler.test_a_held_label_pays_to_be_left_on_no_point``)."""
+    model, clip = hdm05_markers
+    test = clip.slice(600, 760)
+    settings = LabelerSettings(recovery="inline")
+    paid = probe_per_frame(model, test, [], settings, test.n_frames, lambda lab, p, a: _drop_prices(lab, p, a))
+    assert len(paid) == test.n_frames
+    assert all(count >= 30 and prices == {settings.hold_nats} for count, prices in paid)
+
+
+def _drop_prices(lab, problem, seed) -> tuple[int, set]:
+    """How many labels are on a point, and the prices :meth:`_hold_cost` puts on leaving each of
+    them on no point."""
+    n = problem.n
+    cost = lab._hold_cost(problem, seed)
+    on = np.flatnonzero(seed < n)
+    dropped = np.repeat(seed[None], on.size, 0)
+    dropped[np.arange(on.size), on] = n
+    paid = np.zeros(on.size) if cost is None else cost(dropped) - cost(seed[None])
+    return on.size, set(np.round(paid, 9).tolist())
 
 
 def test_fewer_search_errors_on_a_real_dance_with_gaps_and_ghosts(dance_pooled):

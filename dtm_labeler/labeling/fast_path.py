@@ -240,16 +240,37 @@ class FastPath:
         each, 80.07 -> 83.38 %, ghosts rejected 78.4 -> 80.4 %. Streams whose ghosts live less
         than ``hold_s`` (``bench_stream_latency``'s, the demo's) are labelled as before.
 
+        On a marker set every label on a seen point pays ``hold_nats`` to be left on no point,
+        from the stream's first frame, whether or not its track has carried it ``hold_s``: a region
+        check's or a cluster turn's relabelling that drops a label must gain that much more. A
+        marker set's labels are many and close (a wrist bar's ends 5 cm apart, a finger beside
+        them), and a label dropped for a few nats is a chain shifted by one in the making: free, a
+        region check read an arm one marker along (LFRM's point as LELB, LELB left out) for the
+        first 50 frames of ``bench_stream_latency``'s 41 HDM05 markers with gaps + ghosts (corruption
+        seed 2) and the finger as the forearm through frames 94-130 (seed 1). Measured there, inline,
+        seeds 1-3: accuracy 99.33 / 98.39 / 99.63 -> 99.63 / 98.82 / 99.63 %, search errors 68 / 97 /
+        44 -> 38 / 68 / 43 of 990 frames; with flicker + ghosts and clean the same within one frame
+        (``results/search_errors.md``, 2026-12-07). ``dtm-eval``: 11 of 347 stream cells moved, all
+        41-marker generalisation streams -- the subject-calibrated ones within 0.07 points, a model
+        without calibration on jump + twist -> breakdance 89.44 -> 96.35 %, on HDM05 -> CMU 85
+        17.97 -> 1.57 % (lost either way). Not for joint centres, whose true points a
+        model fits worse than clutter after a gap more often (:meth:`_releasable`): the 14 body
+        points with gaps, seeds 1-2, 97.45 / 96.60 -> 96.82 / 96.18 % with the same price.
+
         Swaps and shifts between labelled tracks, the labels of lost tracks and labels a track
         has carried about as long as the one holding them move freely; so does everything in a
-        stream's first ``hold_s``."""
+        stream's first ``hold_s`` but a marker set's labels left on no point."""
         c, hold_s = self.settings.hold_nats, self.settings.hold_s
         n = problem.n
-        if c <= 0 or not len(self.tenure) or self._frame_tracks.size != n:
+        if c <= 0 or self._frame_tracks.size != n:
             return None
+        price = np.zeros((problem.M, n + 1))
+        if problem.model.marker_set:                # every label left on no point while seen
+            price[seed < n, n] = c
+        if not len(self.tenure):
+            return (lambda cand: price[np.arange(problem.M), cand].sum(1)) if price.any() else None
         free = free_points(seed, n)
         tids, now = self._frame_tracks, self.last_stamp
-        price = np.zeros((problem.M, n + 1))
         held = np.flatnonzero(seed < n)
         hold = self.tenure.held_for(tids[seed[held]], held, now)
         held, hold = held[hold >= hold_s], hold[hold >= hold_s]
@@ -474,7 +495,13 @@ class FastPath:
           pirouette 98.40 -> 86.24 %);
         * marker sets: at 41 HDM05 markers (gaps + ghosts, seed 1) every label releasable took the
           search errors 106 -> 50 of 990 and accuracy 94.55 -> 93.66 % -- the model of the
-          take's first 70 % fits some true markers worse than clutter there too."""
+          take's first 70 % fits some true markers worse than clutter there too. With a marker
+          set's price for a label left on no point (:meth:`_hold_cost`), the labels their tracks
+          took less than ``hold_s`` ago releasable (2026-12-07): those streams, seeds 1-3, search
+          errors 38 / 68 / 43 -> 18 / 40 / 43, accuracy the same within 0.05 points, but the
+          subject-calibrated 41-marker streams of ``dtm-eval``'s generalisation section lost a
+          toe marker (HDM05 -> CMU 85 calibrated 99.09 -> 98.82 %, the floor moves 99.93 -> 99.52
+          %)."""
         if not self.settings.release_moves:
             return np.zeros(0, dtype=np.int64)
         return self._on_young_tracks(problem, ind, RELEASE_S)
