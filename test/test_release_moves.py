@@ -57,8 +57,9 @@ def test_no_releases_on_a_marker_set(hdm05_markers):
 def test_on_a_marker_set_every_label_pays_to_be_left_on_no_point(hdm05_markers):
     """labeling/fast_path.py _hold_cost on a marker set: from the stream's first frame, a label
     on a seen point pays ``hold_nats`` for a relabelling (a region check's, a cluster turn's) that
-    leaves it on no point, whether or not its track has carried it ``hold_s``: a marker set has no
-    releases, and its labels are not dropped for a few nats. A body of joint centres pays only for
+    leaves it on no point, whether or not its track has carried it ``hold_s``, while at most a
+    quarter of the labels are missing: a marker set has no releases, and its labels are not dropped
+    for a few nats. A body of joint centres pays only for
     labels held ``hold_s``
     (``test_stream_labeler.test_a_held_label_pays_to_be_left_on_no_point``)."""
     model, clip = hdm05_markers
@@ -67,6 +68,13 @@ def test_on_a_marker_set_every_label_pays_to_be_left_on_no_point(hdm05_markers):
     paid = probe_per_frame(model, test, [], settings, test.n_frames, lambda lab, p, a: _drop_prices(lab, p, a))
     assert len(paid) == test.n_frames
     assert all(count >= 30 and prices == {settings.hold_nats} for count, prices in paid)
+    # with more than a quarter of the labels missing, a label its track has not held hold_s drops for free
+    names = list(test.names)
+    hidden = [names.index(x) for x in names if x[0] == "L"][:12]
+    assert HIDDEN[1] < settings.hold_s * test.rate          # every label is young while they are hidden
+    paid = probe_per_frame(model, test, hidden, settings, HIDDEN[1], lambda lab, p, a: _drop_prices(lab, p, a))
+    assert all(prices == {settings.hold_nats} for _, prices in paid[:HIDDEN[0]])
+    assert all(prices == {0.0} for _, prices in paid[HIDDEN[0] + 1:HIDDEN[1]])
 
 
 def _drop_prices(lab, problem, seed) -> tuple[int, set]:

@@ -223,7 +223,8 @@ PARAMS: Tuple[Param, ...] = (
           "first right frame 0.47-0.98 -> 0.36-0.58 %), and a ghost beside a hidden marker (14 points with "
           "gaps + ghosts, three seeds: search errors 242 -> 208). Offline, the take pass's searches keep it "
           "for a label a track carries in hold_s of the take (a walk model on a whirl: 94.2 -> 100 %). "
-          "On a marker set every label on a seen point pays it to be left on no point, held or not (41 "
+          "On a marker set every label on a seen point pays it to be left on no point, held or not, while at "
+          "most a quarter of the labels are missing (41 "
           "HDM05 markers with gaps + ghosts, inline, three seeds: search errors 209 -> 149 of 2970). "
           "0 = off.", range=(0.0, 1000.0)),
     Param("hold_s", 1.0, "Stream time (s) a track must have carried a label before hold_nats protects "
