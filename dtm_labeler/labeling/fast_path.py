@@ -264,15 +264,26 @@ class FastPath:
         Swaps and shifts between labelled tracks, the labels of lost tracks and labels a track
         has carried about as long as the one holding them move freely; so does everything in a
         stream's first ``hold_s`` but a marker set's labels left on no point."""
-        c, hold_s = self.settings.hold_nats, self.settings.hold_s
-        n = problem.n
+        c, n = self.settings.hold_nats, problem.n
         if c <= 0 or self._frame_tracks.size != n:
             return None
         price = np.zeros((problem.M, n + 1))
         if problem.model.marker_set and (seed >= n).sum() <= CHAIN_MAX_HOLE_SHARE * problem.M:
             price[seed < n, n] = c                  # every label left on no point while seen
-        if not len(self.tenure):
-            return (lambda cand: price[np.arange(problem.M), cand].sum(1)) if price.any() else None
+        if len(self.tenure):
+            self._tenure_prices(problem, seed, price)
+        if not price.any():
+            return None
+        rows = np.arange(problem.M)
+        return lambda cand: price[rows, cand].sum(1)
+
+    def _tenure_prices(self, problem: FrameProblem, seed: np.ndarray, price: np.ndarray) -> None:
+        """The prices of :meth:`_hold_cost` that the tracks' tenure sets, written into ``price``
+        ((labels, points + 1), the last column no point): a held label left on no point or handed
+        to a newcomer, a coasting track's label given to a point its track never carried, a label
+        given to a track in the clutter state."""
+        c, hold_s = self.settings.hold_nats, self.settings.hold_s
+        n = problem.n
         free = free_points(seed, n)
         tids, now = self._frame_tracks, self.last_stamp
         held = np.flatnonzero(seed < n)
@@ -298,10 +309,6 @@ class FastPath:
             pay = self._clutter_price(tids[free], now)
             if pay is not None:
                 price[:, free] = np.maximum(price[:, free], np.where(pay, c, 0.0))
-        if not price.any():
-            return None
-        rows = np.arange(problem.M)
-        return lambda cand: price[rows, cand].sum(1)
 
     def _settled_clutter_released(self, problem: FrameProblem, assignment: np.ndarray, f: float
                                   ) -> tuple[np.ndarray, float]:
