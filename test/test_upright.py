@@ -229,17 +229,18 @@ def flip(data_dir):
 
 
 def test_a_cold_search_labels_a_body_upside_down(flip, monkeypatch):
-    """Two frames of CMU 85's flip (the trunk 116-153 deg from the vertical, the head below the
-    pelvis) under a model of the same person's breakdance: pitched back 60 deg only, the cold
-    search reads the body as an upright one (12-44 % right); the second pitch, 120 deg, labels
-    most of it (88-93 %), and never makes a frame fit worse. With the mirrored sweeps, as
-    single-frame mode searches: without them frame 258 is read 73 % right either way."""
+    """Frame 282 of CMU 85's flip (frames 258 and 282: the trunk 116-153 deg from the vertical,
+    the head below the pelvis) under a model of the same person's breakdance: pitched back 60 deg only, the cold search
+    reads the body as an upright one (12 % right); the second pitch, 120 deg, labels most of it
+    (93 %) and fits better. With the mirrored sweeps, as single-frame mode searches. (Frame 258
+    of the flip, measured: 44 -> 88 %, fitting better too; without the mirrored sweeps it is read
+    73 % right either way. Each cold search here costs 8-9 s, so the test searches one frame.)"""
     model, clip = flip
     assert model.marker_set
     right, fits = {}, {}
     for pitches in ((60.0,), (60.0, 120.0)):
         monkeypatch.setattr(tracked, "BEND_PITCHES_DEG", pitches)
-        got = [_cold_bent(model, clip, f, 4, mirrored=True) for f in (258, 282)]
+        got = [_cold_bent(model, clip, f, 4, mirrored=True) for f in (282,)]
         right[pitches], fits[pitches] = [g[0] for g in got], [g[1] for g in got]
     one, two = (60.0,), (60.0, 120.0)
     assert all(b >= a - 1e-6 for a, b in zip(fits[one], fits[two]))
