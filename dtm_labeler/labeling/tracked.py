@@ -395,6 +395,7 @@ class TrackedLabeler(FastPath):
         self._track_began = None                   # ... and when each began (:meth:`_frame_track_began`)
         self._carried = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))  # last published, by track
         self._label_confidence = np.zeros(self.n_labels)     # last published confidence of each label
+        self._release_evidence = np.zeros(self.n_labels)     # what leaving each label out gained (_weigh_releases)
         self.last_stamp = None
         self.heading = None
         self.centre = None
@@ -1458,6 +1459,7 @@ class TrackedLabeler(FastPath):
         alt_prior = None if prior is None or not len(alt) else prior(alt)
         if not doubtful:
             self.clutter.update(search_labels)
+        self._weigh_releases(problem, assignment, best.fitness)
         post, strict = label_posteriors(problem, assignment, best.fitness, alt, self.settings.confidence_temperature,
                                         f_alt, alt_prior, self.clutter.odds,
                                         self._transfer_alternatives(problem, assignment, prior))
