@@ -214,8 +214,8 @@ class ClutterShare:
 def label_posteriors(problem: FrameProblem, ind: np.ndarray, fit: float, alternatives: np.ndarray,
                      temperature: float, fitness: np.ndarray | None = None,
                      prior: np.ndarray | None = None, clutter_odds: float = 1.0,
-                     transfers: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-                     ) -> tuple[np.ndarray, np.ndarray]:
+                     transfers: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                     release_fitness: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Local posterior of each label's point (module doc), twice: (published, strict), each (M,)
     with NaN for missing labels. ``alternatives`` (A, M): labelings near ``ind`` (those equal to
     it are ignored), with their ``fitness`` if already known; the release of every labelled
@@ -231,12 +231,14 @@ def label_posteriors(problem: FrameProblem, ind: np.ndarray, fit: float, alterna
     which *published* weighs each release before the cap (1: the fitness's own even odds).
     ``transfers`` (rows (T, M), their fitness, their prior): young labels handed to hidden ones
     (:meth:`~.fast_path.FastPath._transfer_alternatives`), counted in *published* only (module
-    doc: a calibration confirms by the frame's own one-move neighbourhood, as before)."""
+    doc: a calibration confirms by the frame's own one-move neighbourhood, as before).
+    ``release_fitness``: the releases' fitness if already scored (each labelled label left on no
+    point, in label order)."""
     n, M = problem.n, problem.M
     have = np.flatnonzero(ind < n)
     rel = np.repeat(ind[None], have.size, 0)
     rel[np.arange(have.size), have] = n
-    f_rel = problem.fitness(rel)
+    f_rel = problem.fitness(rel) if release_fitness is None else np.asarray(release_fitness, dtype=float)
     if len(alternatives):
         f_alt = problem.fitness(alternatives) if fitness is None else np.asarray(fitness, dtype=float)
         changed = alternatives != ind[None]

@@ -527,7 +527,7 @@ class FastPath:
             return self._evidenced_releases(problem, ind)
         return self._on_young_tracks(problem, ind, RELEASE_S)
 
-    def _weigh_releases(self, problem: FrameProblem, assignment: np.ndarray, fit: float) -> None:
+    def _weigh_releases(self, problem: FrameProblem, assignment: np.ndarray, fit: float) -> np.ndarray | None:
         """Per label of a marker set, the nats by which leaving it on no point has fitted better
         than the published ``assignment`` (fitness ``fit``) in this frame and the frames in a row
         before it (``_release_evidence``; 0 once a frame fits it better where it is, and while it
@@ -535,16 +535,19 @@ class FastPath:
         :meth:`_hold_cost`): the chain's filter sums each frame's log-likelihood ratio of the
         track's two states and leaves the label once the sum outweighs the transition, where the
         hill-climb weighs one frame's gain at a time. The release rows are the ones
-        :func:`~.confidence.label_posteriors` scores for the published confidence, read from the
-        frame's term table."""
+        :func:`~.confidence.label_posteriors` scores for the published confidence: their fitness
+        is returned for it (None where none were scored)."""
         ev = np.zeros(self.n_labels)
         have = np.flatnonzero(assignment < problem.n)
+        f_rel = None
         if self.settings.release_moves and problem.model.marker_set and have.size:
             rel = np.repeat(assignment[None], have.size, 0)
             rel[np.arange(have.size), have] = problem.n
-            gain = problem.fitness(rel) - fit
+            f_rel = problem.fitness(rel)
+            gain = f_rel - fit
             ev[have] = np.where(gain > 0, self._release_evidence[have] + gain, 0.0)
         self._release_evidence = ev
+        return f_rel
 
     def _evidenced_releases(self, problem: FrameProblem, ind: np.ndarray) -> np.ndarray:
         """Labels of a marker set the hill-climb may leave missing, free of the price of a label

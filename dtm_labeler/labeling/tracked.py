@@ -1459,10 +1459,10 @@ class TrackedLabeler(FastPath):
         alt_prior = None if prior is None or not len(alt) else prior(alt)
         if not doubtful:
             self.clutter.update(search_labels)
-        self._weigh_releases(problem, assignment, best.fitness)
+        f_rel = self._weigh_releases(problem, assignment, best.fitness)
         post, strict = label_posteriors(problem, assignment, best.fitness, alt, self.settings.confidence_temperature,
                                         f_alt, alt_prior, self.clutter.odds,
-                                        self._transfer_alternatives(problem, assignment, prior))
+                                        self._transfer_alternatives(problem, assignment, prior), f_rel)
         post_point, strict_point = np.full(n, np.nan), np.full(n, np.nan)
         post_point[assign[present]] = post[present]
         strict_point[assign[present]] = strict[present]
