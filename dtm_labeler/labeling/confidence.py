@@ -171,6 +171,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..search.label_ops import releases
 from ..search.problem import FrameProblem
 
 #: ratio by which a doubtful frame's confidences are lowered
@@ -236,9 +237,7 @@ def label_posteriors(problem: FrameProblem, ind: np.ndarray, fit: float, alterna
     point, in label order)."""
     n, M = problem.n, problem.M
     have = np.flatnonzero(ind < n)
-    rel = np.repeat(ind[None], have.size, 0)
-    rel[np.arange(have.size), have] = n
-    f_rel = problem.fitness(rel) if release_fitness is None else np.asarray(release_fitness, dtype=float)
+    f_rel = problem.fitness(releases(ind, n)) if release_fitness is None else np.asarray(release_fitness, dtype=float)
     if len(alternatives):
         f_alt = problem.fitness(alternatives) if fitness is None else np.asarray(fitness, dtype=float)
         changed = alternatives != ind[None]

@@ -541,9 +541,7 @@ class FastPath:
         have = np.flatnonzero(assignment < problem.n)
         f_rel = None
         if self.settings.release_moves and problem.model.marker_set and have.size:
-            rel = np.repeat(assignment[None], have.size, 0)
-            rel[np.arange(have.size), have] = problem.n
-            f_rel = problem.fitness(rel)
+            f_rel = problem.fitness(label_ops.releases(assignment, problem.n))
             gain = f_rel - fit
             ev[have] = np.where(gain > 0, self._release_evidence[have] + gain, 0.0)
         self._release_evidence = ev

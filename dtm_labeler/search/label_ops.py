@@ -157,11 +157,16 @@ def neighbourhood(ind: np.ndarray, n: int, with_missing: bool = True,
     if pairs is not None and len(pairs):
         out.append(mirror(ind[None], pairs))
     if with_missing:
-        present = np.flatnonzero(ind < n)
-        miss = np.repeat(ind[None], present.size, 0)
-        miss[np.arange(present.size), present] = n
-        out.append(miss)
+        out.append(releases(ind, n))
     return np.concatenate(out, axis=0)
+
+
+def releases(ind: np.ndarray, n: int) -> np.ndarray:
+    """(L, M) ``ind`` with each of its L labelled labels left on no point (``n``), in label order."""
+    present = np.flatnonzero(ind < n)
+    rows = np.repeat(ind[None], present.size, 0)
+    rows[np.arange(present.size), present] = n
+    return rows
 
 
 # -- the simple GA's unconstrained operators (baseline) --------------------------------
