@@ -133,9 +133,15 @@ def test_the_second_pass_keeps_a_label_its_track_holds(data_dir):
     """Subject 7's walk alone (``dtm-train``'s default structure, which hangs the legs' triangles
     on the wrists: a walk swings the arms against the legs), calibrated to subject 55 on the
     whirl's first 600 frames: the model prefers the left wrist's point as clutter by a few nats a
-    frame, which the live pass's hold prior outweighs (``hold_nats``). The second pass searches
-    every frame again without the tracks, and left the wrist on no point in every frame of
-    600-1000 (92.9 %, the left wrist 0 %; measured); with the same hold it keeps it (100 %)."""
+    frame, which the live pass's hold prior outweighs (``hold_nats``) once a track holds the label.
+    The second pass searches every frame again without the tracks, and left the wrist on no point
+    in every frame of 600-1000 (92.9 %, the left wrist 0 %; measured); with the same hold it keeps
+    it where the live pass's track held it.
+
+    Scored on the frames whose live (voted) labeling has the wrist on its point: whether the
+    velocity search of the window's second frame takes the wrist or leaves it out (8 nats apart
+    on one machine's training, the other way on another's) decides only how many such frames
+    there are (all 400, or 336 when the tracks pick it up later)."""
     bvh = data_dir / "cmu_skeletal" / "bvh_from_fbx"
     walk = to_point_set(load_clip(bvh / "cmu_07_01_walk_s07.bvh"))
     whirl = to_point_set(load_clip(bvh / "cmu_55_01_dance-whirl_s55.bvh"))
@@ -143,11 +149,18 @@ def test_the_second_pass_keeps_a_label_its_track_holds(data_dir):
     model, _ = calibrate_from_clip(model, whirl.slice(0, 600), labels="capture")
     part = whirl.slice(600, 1000)
     voted = label_clip_run(model, part, LabelerSettings(), keep_records=True, take_votes_s=1.0)
-    assert voted.metrics.per_label["lwrist"] > 0.99
+    wrist = model.labels.index("lwrist")
+
+    def held(records):                   # per frame: the left wrist's label on its true point
+        return np.array([bool(((r.truth == wrist) & (r.labels == wrist)).any()) for r in records])
+
+    live = held(voted.records)
+    assert live.mean() > 0.6
     after = {}
     for hold in (0.0, LabelerSettings().hold_nats):
         records = copy.deepcopy(voted.records)
-        after[hold] = passed(records, model.labels, part.rate, 1.0, model, LabelerSettings(hold_nats=hold)).metrics()
-    assert after[0.0].per_label["lwrist"] < 0.5                       # the searches alone drop it
-    assert after[LabelerSettings().hold_nats].per_label["lwrist"] > 0.99
-    assert after[LabelerSettings().hold_nats].accuracy > 0.99
+        acc = passed(records, model.labels, part.rate, 1.0, model, LabelerSettings(hold_nats=hold)).metrics()
+        after[hold] = (held(records)[live].mean(), acc.accuracy)
+    assert after[0.0][0] < 0.5                                   # the searches alone drop it
+    assert after[LabelerSettings().hold_nats][0] > 0.99          # the hold keeps what the track held
+    assert after[LabelerSettings().hold_nats][1] > 0.99
