@@ -13,6 +13,7 @@ from ..model.dtm import REST_MARGIN
 from ..model.io import save_model
 from ..motion.naming import one_subject
 from ..search.problem import Background
+from ..training.anonymous import with_riding_markers
 from ..training.train import BODY_AUGMENTATION, MIXTURE_KINDS, STRUCTURE_METHODS, TrainConfig, train_model
 from .common import (CliError, HelpFormatter, add_capture_options, capture_kwargs, load_inputs, point_spec,
                      run_main)
@@ -56,6 +57,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="body14 (the paper's 14 points), all (every labelled marker), all,-NAME,... (every "
                         "labelled marker but these), or NAME,NAME,...")
     p.add_argument("--frames", default=None, help="frame range A:B, integers or percentages (0:90%%)")
+    p.add_argument("--ignore-unlabelled", action="store_true",
+                   help="learn nothing of the capture's unlabelled (*) trajectories. Default: of one capture, "
+                        "those seen often that ride on the body (a marker the set does not name: a back marker, "
+                        "a toe, a prop) are learnt as anonymous points, which dtm-label and the node publish "
+                        "unlabelled -- so that such a marker does not take the label of a hidden marker beside it")
     p.add_argument("--mixture", choices=MIXTURE_KINDS, default="mdl",
                    help="mdl: EM with the MDL rule choosing K (eq. 8-11); fixed: K = --k-fixed; single: one Gaussian")
     p.add_argument("--k-min", type=int, default=1)
@@ -155,8 +161,18 @@ def _main(argv=None) -> int:
             bar.n = i
             bar.refresh()
 
+    named = clips
+    clips, riding = ([], []) if args.ignore_unlabelled else with_riding_markers(clips)
+    clips = clips or named
     try:
-        model, summary = train_model(clips, config, progress)
+        try:
+            model, summary = train_model(clips, config, progress)
+        except ValueError as e:
+            if not riding:
+                raise
+            print(f"note: training without the unlabelled trajectories ({e})", file=sys.stderr)
+            clips, riding = named, []
+            model, summary = train_model(clips, config, progress)
     except ValueError as e:
         raise CliError(str(e)) from None
     finally:
@@ -178,6 +194,9 @@ def _main(argv=None) -> int:
     rests = model.settings.get("longest_rest_s")
     if rests:
         s["longest_rest_s"] = dict(zip(model.labels, rests))
+    if riding:
+        s["anonymous"] = [dict(name=r.name, channel=r.channel, rides_with=r.partner, distance_m=round(r.distance_m, 4),
+                               spread_m=round(r.spread_m, 4), seen=round(r.coverage, 3)) for r in riding]
     if args.json:
         print(json.dumps(s, indent=1))
         return 0
@@ -187,6 +206,11 @@ def _main(argv=None) -> int:
     print(f"clips     {len(clips)}: " + ", ".join(c.source.split('/')[-1] for c in clips))
     print(f"frames    {s['frames_total']} ({s['frames_complete']} with every point seen)")
     print(f"labels    {len(s['labels'])}: {' '.join(s['labels'])}")
+    if riding:
+        print(f"unlabelled {len(riding)} trajectories ride on the body, learnt as anonymous points (published "
+              "unlabelled; --ignore-unlabelled: not learnt): "
+              + ", ".join(f"{r.name} ({r.channel}, {100 * r.distance_m:.0f} cm from {r.partner}, seen "
+                          f"{100 * r.coverage:.0f} %)" for r in riding))
     cov = sorted(s["coverage"].items(), key=lambda kv: kv[1])
     if cov and cov[0][1] < 0.999:
         print(f"coverage  seen in {100 * float(np.median([v for _, v in cov])):.0f} % of frames (median); least: "

@@ -227,7 +227,7 @@ def take_pass(model: TriangulatedModel, background: Background, xyz: Sequence[np
                                     lab, (own, take), prior=prior, heading_snap_deg=heading_snap_deg)
         if rigid_tracks:                         # the rigid pairs measured again from the moved pieces
             lab, _ = relabel_tracks(xyz, track_ids, lab, model.n_labels, prior=prior)
-    return lab, conf
+    return [model.published(x) for x in lab], conf
 
 
 def person_handedness(model: TriangulatedModel, xyz: Sequence[np.ndarray], labels: Sequence[np.ndarray],

@@ -489,7 +489,8 @@ class TrackedLabeler(FastPath):
             lab = np.where(coast >= 0, coast, lab)
             cf = np.where(coast >= 0, self._label_confidence[np.maximum(coast, 0)], cf)
         keep, n_in = inp.keep, inp.n_in
-        return CarriedFrame(scatter(lab.astype(np.int64), keep, n_in, -1), scatter(cf, keep, n_in, 0.0),
+        lab = self.models[0].published(lab.astype(np.int64))
+        return CarriedFrame(scatter(lab, keep, n_in, -1), scatter(cf, keep, n_in, 0.0),
                             scatter(inp.ids, keep, n_in, -1))
 
     def predicted_position(self, track_id: int, stamp: float) -> np.ndarray:
@@ -544,11 +545,12 @@ class TrackedLabeler(FastPath):
         truth_s = time.perf_counter() - e0 if truth is not None else 0.0
         assign, search_labels, pub, conf, confirmation, post, share = self._publish(problems[m_pub], best, inp,
                                                                                    found.doubtful)
-        keep, n_in = inp.keep, inp.n_in
+        keep, n_in, model = inp.keep, inp.n_in, problems[m_pub].model
         return self.result_type(
-            labels=scatter(pub, keep, n_in, -1), confidence=scatter(conf, keep, n_in, 0.0),
+            labels=scatter(model.published(pub), keep, n_in, -1), confidence=scatter(conf, keep, n_in, 0.0),
             track_ids=scatter(inp.ids, keep, n_in, -1),
-            search_labels=scatter(search_labels, keep, n_in, -1), assignment=_input_index(assign, keep),
+            search_labels=scatter(model.published(search_labels), keep, n_in, -1),
+            assignment=_input_index(assign, keep),
             log_likelihood=float(best.fitness), latency_ms=(time.perf_counter() - t0 - truth_s) * 1e3,
             truth_ms=truth_s * 1e3,
             full_search=found.full, generations=found.generations, evaluations=found.evaluations,

@@ -36,6 +36,7 @@ from .body import (SEGMENT, BarOrder, BodyModel, BroadMotion, CrossSegments, Edg
                    segment_clusters, slot_distances)
 from .features import (FEATURE_DIM, MISSING, N_PATTERNS, PARENTS_MAP, STATE_DIM, TRIPLE_DIM, feature_map_for,
                        observation_state, observed_map, pattern_codes, pattern_id)
+from ..motion.naming import is_unnamed
 from .mixture import GaussianMixture
 from .structure import Structure
 from .term_kernel import mixture_terms
@@ -363,6 +364,9 @@ class TriangulatedModel:
                 raise ValueError(f"{name} pair index out of range")
         self.terms = [shared_triangle_terms(m, first=(t == 0)) for t, m in enumerate(self.mixtures)]
         self.triangles = self.structure.array
+        # anonymous points (``*`` names, :mod:`dtm_labeler.training.anonymous`): searched as
+        # labels, published as unlabelled
+        self.anonymous = np.array([is_unnamed(n) for n in self.labels], dtype=bool)
         for b in (self.body, self.generic_body):
             if b is not None and b.n_labels != len(self.labels):
                 raise ValueError(f"body terms for {b.n_labels} labels, model has {len(self.labels)}")
@@ -406,6 +410,13 @@ class TriangulatedModel:
     @property
     def n_labels(self) -> int:
         return len(self.labels)
+
+    def published(self, labels: np.ndarray) -> np.ndarray:
+        """Label indices (-1 none) as a consumer gets them: the anonymous points
+        (:attr:`anonymous`) unlabelled. ``labels`` itself when the model has none."""
+        if not self.anonymous.any():
+            return labels
+        return np.where(self.anonymous[np.maximum(labels, 0)] & (labels >= 0), -1, labels)
 
     @property
     def heading_bins(self) -> int:

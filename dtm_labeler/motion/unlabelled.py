@@ -27,6 +27,7 @@ from typing import Sequence
 import numpy as np
 
 from .clip import MotionClip
+from .naming import is_unnamed
 from .pointsets import BODY14, model_points
 
 MARKER_FORMATS = ("c3d", "markers_csv")     # takes from optical systems: every point is a measured marker
@@ -60,8 +61,17 @@ def unlabelled_channels(clip: MotionClip) -> tuple[np.ndarray, tuple[str, ...]]:
 
 def model_input(clip: MotionClip, labels: Sequence[str], keep_unlabelled: bool = True,
                 ignore_names: bool = False) -> ModelInput:
-    """Split ``clip`` for a model over ``labels`` (module doc)."""
+    """Split ``clip`` for a model over ``labels`` (module doc). A model's anonymous points
+    (``*`` names, :mod:`dtm_labeler.training.anonymous`) are never named by a take: their
+    columns are unseen (all NaN) and the take's unlabelled channels are extra points as ever."""
     labels = tuple(labels)
+    anon = [k for k, n in enumerate(labels) if is_unnamed(n)]
+    if anon:
+        mi = model_input(clip, [n for n in labels if not is_unnamed(n)], keep_unlabelled, ignore_names)
+        named = mi.clip
+        pos = np.full((named.n_frames, len(labels), 3), np.nan)
+        pos[:, [k for k in range(len(labels)) if k not in set(anon)]] = named.positions
+        return ModelInput(named._replace(positions=pos, names=labels), mi.extra, mi.extra_names, mi.named, mi.note)
     F = clip.n_frames
     none = np.zeros((F, 0, 3))
     unl, unl_names = unlabelled_channels(clip) if keep_unlabelled else (none, ())
