@@ -28,7 +28,9 @@ Sections (``--only``):
   unknown markers as ``*`` channels of the gapped second half (the gaps drawn over every marker,
   the ``*`` channels' too: they are the same capture's markers), the gapped first half's model of
   the other markers, ``dtm-label``'s default (``--gap-seeds``' draws and seed 1), both trackings.
-  Not in the default ``--only``.
+  The first half is a C3D with the same ``*`` channels, trained as ``dtm-train`` does: the ones
+  that ride on the body become anonymous points (``training/anonymous.py``; ``ANONYMOUS=0`` in
+  the environment: ``--ignore-unlabelled``). Not in the default ``--only``.
 * ``reflections`` -- fixed reflections of the capture volume (:func:`static_ghosts`: floor tape,
   a prop; 3 of them) as ``*`` channels of the gapped second half, the gapped first half's model;
   the HDM05 take, a draw of 22 of its markers (fewer markers: a hand's are more often all hidden)
@@ -74,6 +76,7 @@ from dtm_labeler.model.io import model_to_bytes, save_model  # noqa: E402
 from dtm_labeler.motion.c3d_write import write_c3d  # noqa: E402
 from dtm_labeler.motion.load import load_clip  # noqa: E402
 from dtm_labeler.motion.pointsets import AllBut, to_point_set  # noqa: E402
+from dtm_labeler.training.anonymous import with_riding_markers  # noqa: E402
 from dtm_labeler.training.calibrate import calibrate_on_takes  # noqa: E402
 from dtm_labeler.training.gaps import RarelySeen  # noqa: E402
 from dtm_labeler.training.train import TrainConfig, train_model  # noqa: E402
@@ -91,6 +94,9 @@ TAKE_VOTES_S = 1.0            # dtm-label's default --take-votes
 SWEEP = (0.1, 0.25, 0.5)
 CONFIG = dict(seed=0, k_max=3)
 CALIBRATE = os.environ.get("CALIBRATE", "1") != "0"     # dtm-train's default for one capture (:func:`train`)
+#: ``gapghosts``: the training half's '*' trajectories that ride on the body learnt as anonymous points
+#: (dtm-train's default; ``ANONYMOUS=0``: ``--ignore-unlabelled``, as before 2026-12-07)
+ANONYMOUS = os.environ.get("ANONYMOUS", "1") != "0"
 #: reflections: (take, markers drawn or None for all, missing shares); the draw of 22 markers is seed 5's
 REFLECTION_CASES = (("hdm05", None, (0.5,)), ("hdm05", 22, (0.25, 0.5)), ("qualisys", None, (0.5,)))
 REFLECTIONS = 3
@@ -289,16 +295,21 @@ def run_gap_ghosts(tmp: Path, keys, seeds, quick: bool) -> dict:
             _, tr, la, _, gap = gapped_halves(key, quick, seed)
             row = {"missing_test": float(np.isnan(gap.slice(la.start, la.stop).positions[..., 0]).mean()),
                    "model_labels": len(known), "ghost_markers": UNKNOWN[key]}
+            stars = known + [f"*{i}" for i in range(len(UNKNOWN[key]))]
+            train_take = load_clip(write_take(tmp / f"{key}_gapghosts_train{seed}.c3d",
+                                              gap.select(known + UNKNOWN[key]).slice(tr.start, tr.stop), stars))
+            if ANONYMOUS:                    # dtm-train's default: the '*' trajectories that ride on the body
+                (train_take,), riding = with_riding_markers([train_take])
+                row["anonymous"] = {r.channel: r.name for r in riding}
             try:
-                model = train_leaving_out(gap.select(known).slice(tr.start, tr.stop), row, f"gap ghosts {key} {seed}")
+                model = train_leaving_out(train_take, row, f"gap ghosts {key} {seed}")
             except ValueError as e:          # e.g. the short Qualisys walk: triangles seen together too rarely
                 row["error"] = str(e)
                 out[key][seed] = row
                 log(f"gap ghosts {key} {seed}: not trained: {e}")
                 continue
             test = gap.select(known + UNKNOWN[key]).slice(la.start, la.stop)
-            path = write_take(tmp / f"{key}_gapghosts{seed}.c3d", test,
-                              known + [f"*{i}" for i in range(len(UNKNOWN[key]))])
+            path = write_take(tmp / f"{key}_gapghosts{seed}.c3d", test, stars)
             row.update(label_tracked(model, path, take_votes_s=TAKE_VOTES_S))
             row["without_ghosts"] = label(model, path, keep_unlabelled=False, take_votes_s=TAKE_VOTES_S)
             out[key][seed] = row

@@ -161,17 +161,16 @@ def _main(argv=None) -> int:
             bar.n = i
             bar.refresh()
 
-    named = clips
-    clips, riding = ([], []) if args.ignore_unlabelled else with_riding_markers(clips)
-    clips = clips or named
+    plain = clips
+    clips, riding = (plain, []) if args.ignore_unlabelled else with_riding_markers(plain)
     try:
         try:
             model, summary = train_model(clips, config, progress)
         except ValueError as e:
-            if not riding:
+            if not any(r.name in str(e) for r in riding):
                 raise
             print(f"note: training without the unlabelled trajectories ({e})", file=sys.stderr)
-            clips, riding = named, []
+            clips, riding = plain, []
             model, summary = train_model(clips, config, progress)
     except ValueError as e:
         raise CliError(str(e)) from None
@@ -205,7 +204,8 @@ def _main(argv=None) -> int:
     print(f"model     {args.out}")
     print(f"clips     {len(clips)}: " + ", ".join(c.source.split('/')[-1] for c in clips))
     print(f"frames    {s['frames_total']} ({s['frames_complete']} with every point seen)")
-    print(f"labels    {len(s['labels'])}: {' '.join(s['labels'])}")
+    named = [n for n, a in zip(model.labels, model.anonymous) if not a]
+    print(f"labels    {len(named)}: {' '.join(named)}" + (f" (+ {len(riding)} anonymous)" if riding else ""))
     if riding:
         print(f"unlabelled {len(riding)} trajectories ride on the body, learnt as anonymous points (published "
               "unlabelled; --ignore-unlabelled: not learnt): "

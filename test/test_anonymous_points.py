@@ -1,0 +1,120 @@
+"""Anonymous model points: a capture's unlabelled trajectories that ride on the body are learnt
+and published unlabelled, so that such a marker does not take a hidden marker's label (issue 14:
+real ghosts in gapped captures; training/anonymous.py)."""
+import json
+
+import numpy as np
+import pytest
+
+from dtm_labeler.cli.label import main as label_main
+from dtm_labeler.cli.train import main as train_main
+from dtm_labeler.model.io import load_model
+from dtm_labeler.motion.c3d_write import write_c3d
+from dtm_labeler.motion.load import load_clip
+from dtm_labeler.motion.unlabelled import model_input
+from dtm_labeler.training.anonymous import riding_markers, with_riding_markers
+
+HDM = "markers_c3d/hdm05_bd_05-01_01_120.c3d"
+NAMED = ["LFHD", "RFHD", "C7", "CLAV", "STRN", "LSHO", "RSHO", "LUPA", "RUPA", "LELB", "RELB", "LFWT", "RFWT"]
+EXTRA = ["RBAC", "T10"]                 # real markers on the back the set does not name
+
+
+@pytest.fixture(scope="module")
+def hdm(data_dir):
+    return load_clip(data_dir / HDM)
+
+
+def _capture(hdm, path, a, b, hide=(), fragment=None, reflection=False):
+    """Frames a:b of NAMED as named channels and EXTRA as '*' channels; ``hide``: named
+    markers hidden throughout; ``fragment``: (name, every k-th frame) moved from the named
+    channel into a '*' channel of its own (what auto-labelling leaves at a gap); a fixed
+    reflection as one more '*' channel."""
+    clip = hdm.select(NAMED + EXTRA).slice(a, b)
+    P = clip.positions.copy()
+    for n in hide:
+        P[:, NAMED.index(n)] = np.nan
+    stars = [P[:, len(NAMED) + k] for k in range(len(EXTRA))]
+    if fragment is not None:
+        name, every = fragment
+        j = NAMED.index(name)
+        frag = np.full_like(P[:, j], np.nan)
+        frag[::every] = P[::every, j]
+        P[::every, j] = np.nan
+        stars.append(frag)
+    if reflection:
+        stars.append(np.tile(np.nanmean(P[:, NAMED.index("LFWT")], 0) + [0.8, 0.0, -0.5], (len(P), 1)))
+    pos = np.concatenate([P[:, :len(NAMED)], np.stack(stars, 1)], axis=1)
+    write_c3d(path, pos, NAMED + [f"*{k}" for k in range(len(stars))], clip.rate)
+    return path
+
+
+def test_riding_trajectories_are_taken_fragments_and_reflections_are_not(hdm, tmp_path):
+    path = _capture(hdm, tmp_path / "train.c3d", 1200, 1900, fragment=("RSHO", 3), reflection=True)
+    clip = load_clip(path)
+    riding = riding_markers(clip)
+    # *0 RBAC and *1 T10 ride on the trunk; *2 (RSHO's fragment: never seen with RSHO) and *3
+    # (a fixed point while the body walks) do not
+    assert sorted(r.channel for r in riding) == ["*0", "*1"]
+    assert all(r.name.startswith("*by") and r.partner in NAMED and r.spread_m < 0.015 for r in riding)
+    (out,), taken = with_riding_markers([clip])
+    assert out.names[:len(NAMED)] == tuple(NAMED) and out.names[len(NAMED):] == tuple(r.name for r in taken)
+    assert np.array_equal(out.positions[:, len(NAMED)], clip.meta["unlabelled"][:, 0], equal_nan=True)
+    assert out.meta["unlabelled_names"] == ("*2", "*3")          # the rest stay unlabelled channels
+    assert with_riding_markers([clip, clip])[1] == []            # several captures: none taken
+
+
+@pytest.fixture(scope="module")
+def models(hdm, tmp_path_factory):
+    d = tmp_path_factory.mktemp("anon")
+    train = _capture(hdm, d / "train.c3d", 1200, 1900)
+    out = {}
+    for tag, extra in (("anonymous", []), ("ignored", ["--ignore-unlabelled"])):
+        out[tag] = d / f"{tag}.npz"
+        assert train_main([str(train), "--points", "all", "--out", str(out[tag]), "--quiet", "--json",
+                           "--structure", "greedy", "--k-max", "2", *extra]) == 0
+    return d, out
+
+
+def test_train_learns_them_and_label_publishes_them_unlabelled(hdm, models, tmp_path, capsys):
+    d, paths = models
+    capsys.readouterr()
+    anon, ignored = load_model(paths["anonymous"]), load_model(paths["ignored"])
+    assert ignored.labels == tuple(NAMED) and not ignored.anonymous.any()
+    assert anon.labels[:len(NAMED)] == tuple(NAMED) and anon.anonymous.sum() == 2
+    assert (anon.published(np.array([0, len(NAMED), len(NAMED) + 1, -1])) == [0, -1, -1, -1]).all()
+    # a later stretch with RSHO hidden throughout: the back marker beside it is a real marker
+    # the model without anonymous points can only call RSHO or clutter
+    test = _capture(hdm, tmp_path / "test.c3d", 2000, 2360, hide=("RSHO",))
+    mi = model_input(load_clip(test), anon.labels)
+    assert mi.named and mi.n_extra == 2 and np.isnan(mi.clip.positions[:, anon.anonymous]).all()
+    res = {}
+    for tag in ("anonymous", "ignored"):
+        out = tmp_path / f"{tag}.c3d"
+        assert label_main([str(paths[tag]), str(test), "--json", "--quiet", "--out", str(out)]) == 0
+        res[tag] = json.loads(capsys.readouterr().out)
+        written = load_clip(out)
+        assert not any(n.startswith("*by") for n in written.names)     # never a published label
+    assert res["anonymous"]["ghosts"] == res["ignored"]["ghosts"] > 0
+    assert res["anonymous"]["ghost_rejection"] > 0.97
+    assert res["anonymous"]["ghost_rejection"] > res["ignored"]["ghost_rejection"] + 0.1
+    assert res["anonymous"]["accuracy"] > 0.99
+
+
+def test_stream_and_carried_frames_never_publish_an_anonymous_label(hdm, models, tmp_path):
+    """The node's path: every searched frame and every frame the tracks only follow
+    (``observe``: the worker busy) publish the anonymous points unlabelled."""
+    from dtm_labeler.labeling.stream import LabelerSettings, StreamLabeler
+    _, paths = models
+    model = load_model(paths["anonymous"])
+    mi = model_input(load_clip(_capture(hdm, tmp_path / "t.c3d", 2000, 2120, hide=("RSHO",))), model.labels)
+    lab = StreamLabeler(model, LabelerSettings())
+    named, seen_anon = len(NAMED), 0
+    for f in range(mi.clip.n_frames):
+        xyz = np.concatenate([mi.clip.positions[f], mi.extra[f]])
+        xyz = xyz[np.isfinite(xyz).all(1)]
+        res = lab.process(xyz, f / mi.clip.rate) if f % 3 else lab.observe(xyz, f / mi.clip.rate)
+        assert res.labels.max() < named
+        if f % 3:
+            seen_anon += int((res.assignment[named:] >= 0).sum())      # the search did use them
+    lab.close()
+    assert seen_anon > 50
