@@ -82,6 +82,10 @@ def test_train_learns_them_and_label_publishes_them_unlabelled(hdm, models, tmp_
     assert ignored.labels == tuple(NAMED) and not ignored.anonymous.any()
     assert anon.labels[:len(NAMED)] == tuple(NAMED) and anon.anonymous.sum() == 2
     assert (anon.published(np.array([0, len(NAMED), len(NAMED) + 1, -1])) == [0, -1, -1, -1]).all()
+    # leaves of the structure: never a parent; the named points' triangles those of the model without them
+    tri = anon.structure.array
+    assert set(tri[-2:, 0].tolist()) == {len(NAMED), len(NAMED) + 1} and (tri[:, 1:] < len(NAMED)).all()
+    assert anon.structure.names(anon.labels)[:-2] == ignored.structure.names(ignored.labels)
     # a later stretch with RSHO hidden throughout: the back marker beside it is a real marker
     # the model without anonymous points can only call RSHO or clutter
     test = _capture(hdm, tmp_path / "test.c3d", 2000, 2360, hide=("RSHO",))

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -88,6 +88,31 @@ class TripleScores:
         """These scores with the structure prior ``beta`` (n, n): nats per training frame for
         every edge a structure has (module doc)."""
         return TripleScores(self.triple, self.pair, self.n_frames, self.usable, np.asarray(beta, dtype=np.float64))
+
+    def subset(self, idx: Sequence[int]) -> "TripleScores":
+        """The scores of the points ``idx`` alone (renumbered 0..len(idx)-1 in that order)."""
+        i = np.asarray(idx, dtype=np.int64)
+        return TripleScores(self.triple[np.ix_(i, i, i)], self.pair[np.ix_(i, i)], self.n_frames,
+                            None if self.usable is None else self.usable[np.ix_(i, i, i)],
+                            None if self.edge_prior is None else self.edge_prior[np.ix_(i, i)])
+
+    def with_leaves(self, triangles: Sequence[Sequence[int]], leaves: Sequence[int], n_vertices: int) -> Structure:
+        """The structure of ``triangles`` (over the other points) with each of ``leaves`` joined last, as a new
+        vertex ``A`` on the edge ``(B, C)`` that scores it best (eq. 18-20: ``triple[A, B, C] -
+        pair[B, C]`` plus the edge prior; a usable triple where there is one): the leaves are
+        never a parent, so the other points' triangles are the ones they have without them."""
+        tri = [tuple(int(v) for v in t) for t in triangles]
+        for a in leaves:
+            edges = sorted({tuple(sorted(e)) for t in tri for e in ((t[0], t[1]), (t[0], t[2]), (t[1], t[2]))})
+            b, c = np.array(edges, dtype=np.int64).T
+            with np.errstate(invalid="ignore"):
+                gain = self.triple[a, b, c] - self.pair[b, c] + self.edge_gain(a, b) + self.edge_gain(a, c)
+            gain = np.where(np.isnan(gain), -np.inf, gain)
+            if self.usable is not None and self.usable[a, b, c].any():
+                gain = np.where(self.usable[a, b, c], gain, -np.inf)
+            k = int(np.argmax(gain))
+            tri.append((int(a), int(b[k]), int(c[k])))
+        return Structure(tuple(tri), n_vertices)
 
     def edge_gain(self, a, b) -> np.ndarray | float:
         """Prior of the edges ``(a, b)`` over all training frames (0 without a prior)."""

@@ -79,7 +79,7 @@ def riding_markers(clip: MotionClip) -> list[RidingMarker]:
     used: dict[str, int] = {}
     for k, ch in enumerate(names):
         seen = np.isfinite(pts[:, k]).all(-1)
-        if seen.sum() < floor:
+        if (seen[1:] & seen[:-1]).sum() < floor:         # seen with a velocity, as the coverage check counts
             continue
         both = named_seen & seen[:, None]                             # (F, M)
         expected = seen.mean() * named_seen.sum(0)

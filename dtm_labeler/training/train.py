@@ -44,13 +44,14 @@ from ..motion.clip import MotionClip
 from ..model.body import TAKE_ORDERS_PER_BAR
 from ..model.dtm import TriangulatedModel
 from ..model.features import FULL, canonicalise, lateral_yaw, observation_state, point_states
-from ..motion.naming import common_names
+from ..motion.naming import common_names, is_unnamed
 from ..motion.pointsets import BODY14, left_right_pairs
 from ..model.mixture import GaussianMixture
 from .gaps import (MIN_TRIPLE_FRAMES, coverage_report, fill_yaw, fit_rows, fit_triangle, loglik_per_label,
                    structure_scores, unattachable, usable_structure)
 from ..model.structure import BODY14_GIVEN, Structure
 from ..search import structure_search as ss
+from ..search.structure_search import TripleScores
 from ..labeling.rest_clock import longest_rests
 from .body_fit import (BodySettings, bar_orders, broad_components, edge_prior, fit_body, handedness_quads,
                        pair_statistics, side_reach, sided_reach, trunk_twists, validation_rows, person_rigid_pairs)
@@ -364,6 +365,35 @@ def floor_covariances(mix: GaussianMixture, position_m: float, velocity_mps: flo
                            np.asarray(mix.covariances) + np.diag(floor))
 
 
+def _renumbered(pairs: np.ndarray, idx: Sequence[int]) -> np.ndarray:
+    """Index pairs among ``idx`` renumbered to positions in ``idx`` (pairs leaving ``idx`` dropped)."""
+    pos = {int(v): k for k, v in enumerate(idx)}
+    return np.array([[pos[int(a)], pos[int(b)]] for a, b in np.asarray(pairs).reshape(-1, 2)
+                     if int(a) in pos and int(b) in pos], dtype=np.int64).reshape(-1, 2)
+
+
+def _structure_search(prior: TripleScores, scores: TripleScores, clips: Sequence[MotionClip],
+                      parents: np.ndarray | None, pairs: np.ndarray, labels: Sequence[str],
+                      config: TrainConfig) -> Structure:
+    """``config.structure``'s search over ``labels`` (the points of ``clips``, ``scores``):
+    greedy, along the rigid tree (``body``), CBGA or the simple GA; on gappy scores the usable
+    one (:func:`~.gaps.usable_structure`)."""
+    n = len(labels)
+    kw = dict(population=config.structure_population, generations=config.structure_generations,
+              seed=config.seed, root_pairs=pairs if len(pairs) else None)
+    if config.structure == "greedy":
+        structure = ss.greedy(prior, n, kw["root_pairs"]).structure
+    elif config.structure == "body":
+        structure = ss.along_tree(prior, parents if parents is not None else rigid_tree(clips),
+                                  kw["root_pairs"]).structure
+    elif config.structure == "cbga":
+        res = ss.cbga(prior, n, **kw)
+        structure = ss.refine(prior, res, n, np.random.default_rng(config.seed), kw["root_pairs"]).structure
+    else:
+        structure = ss.simple_ga(prior, n, **kw).structure
+    return usable_structure(scores, structure, n, kw["root_pairs"], labels, keep=config.structure == "body")
+
+
 def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
                 progress: Callable[[str, int, int], None] | None = None) -> tuple[TriangulatedModel, TrainSummary]:
     """Train a :class:`TriangulatedModel` on clips that share the same point names."""
@@ -421,20 +451,17 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
     else:
         if scores is None:
             raise ValueError("structure search needs frames where every point is seen")
-        kw = dict(population=config.structure_population, generations=config.structure_generations,
-                  seed=config.seed, root_pairs=pairs if len(pairs) else None)
-        if config.structure == "greedy":
-            structure = ss.greedy(prior, n, kw["root_pairs"]).structure
-        elif config.structure == "body":
-            structure = ss.along_tree(prior, parents if parents is not None else rigid_tree(clips),
-                                      kw["root_pairs"]).structure
-        elif config.structure == "cbga":
-            res = ss.cbga(prior, n, **kw)
-            structure = ss.refine(prior, res, n, np.random.default_rng(config.seed), kw["root_pairs"]).structure
+        # anonymous points (training/anonymous.py) join last, as leaves: the named points keep the
+        # structure they have without them, so a take that hides or lacks them labels as before
+        anon = [i for i, name in enumerate(labels) if is_unnamed(name)]
+        named = [i for i in range(n) if i not in set(anon)]
+        if anon:
+            names = [labels[i] for i in named]
+            inner = _structure_search(prior.subset(named), scores.subset(named), [c.select(names) for c in clips],
+                                      None, _renumbered(pairs, named), names, config)
+            structure = prior.with_leaves([[named[v] for v in t] for t in inner.triangles], anon, n)
         else:
-            structure = ss.simple_ga(prior, n, **kw).structure
-        structure = usable_structure(scores, structure, n, kw["root_pairs"], labels,
-                                     keep=config.structure == "body")
+            structure = _structure_search(prior, scores, clips, parents, pairs, labels, config)
     struct_ll = scores.per_frame(structure) if scores is not None else float("nan")
     step("structure", 1, 1)
     if body is not None and not joint_centres:      # marker bars: their order (model/body.py BarOrder)
