@@ -161,17 +161,20 @@ def _main(argv=None) -> int:
             bar.n = i
             bar.refresh()
 
-    plain = clips
+    plain, dropped = clips, []
     clips, riding = (plain, []) if args.ignore_unlabelled else with_riding_markers(plain)
     try:
-        try:
-            model, summary = train_model(clips, config, progress)
-        except ValueError as e:
-            if not any(r.name in str(e) for r in riding):
-                raise
-            print(f"note: training without the unlabelled trajectories ({e})", file=sys.stderr)
-            clips, riding = plain, []
-            model, summary = train_model(clips, config, progress)
+        while True:
+            try:
+                model, summary = train_model(clips, config, progress)
+                break
+            except ValueError as e:      # anonymous points the training cannot hold: without them
+                out = [r.name for r in riding if r.name in str(e)]
+                if not out:
+                    raise
+                print(f"note: {', '.join(out)} left out ({e})", file=sys.stderr)
+                dropped += out
+                clips, riding = with_riding_markers(plain, dropped)
     except ValueError as e:
         raise CliError(str(e)) from None
     finally:

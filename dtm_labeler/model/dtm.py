@@ -32,11 +32,11 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 import numpy as np
 
+from ..motion.naming import is_unnamed
 from .body import (SEGMENT, BarOrder, BodyModel, BroadMotion, CrossSegments, EdgeTerms, Handedness, TrunkTwist,
                    segment_clusters, slot_distances)
 from .features import (FEATURE_DIM, MISSING, N_PATTERNS, PARENTS_MAP, STATE_DIM, TRIPLE_DIM, feature_map_for,
                        observation_state, observed_map, pattern_codes, pattern_id)
-from ..motion.naming import is_unnamed
 from .mixture import GaussianMixture
 from .structure import Structure
 from .term_kernel import mixture_terms

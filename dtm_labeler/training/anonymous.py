@@ -100,14 +100,16 @@ def riding_markers(clip: MotionClip) -> list[RidingMarker]:
     return out
 
 
-def with_riding_markers(clips: Sequence[MotionClip]) -> tuple[list[MotionClip], list[RidingMarker]]:
+def with_riding_markers(clips: Sequence[MotionClip], leave_out: Sequence[str] = ()
+                        ) -> tuple[list[MotionClip], list[RidingMarker]]:
     """``clips`` with the riding trajectories of a single capture appended as anonymous points
-    (module doc), and what was taken. Several clips are returned as they are."""
+    (module doc), but those named in ``leave_out``, and what was taken. Several clips are
+    returned as they are."""
     clips = list(clips)
     if len(clips) != 1:
         return clips, []
     clip = clips[0]
-    riding = riding_markers(clip)
+    riding = [r for r in riding_markers(clip) if r.name not in set(leave_out)]
     if not riding:
         return clips, []
     pts, names = unlabelled_channels(clip)
