@@ -89,13 +89,6 @@ class TripleScores:
         every edge a structure has (module doc)."""
         return TripleScores(self.triple, self.pair, self.n_frames, self.usable, np.asarray(beta, dtype=np.float64))
 
-    def subset(self, idx: Sequence[int]) -> "TripleScores":
-        """The scores of the points ``idx`` alone (renumbered 0..len(idx)-1 in that order)."""
-        i = np.asarray(idx, dtype=np.int64)
-        return TripleScores(self.triple[np.ix_(i, i, i)], self.pair[np.ix_(i, i)], self.n_frames,
-                            None if self.usable is None else self.usable[np.ix_(i, i, i)],
-                            None if self.edge_prior is None else self.edge_prior[np.ix_(i, i)])
-
     def with_leaves(self, triangles: Sequence[Sequence[int]], leaves: Sequence[int], n_vertices: int) -> Structure:
         """The structure of ``triangles`` (over the other points) with each of ``leaves`` joined last, as a new
         vertex ``A`` on the edge ``(B, C)`` that scores it best (eq. 18-20: ``triple[A, B, C] -

@@ -455,9 +455,12 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         # structure they have without them, so a take that hides or lacks them labels as before
         anon = [i for i, name in enumerate(labels) if is_unnamed(name)]
         named = [i for i in range(n) if i not in set(anon)]
-        if anon:
+        if anon:                # scored on the named points' own states (their complete frames, their pairs)
             names = [labels[i] for i in named]
-            inner = _structure_search(prior.subset(named), scores.subset(named), [c.select(names) for c in clips],
+            inner_scores, _ = structure_scores(states[:, named], config.reg_covar)
+            inner_prior = inner_scores if prior.edge_prior is None else \
+                inner_scores.with_edge_prior(prior.edge_prior[np.ix_(named, named)])
+            inner = _structure_search(inner_prior, inner_scores, [c.select(names) for c in clips],
                                       None, _renumbered(pairs, named), names, config)
             structure = prior.with_leaves([[named[v] for v in t] for t in inner.triangles], anon, n)
         else:
