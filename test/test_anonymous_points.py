@@ -122,3 +122,25 @@ def test_stream_and_carried_frames_never_publish_an_anonymous_label(hdm, models,
             seen_anon += int((res.assignment[named:] >= 0).sum())      # the search did use them
     lab.close()
     assert seen_anon > 50
+
+
+def test_named_structure_is_the_same_on_a_gappy_capture(hdm, tmp_path):
+    """With gaps the structure is scored on pairs of points (a covariance made positive
+    semi-definite as a whole) or on complete frames: both would depend on the anonymous points
+    if they were scored together; the named points' structure is scored on their own states."""
+    from dtm_labeler.training.train import TrainConfig, train_model
+    rng = np.random.default_rng(3)
+    clip = load_clip(_capture(hdm, tmp_path / "g.c3d", 1200, 1900))
+    P, U = clip.positions.copy(), clip.meta["unlabelled"].copy()
+    for arr in (P, U):                                   # 30 % of the samples hidden in 12-frame gaps
+        for j in range(arr.shape[1]):
+            for s in rng.choice(arr.shape[0] - 12, 18, replace=False):
+                arr[s:s + 12, j] = np.nan
+    clip = clip._replace(positions=P, meta=clip.meta | {"unlabelled": U})
+    (with_anon,), riding = with_riding_markers([clip])
+    assert len(riding) == 2
+    cfg = TrainConfig(seed=0, k_max=1, structure="greedy", mixture="single")
+    plain, summary = train_model([clip], cfg)
+    anon, _ = train_model([with_anon], cfg)
+    assert summary.structure_scored_on == "pairs of points"
+    assert anon.structure.names(anon.labels)[:-2] == plain.structure.names(plain.labels)
