@@ -86,6 +86,16 @@ def test_train_learns_them_and_label_publishes_them_unlabelled(hdm, models, tmp_
     tri = anon.structure.array
     assert set(tri[-2:, 0].tolist()) == {len(NAMED), len(NAMED) + 1} and (tri[:, 1:] < len(NAMED)).all()
     assert anon.structure.names(anon.labels)[:-2] == ignored.structure.names(ignored.labels)
+    # ... and of the rigid tree: the named pairs' body terms (segments, reach limits) are theirs without
+    # them (lengths within 0.5 mm: the calibration's overall scale reads every point)
+    def named_terms(m):
+        b = m.body
+        return {(m.labels[i], m.labels[j]): (k, r, lo, hi) for (i, j), k, lo, hi, r in
+                zip(b.pairs.tolist(), b.kind.tolist(), b.lo.tolist(), b.hi.tolist(), b.reach_off_edges.tolist())
+                if not (m.anonymous[i] or m.anonymous[j])}
+    a, b = named_terms(anon), named_terms(ignored)
+    assert a.keys() == b.keys() and all(a[k][:2] == b[k][:2] for k in a)
+    assert max(abs(np.subtract(a[k][2:], b[k][2:])).max() for k in a) < 5e-4
     # a later stretch with RSHO hidden throughout: the back marker beside it is a real marker
     # the model without anonymous points can only call RSHO or clutter
     test = _capture(hdm, tmp_path / "test.c3d", 2000, 2360, hide=("RSHO",))

@@ -210,7 +210,8 @@ def _main(argv=None) -> int:
     named = [n for n, a in zip(model.labels, model.anonymous) if not a]
     print(f"labels    {len(named)}: {' '.join(named)}" + (f" (+ {len(riding)} anonymous)" if riding else ""))
     if riding:
-        print(f"unlabelled {len(riding)} trajectories ride on the body, learnt as anonymous points (published "
+        print(f"unlabelled {len(riding)} {'trajectory rides' if len(riding) == 1 else 'trajectories ride'} on the "
+              "body, learnt as anonymous points (published "
               "unlabelled; --ignore-unlabelled: not learnt): "
               + ", ".join(f"{r.name} ({r.channel}, {100 * r.distance_m:.0f} cm from {r.partner}, seen "
                           f"{100 * r.coverage:.0f} %)" for r in riding))

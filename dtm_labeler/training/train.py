@@ -215,7 +215,7 @@ def canonical_states(clip: MotionClip, pairs: np.ndarray, jitter_deg: float = 0.
     return canonicalise(states, yaw)
 
 
-def rigid_tree(clips: Sequence[MotionClip], max_frames: int = 2000) -> np.ndarray:
+def rigid_tree(clips: Sequence[MotionClip], max_frames: int = 2000, leaves: Sequence[int] = ()) -> np.ndarray:
     """Parent index per point (-1 at the root): the spanning tree of the most rigid links.
 
     Edge weight = standard deviation of the point-to-point distance within each clip
@@ -224,7 +224,10 @@ def rigid_tree(clips: Sequence[MotionClip], max_frames: int = 2000) -> np.ndarra
     link wins). The minimum spanning tree of that is the skeleton: for the 14 body points
     the bones plus one trunk link (a shoulder to a hip), for marker sets the segments'
     markers joined through the joints. Rooted at the medoid point (smallest summed mean
-    distance, e.g. a hip). Pairs never seen together get a large weight.
+    distance, e.g. a hip). Pairs never seen together get a large weight. ``leaves`` (the
+    anonymous points, :mod:`.anonymous`): the tree of the other points, each of these joined
+    to its most rigid link among them -- the other points' tree, and so their segments and
+    reach limits, the ones they have without them.
     """
     from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
     n = clips[0].n_points
@@ -244,10 +247,16 @@ def rigid_tree(clips: Sequence[MotionClip], max_frames: int = 2000) -> np.ndarra
     mean = mean_sum / np.maximum(cnt, 1)
     w = np.where(cnt > 0, sd + 1e-3 * mean + 1e-9, 1e6)
     np.fill_diagonal(w, 0.0)
-    tree = minimum_spanning_tree(w)
-    root = int(np.argmin(np.where(cnt > 0, mean, 1e3).sum(1)))
+    inner = np.setdiff1d(np.arange(n), np.asarray(leaves, dtype=np.int64))
+    sub = np.ix_(inner, inner)
+    tree = minimum_spanning_tree(w[sub])
+    root = int(np.argmin(np.where(cnt[sub] > 0, mean[sub], 1e3).sum(1)))
     _, pred = breadth_first_order(tree, root, directed=False)
-    return np.where(pred < 0, -1, pred).astype(np.int64)
+    parents = np.full(n, -1, dtype=np.int64)
+    parents[inner] = np.where(pred < 0, -1, inner[np.maximum(pred, 0)])
+    for a in leaves:
+        parents[a] = inner[int(np.argmin(w[a, inner]))]
+    return parents
 
 
 def tree_order(parents: np.ndarray) -> np.ndarray:
@@ -335,7 +344,7 @@ def training_states(clips: Sequence[MotionClip], pairs: np.ndarray, config: "Tra
         return states, states, None
     yaw_rng = np.random.default_rng(config.seed + 7919)
     body_rng = np.random.default_rng(config.seed + 104729)
-    parents = rigid_tree(clips) if config.reshapes_bodies else None
+    parents = rigid_tree(clips, leaves=unnamed_points(clips[0].names)) if config.reshapes_bodies else None
     copies = [np.concatenate([augmented_copy(c, pairs, config, parents, yaw_rng, body_rng) for c in clips], axis=0)
               for _ in range(config.augment_copies)]
     return states, np.concatenate([states] + copies, axis=0), parents
@@ -363,6 +372,11 @@ def floor_covariances(mix: GaussianMixture, position_m: float, velocity_mps: flo
     floor = np.r_[np.full(9, velocity_mps ** 2), np.full(6, position_m ** 2)]
     return GaussianMixture(np.asarray(mix.weights), np.asarray(mix.means),
                            np.asarray(mix.covariances) + np.diag(floor))
+
+
+def unnamed_points(labels: Sequence[str]) -> list[int]:
+    """Indices of the anonymous points (``*`` names, :mod:`.anonymous`) among ``labels``."""
+    return [i for i, name in enumerate(labels) if is_unnamed(name)]
 
 
 def _renumbered(pairs: np.ndarray, idx: Sequence[int]) -> np.ndarray:
@@ -418,6 +432,7 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
 
     coverage = coverage_report(states, labels)
     coverage.check()
+    anon = unnamed_points(labels)       # anonymous points (training/anonymous.py): leaves of the tree and structure
 
     # -- structure --------------------------------------------------------------------
     step("structure", 0, 1)
@@ -431,7 +446,7 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
     if config.body_terms:
         positions = [canonical_states(c, pairs)[..., :3] for c in clips]
         stats = pair_statistics(positions, config.body.max_frames)
-        body = fit_body(stats, parents if parents is not None else rigid_tree(clips), config.body,
+        body = fit_body(stats, parents if parents is not None else rigid_tree(clips, leaves=anon), config.body,
                         joint_centres=joint_centres, mirror_pairs=all_pairs)
         if not joint_centres:        # marker clusters: their handedness (model/body.py Handedness)
             quads, signs = handedness_quads(positions, max_frames=config.body.max_frames)
@@ -453,7 +468,6 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
             raise ValueError("structure search needs frames where every point is seen")
         # anonymous points (training/anonymous.py) join last, as leaves: the named points keep the
         # structure they have without them, so a take that hides or lacks them labels as before
-        anon = [i for i, name in enumerate(labels) if is_unnamed(name)]
         named = [i for i in range(n) if i not in set(anon)]
         if anon:                # scored on the named points' own states (their complete frames, their pairs)
             names = [labels[i] for i in named]
