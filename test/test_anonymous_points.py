@@ -24,16 +24,16 @@ def hdm(data_dir):
     return load_clip(data_dir / HDM)
 
 
-def _capture(hdm, path, a, b, hide=(), fragment=None, reflection=False):
-    """Frames a:b of NAMED as named channels and EXTRA as '*' channels; ``hide``: named
-    markers hidden throughout; ``fragment``: (name, every k-th frame) moved from the named
-    channel into a '*' channel of its own (what auto-labelling leaves at a gap); a fixed
-    reflection as one more '*' channel."""
+def _capture(hdm, path, a, b, hide=(), fragment=None, reflection=False, extra=True):
+    """Frames a:b of NAMED as named channels and EXTRA as '*' channels (``extra`` False: none,
+    the markers taken off); ``hide``: named markers hidden throughout; ``fragment``: (name, every
+    k-th frame) moved from the named channel into a '*' channel of its own (what auto-labelling
+    leaves at a gap); a fixed reflection as one more '*' channel."""
     clip = hdm.select(NAMED + EXTRA).slice(a, b)
     P = clip.positions.copy()
     for n in hide:
         P[:, NAMED.index(n)] = np.nan
-    stars = [P[:, len(NAMED) + k] for k in range(len(EXTRA))]
+    stars = [P[:, len(NAMED) + k] for k in range(len(EXTRA))] if extra else []
     if fragment is not None:
         name, every = fragment
         j = NAMED.index(name)
@@ -43,7 +43,7 @@ def _capture(hdm, path, a, b, hide=(), fragment=None, reflection=False):
         stars.append(frag)
     if reflection:
         stars.append(np.tile(np.nanmean(P[:, NAMED.index("LFWT")], 0) + [0.8, 0.0, -0.5], (len(P), 1)))
-    pos = np.concatenate([P[:, :len(NAMED)], np.stack(stars, 1)], axis=1)
+    pos = np.concatenate([P[:, :len(NAMED)]] + ([np.stack(stars, 1)] if stars else []), axis=1)
     write_c3d(path, pos, NAMED + [f"*{k}" for k in range(len(stars))], clip.rate)
     return path
 
@@ -112,6 +112,9 @@ def test_train_learns_them_and_label_publishes_them_unlabelled(hdm, models, tmp_
     assert res["anonymous"]["ghost_rejection"] > 0.97
     assert res["anonymous"]["ghost_rejection"] > res["ignored"]["ghost_rejection"] + 0.1
     assert res["anonymous"]["accuracy"] > 0.99
+    # the take carries the markers: labelled with its anonymous points
+    presence = res["anonymous"]["inputs"][0]["anonymous_points"]
+    assert presence["absent"] is False and presence["ratio"] > 0.7
 
 
 def test_stream_and_carried_frames_never_publish_an_anonymous_label(hdm, models, tmp_path):
@@ -154,3 +157,38 @@ def test_named_structure_is_the_same_on_a_gappy_capture(hdm, tmp_path):
     anon, _ = train_model([with_anon], cfg)
     assert summary.structure_scored_on == "pairs of points"
     assert anon.structure.names(anon.labels)[:-2] == plain.structure.names(plain.labels)
+
+
+def test_a_take_without_those_markers_is_labelled_by_the_model_without_them(hdm, models, tmp_path, capsys):
+    """Another session of the set with the extra markers taken off: the anonymous points have
+    nothing of their own to explain, the live pass holds them in few frames, and the take is
+    labelled by the model without them (labeling/anonymous_presence.py) -- the model
+    ``--ignore-unlabelled`` makes, as far as the named points go."""
+    from dtm_labeler.labeling.anonymous_presence import anonymous_presence
+    d, paths = models
+    anon, ignored = load_model(paths["anonymous"]), load_model(paths["ignored"])
+    named = anon.named_only()
+    assert named.labels == ignored.labels and not named.anonymous.any() and named.named_only() is named
+    assert named.structure.names(named.labels) == ignored.structure.names(ignored.labels)
+    assert all(np.allclose(a.means, b.means) and np.allclose(a.covariances, b.covariances)
+               for a, b in zip(named.mixtures, ignored.mixtures))
+    for key in ("pairs", "rigid_pairs", "orders", "take_orders", "quads"):   # the person's clusters without them
+        assert getattr(named.body, key).tolist() == getattr(ignored.body, key).tolist(), key
+    assert len(anon.settings["seen_share"]) == anon.n_labels and len(named.settings["seen_share"]) == len(NAMED)
+    # the judgement: held in under half of the frames the training's shares predict
+    frames = np.round(np.array(anon.settings["seen_share"]) * 400).astype(int)
+    assert not anonymous_presence(anon, frames, 400).absent
+    frames[anon.anonymous] //= 4
+    assert anonymous_presence(anon, frames, 400).absent
+    assert anonymous_presence(ignored, frames[:len(NAMED)], 400) is None
+
+    test = _capture(hdm, tmp_path / "off.c3d", 2000, 2360, hide=("RSHO",), extra=False)
+    res = {}
+    for tag in ("anonymous", "ignored"):
+        assert label_main([str(paths[tag]), str(test), "--json", "--quiet"]) == 0
+        res[tag] = json.loads(capsys.readouterr().out)
+    take = res["anonymous"]["inputs"][0]
+    assert take["anonymous_points"]["absent"] is True and take["anonymous_points"]["ratio"] < 0.5
+    assert "labelled without them" in take["note"]
+    assert "anonymous_points" not in res["ignored"]["inputs"][0]
+    assert res["anonymous"]["accuracy"] == pytest.approx(res["ignored"]["accuracy"], abs=0.003)

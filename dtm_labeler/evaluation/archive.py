@@ -33,6 +33,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from ..labeling.anonymous_presence import AnonymousPresence
 from ..labeling.stream import LabelerSettings
 from ..model.io import model_from_arrays
 from ..motion.clip import frame_range
@@ -105,6 +106,7 @@ class TakeResult:
     worker: str = ""                   # host:pid of the process that labelled the take
     calibration: dict | None = None    # the subject calibration used (``--calibrate``)
     restarts: list = field(default_factory=list)    # fresh starts over the take (``--restarts``), one dict each
+    anonymous_points: dict | None = None   # what the take showed of the model's anonymous points (if any)
 
     @property
     def metrics(self):
@@ -129,6 +131,8 @@ class TakeResult:
             d["calibration"] = self.calibration
         if self.restarts:
             d["restarts"] = self.restarts
+        if self.anonymous_points is not None:
+            d["anonymous_points"] = self.anonymous_points
         if self.error:
             d["error"] = self.error
         return d
@@ -181,7 +185,11 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
                              extra=mi.extra, named=mi.named, take_votes_s=job.take_votes_s,
                              take_pass=job.take_pass, restart_s=job.restart_s, calibrate_s=AUTO_CALIBRATION_S if auto else 0.0,
                              calibration_progress=calibration_progress, fallback=person,
-                             session_check=auto and whose is not None)
+                             session_check=auto and whose is not None, anonymous_check=True)
+        presence = run.settings.get("anonymous_points")
+        res.anonymous_points = presence
+        if presence and presence["absent"]:      # labelled by the model without them
+            model = model.named_only()
         if auto:
             res.calibration = run.settings["calibration"]
             if person is not None:
@@ -192,7 +200,7 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
             cap = from_records(run.records, model.labels, clip.n_frames, CaptureFormat.of(clip, a))
             res.out = str(cap.write(job.out))
         dup = clip.meta.get("unlabelled_duplicates") or {}
-        notes = [n for n in (mi.note, clip.meta.get("up_axis_note", "")) if n]
+        notes = [n for n in (mi.note, clip.meta.get("up_axis_note", ""), _anonymous_note(presence)) if n]
         res.frame_range, res.named, res.note = (a, b), mi.named, "; ".join(notes)
         res.unlabelled_points, res.copies_left_out = mi.n_extra, (len(dup) if job.keep_unlabelled else 0)
         res.unlabelled_samples = int(run.settings.get("unlabelled_samples", 0))
@@ -204,6 +212,12 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
         res.error = str(e).strip("'\"")
     res.wall_s = time.perf_counter() - t0
     return res
+
+
+def _anonymous_note(presence: dict | None) -> str:
+    """The note of a take found without the model's anonymous points (run settings' form)."""
+    return "" if not presence else AnonymousPresence(
+        tuple(presence["points"]), presence["held_frames"], presence["expected_frames"], presence["absent"]).note()
 
 
 def trained_on(model, source: str) -> bool:

@@ -20,13 +20,14 @@ names (``named=False``) is labelled but not scored: accuracy and ghost figures s
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
 
 from .corruption import CorruptedStream, corrupt_clip
 from .metrics import Metrics, MetricsAccumulator
+from ..labeling.anonymous_presence import AnonymousPresence, anonymous_presence
 from ..labeling.stream import LabelerSettings, StreamLabeler
 from ..labeling.take_pass import take_pass as second_pass
 from ..labeling.take_restarts import MIN_GAIN_PER_FRAME, REJOIN_FRAMES, agrees, gain_per_frame, restart_windows
@@ -89,22 +90,50 @@ def model_clip(model: TriangulatedModel | Sequence[str], clip: MotionClip) -> Mo
 def run_stream(model: TriangulatedModel, stream: CorruptedStream, settings: LabelerSettings | None = None,
                use_ids: bool = False, keep_records: bool = True, progress: Progress | None = None,
                done: int = 0, total: int | None = None, scored: bool = True, take_votes_s: float = 0.0,
-               take_pass: bool = False, restart_s: float = 0.0) -> ClipRun:
+               take_pass: bool = False, restart_s: float = 0.0, anonymous_check: bool = False) -> ClipRun:
     """Feed a corrupted stream (label index = model label index) to a fresh labeler
-    (``take_votes_s``, ``take_pass``, ``restart_s``: see :func:`run_labeler`)."""
+    (``take_votes_s``, ``take_pass``, ``restart_s``: see :func:`run_labeler`). ``anonymous_check``
+    (a model with anonymous points): a take the live pass finds without their markers
+    (:mod:`~dtm_labeler.labeling.anonymous_presence`) is labelled again, from its first frame, by the
+    model without them; ``settings["anonymous_points"]`` says what was found."""
     if tuple(stream.names) != tuple(model.labels):
         raise ValueError("stream label names differ from the model's labels")
     settings = settings or LabelerSettings()
-    return run_labeler(StreamLabeler(model, settings), model.labels, stream, use_ids,
-                       keep_records, progress, done, total, scored=scored, take_votes_s=take_votes_s,
-                       take_pass=take_pass, restart_s=restart_s, fresh=lambda: StreamLabeler(model, settings))
+    found: list[AnonymousPresence] = []
+
+    def absent(labeler) -> bool:
+        found.append(anonymous_presence(model, labeler.label_frames, len(stream)))
+        return found[-1].absent
+    check = anonymous_check and bool(model.anonymous.any())
+    run = run_labeler(StreamLabeler(model, settings), model.labels, stream, use_ids,
+                      keep_records, progress, done, total, scored=scored, take_votes_s=take_votes_s,
+                      take_pass=take_pass, restart_s=restart_s, fresh=lambda: StreamLabeler(model, settings),
+                      stop_after_live=absent if check else None)
+    if run is None:                              # the take does not carry the anonymous points' markers
+        named = model.named_only()
+        run = run_stream(named, first_labels(stream, named.n_labels), settings, use_ids, keep_records, progress,
+                         done, total, scored, take_votes_s, take_pass, restart_s)
+    if found:
+        run.settings["anonymous_points"] = found[0].as_dict()
+    return run
+
+
+def first_labels(stream: CorruptedStream, n: int) -> CorruptedStream:
+    """``stream`` for a model of its first ``n`` labels (:meth:`TriangulatedModel.named_only`): the
+    later labels' columns dropped -- no point of the stream may carry them."""
+    if any((f.truth >= n).any() for f in stream):
+        raise ValueError(f"the stream shows points of labels beyond its first {n}")
+    frames = [replace(f, label_to_index=f.label_to_index[:n]) for f in stream]
+    return replace(stream, frames=frames, names=tuple(stream.names[:n]), visible=stream.visible[:, :n],
+                   occluded=stream.occluded[:, :n])
 
 
 def run_labeler(labeler, labels: Sequence[str], stream: CorruptedStream, use_ids: bool = False,
                 keep_records: bool = True, progress: Progress | None = None, done: int = 0,
                 total: int | None = None, on_frame=None, scored: bool = True,
                 take_votes_s: float = 0.0, take_pass: bool = False, restart_s: float = 0.0,
-                fresh: Callable[[], object] | None = None) -> ClipRun:
+                fresh: Callable[[], object] | None = None,
+                stop_after_live: Callable[[object], bool] | None = None) -> ClipRun | None:
     """Run any labeler with the ``process`` interface (StreamLabeler, BankLabeler) over a
     corrupted stream and score it (``scored=False``: a take without names, nothing to score
     against; frames and latencies are still counted); ``on_frame(result)`` sees every frame's
@@ -117,7 +146,8 @@ def run_labeler(labeler, labels: Sequence[str], stream: CorruptedStream, use_ids
     factory of new labelers like ``labeler``): before the votes, the take is labelled again
     from fresh starts every ``restart_s`` seconds and each kept where it fits better
     (:func:`restarted`; ``settings["restarts"]`` says what each did); :attr:`ClipRun.causal`
-    stays the first labeler's, as published live."""
+    stays the first labeler's, as published live. ``stop_after_live(labeler)`` True after the
+    live pass: no more is done and None is returned (the take is to be labelled otherwise)."""
     acc = MetricsAccumulator(labels, stream.rate)
     records: list[FrameRecord] = []
     revote = take_votes_s > 0
@@ -137,6 +167,8 @@ def run_labeler(labeler, labels: Sequence[str], stream: CorruptedStream, use_ids
             records.append(_record(f, res))
         if progress is not None:
             progress(done + i + 1, total)
+    if stop_after_live is not None and stop_after_live(labeler):
+        return None
     causal = voted = None
     restarts = []
     if windows:
@@ -271,7 +303,8 @@ def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: Labeler
                    extra: np.ndarray | None = None, named: bool = True, take_votes_s: float = 0.0,
                    take_pass: bool = False, restart_s: float = 0.0, calibrate_s: float = 0.0,
                    calibration_progress: Progress | None = None,
-                   fallback: TriangulatedModel | None = None, session_check: bool = False) -> ClipRun:
+                   fallback: TriangulatedModel | None = None, session_check: bool = False,
+                   anonymous_check: bool = False) -> ClipRun:
     """:func:`label_clip` returning the full :class:`ClipRun`; ``extra`` (F, K, 3): the take's
     unlabelled points; ``named=False``: ``clip`` holds no truth (labelled, not scored).
     ``calibrate_s`` > 0: a generic body is first self-calibrated on the stream's first
@@ -281,7 +314,7 @@ def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: Labeler
     kept; ``session_check``: ``model`` is calibrated to the person of the take, whose markers may
     sit elsewhere this session (:func:`~dtm_labeler.training.calibrate.session_calibrate` instead);
     ``settings["calibration"]`` says what was done; ``calibration_progress``: the frames
-    of each of its self-labellings."""
+    of each of its self-labellings; ``anonymous_check``: see :func:`run_stream`."""
     mc = clip if not named else model_clip(model, clip)
     stream = corrupt_clip(mc, occlude=occlude, clutter=clutter, noise_mm=noise_mm, seed=seed,
                           gap_frames=gap_frames, extra=extra)
@@ -293,7 +326,7 @@ def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: Labeler
             model = fallback
     run = run_stream(model, stream, settings, use_ids=use_ids, keep_records=keep_records, progress=progress,
                      done=done, total=total, scored=named, take_votes_s=take_votes_s, take_pass=take_pass,
-                     restart_s=restart_s)
+                     restart_s=restart_s, anonymous_check=anonymous_check)
     if calibration is not None:
         run.settings["calibration"] = calibration
     return run

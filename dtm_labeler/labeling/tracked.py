@@ -355,6 +355,9 @@ class TrackedLabeler(FastPath):
         method = "cbga" if s.method == "tracker" else s.method
         self.full_search: LabelSearch = make_search(method, full_settings(s))
         self.warm_search: LabelSearch = make_search(method, s.warm)
+        # searched frames in which each label held a point, anonymous points included (what
+        # :mod:`.anonymous_presence` reads of a take)
+        self.label_frames = np.zeros(self.n_labels, dtype=np.int64)
         self.reset()
 
     def _bar_votes(self) -> BarOrderVotes:
@@ -546,6 +549,8 @@ class TrackedLabeler(FastPath):
         assign, search_labels, pub, conf, confirmation, post, share = self._publish(problems[m_pub], best, inp,
                                                                                    found.doubtful)
         keep, n_in, model = inp.keep, inp.n_in, problems[m_pub].model
+        held = pub[pub >= 0]
+        self.label_frames[held[held < self.label_frames.size]] += 1
         return self.result_type(
             labels=scatter(model.published(pub), keep, n_in, -1), confidence=scatter(conf, keep, n_in, 0.0),
             track_ids=scatter(inp.ids, keep, n_in, -1),

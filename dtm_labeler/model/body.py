@@ -214,6 +214,23 @@ class BodyModel:
             return self
         return replace(self, within_sd=np.hypot(self.within_sd, np.sqrt(2.0) * position_sd_m))
 
+    def first_labels(self, n: int) -> "BodyModel":
+        """The terms among labels ``0 .. n-1`` only: every pair, quadruple, twist and bar order
+        that names a later label dropped (a model without its anonymous points,
+        :meth:`~dtm_labeler.model.dtm.TriangulatedModel.named_only`: they are its last labels)."""
+        if n >= self.n_labels:
+            return self
+
+        def rows(a: np.ndarray) -> np.ndarray:
+            return (a < n).all(1) if a.size else np.zeros(a.shape[0], dtype=bool)
+        p, q, r = rows(self.pairs), rows(self.quads), rows(self.rigid_pairs)
+        return replace(self, n_labels=n, pairs=self.pairs[p], kind=self.kind[p], lo=self.lo[p], hi=self.hi[p],
+                       within_sd=self.within_sd[p], between_sd=self.between_sd[p],
+                       reach_off_edges=self.reach_off_edges[p], quads=self.quads[q], quad_sign=self.quad_sign[q],
+                       twists=self.twists[rows(self.twists)], rigid_pairs=self.rigid_pairs[r],
+                       rigid_length=self.rigid_length[r], rigid_spread=self.rigid_spread[r],
+                       orders=self.orders[rows(self.orders)], take_orders=self.take_orders[rows(self.take_orders)])
+
     # -- model file ------------------------------------------------------------------
     @property
     def applied_kinds(self) -> tuple[int, ...]:

@@ -407,6 +407,41 @@ class TriangulatedModel:
         kw.update(changes)
         return TriangulatedModel(**kw)
 
+    def named_only(self) -> "TriangulatedModel":
+        """The model without its anonymous points (:mod:`dtm_labeler.training.anonymous`): what
+        labels a take that does not show them (:mod:`dtm_labeler.labeling.anonymous_presence`).
+        They are its last labels and leaves of the structure, joined last (their triangles the
+        last ones), so the named points keep their labels' indices, triangles, mixtures and body
+        terms -- those of the model ``dtm-train --ignore-unlabelled`` makes of the same capture
+        (training keeps the anonymous points out of the segment clusters, the handedness quadruples
+        and the bars; ``test_anonymous_points.py``). A model without anonymous points: itself."""
+        n = int((~self.anonymous).sum())
+        if n == self.n_labels:
+            return self
+        tri = self.triangles
+        T = int((tri < n).all(1).sum())
+        if self.anonymous[:n].any() or (tri[:T] >= n).any():
+            raise ValueError("the anonymous points are not the model's last labels and triangles")
+        settings = dict(self.settings)
+        for key in ("loglik_per_label", "fit_reference_per_label"):   # their levels, if training measured them
+            own = settings.pop("named_" + key, None)
+            if own is not None:
+                settings[key] = own
+        for key, size in (("longest_rest_s", n), ("seen_share", n), ("broad_weights_training", T)):
+            if isinstance(settings.get(key), list):
+                settings[key] = settings[key][:size]
+        if isinstance(settings.get("broad_component"), dict):
+            settings["broad_component"] = {k: v[:T] if isinstance(v, list) and len(v) == len(tri) else v
+                                           for k, v in settings["broad_component"].items()}
+        pairs = [pr[(pr < n).all(1)] for pr in (self.heading_pairs, self.mirror_pairs)]
+        return TriangulatedModel(
+            labels=self.labels[:n], structure=Structure(tuple(map(tuple, tri[:T].tolist())), n),
+            mixtures=list(self.mixtures[:T]), heading_pairs=pairs[0], mirror_pairs=pairs[1], settings=settings,
+            provenance=dict(self.provenance), body=None if self.body is None else self.body.first_labels(n),
+            broad=None if self.broad is None else BroadMotion(self.broad.weights[:T], list(self.broad.gaussians[:T])),
+            generic_body=None if self.generic_body is None else self.generic_body.first_labels(n),
+            broad_open=self.broad_open)
+
     @property
     def n_labels(self) -> int:
         return len(self.labels)

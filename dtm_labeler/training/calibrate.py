@@ -308,12 +308,14 @@ def pair_lengths(positions: np.ndarray, pairs: np.ndarray, settings: Calibration
 
 def calibrated_body(body: BodyModel, positions: np.ndarray, settings: CalibrationSettings | None = None,
                     mirror_pairs: np.ndarray | None = None, heading_pairs: np.ndarray | None = None,
-                    check_labels: bool = True) -> tuple[BodyModel, dict]:
+                    check_labels: bool = True, leaves: np.ndarray | None = None) -> tuple[BodyModel, dict]:
     """The body of the person in ``positions`` (F, M, 3) (module doc); and a summary.
     ``mirror_pairs`` (left, right) label pairs: check left against right, ``heading_pairs``
     (the trunk's pairs): check each sided point's side (none: no check); ``check_labels=False``
     trusts the labels (an operator-labelled trial: a dancer's crossed legs are not a swap) and
-    skips both checks."""
+    skips both checks. ``leaves`` (M,) bool: labels whose segments join no two segment clusters
+    (a model's anonymous points, :mod:`dtm_labeler.training.anonymous`: the named points' rigid
+    pairs and bars are those of the model without them; they have none)."""
     s = settings or CalibrationSettings()
     u, v = body.pairs[:, 0], body.pairs[:, 1]
     med, mad, measured = pair_lengths(positions, body.pairs, s)
@@ -355,10 +357,13 @@ def calibrated_body(body: BodyModel, positions: np.ndarray, settings: Calibratio
     summary["bar_orders_dropped"] = int(body.orders.shape[0] - orders.shape[0])
     take_orders = kept_orders(body.take_orders, positions)     # the take pass's, likewise
     summary["take_bar_orders"] = int(take_orders.shape[0])
+    joins = seg | borrowed
+    if leaves is not None and np.any(leaves):
+        joins &= ~(np.asarray(leaves, dtype=bool)[u] | np.asarray(leaves, dtype=bool)[v])
     quads, signs, summary["handedness_left_to_orders"] = quads_off_ordered_bars(
-        quads, signs, orders, segment_clusters(body.n_labels, body.pairs[seg | borrowed]))
+        quads, signs, orders, segment_clusters(body.n_labels, body.pairs[joins]))
     summary["handedness_quads"] = int(quads.shape[0])
-    rigid = cluster_pairs(body, positions, seg | borrowed)
+    rigid = cluster_pairs(body, positions, joins)
     summary["rigid_pairs"] = int(rigid["rigid_pairs"].shape[0])
     return replace(body, lo=lo, hi=hi, within_sd=within, between_sd=between, calibration=summary,
                    quads=quads, quad_sign=signs, orders=orders, take_orders=take_orders, **rigid), summary
@@ -454,7 +459,7 @@ def calibrate(model: TriangulatedModel, source: MotionClip | np.ndarray,
     # calibrations do not compound: a calibrated model is calibrated again from its generic body
     generic = model.generic_body if model.body.calibration else model.body
     body, summary = calibrated_body(generic or model.body, P, s, model.mirror_pairs, model.heading_pairs,
-                                    check_labels)
+                                    check_labels, leaves=model.anonymous)
     mixtures = model.mixtures
     if s.placement_relevance > 0:
         mixtures, summary["placement"] = adapted_mixtures(model, P, s.placement_relevance, s.min_frames)
@@ -469,6 +474,7 @@ def calibrate(model: TriangulatedModel, source: MotionClip | np.ndarray,
     # the body before any calibration stays with the model (:func:`generic_view`)
     out = model.replace(body=body, mixtures=mixtures, broad=broad, generic_body=generic)
     out.settings.pop("fit_reference_per_label", None)     # calibrations do not compound
+    out.settings.pop("named_fit_reference_per_label", None)
     if trained is not None:
         out.settings["broad_weights_training"] = trained.tolist()
     ref = fit_per_label(out, P, rate) if rate else None
@@ -476,6 +482,11 @@ def calibrate(model: TriangulatedModel, source: MotionClip | np.ndarray,
     if ref is not None and np.isfinite(ref) and training is not None:
         out.settings["fit_reference_per_label"] = min(float(training), ref)
         summary["fit_per_label"] = {"training": training, "calibration_frames": ref}
+        if out.anonymous.any():       # ... and of the model without its anonymous points (named_only)
+            named = out.named_only()
+            own = fit_per_label(named, P[:, ~out.anonymous], rate)
+            if own is not None and np.isfinite(own):
+                out.settings["named_fit_reference_per_label"] = min(float(named.settings["loglik_per_label"]), own)
     out.provenance["calibration"] = summary
     return out
 
@@ -493,6 +504,7 @@ def generic_view(model: TriangulatedModel) -> TriangulatedModel | None:
     out = model.replace(body=model.generic_body, generic_body=None)
     out.provenance.pop("calibration", None)
     out.settings.pop("fit_reference_per_label", None)     # the calibration's yardstick (:func:`calibrate`)
+    out.settings.pop("named_fit_reference_per_label", None)
     return out
 
 

@@ -379,6 +379,17 @@ def unnamed_points(labels: Sequence[str]) -> list[int]:
     return [i for i, name in enumerate(labels) if is_unnamed(name)]
 
 
+def _level_per_label(model: TriangulatedModel, states: np.ndarray, scored_on: str) -> float:
+    """``settings["loglik_per_label"]`` of ``model`` on its training ``states``, as
+    :func:`train_model` measures it (the median complete frame's per label, or on gappy takes
+    :func:`~.gaps.loglik_per_label`)."""
+    if scored_on != "complete frames":
+        return loglik_per_label(model, states)
+    complete = (observation_state(states) == FULL).all(axis=1)
+    ll = model.frame_log_likelihood(states[complete]) if complete.any() else np.array([np.nan])
+    return float(np.median(ll) / model.n_labels)
+
+
 def _renumbered(pairs: np.ndarray, idx: Sequence[int]) -> np.ndarray:
     """Index pairs among ``idx`` renumbered to positions in ``idx`` (pairs leaving ``idx`` dropped)."""
     pos = {int(v): k for k, v in enumerate(idx)}
@@ -433,6 +444,7 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
     coverage = coverage_report(states, labels)
     coverage.check()
     anon = unnamed_points(labels)       # anonymous points (training/anonymous.py): leaves of the tree and structure
+    named_on = None                     # what the named points' own structure was scored on (with anon)
 
     # -- structure --------------------------------------------------------------------
     step("structure", 0, 1)
@@ -448,10 +460,15 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         stats = pair_statistics(positions, config.body.max_frames)
         body = fit_body(stats, parents if parents is not None else rigid_tree(clips, leaves=anon), config.body,
                         joint_centres=joint_centres, mirror_pairs=all_pairs)
+        # the segments that join clusters (rigid pairs, bars): none of an anonymous point, so
+        # the named points' are those of the model without them
+        joining = body.segments[~np.isin(body.segments, anon).any(1)] if anon else body.segments
         if not joint_centres:        # marker clusters: their handedness (model/body.py Handedness)
-            quads, signs = handedness_quads(positions, max_frames=config.body.max_frames)
+            own = np.array([i for i in range(n) if i not in set(anon)], dtype=np.int64)   # named points
+            quads, signs = handedness_quads([x[:, own] for x in positions], max_frames=config.body.max_frames)
+            quads = own[quads]
             body = replace(body, quads=quads, quad_sign=signs,
-                           **person_rigid_pairs(positions, body.segments, config.body.max_frames))
+                           **person_rigid_pairs(positions, joining, config.body.max_frames))
         else:                        # joint centres: the trunk's twist limit (model/body.py TrunkTwist)
             body = replace(body, twists=trunk_twists(labels, positions))
         if scores is not None and config.body.segment_edge_prior > 0:
@@ -471,7 +488,7 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         named = [i for i in range(n) if i not in set(anon)]
         if anon:                # scored on the named points' own states (their complete frames, their pairs)
             names = [labels[i] for i in named]
-            inner_scores, _ = structure_scores(states[:, named], config.reg_covar)
+            inner_scores, named_on = structure_scores(states[:, named], config.reg_covar)
             inner_prior = inner_scores if prior.edge_prior is None else \
                 inner_scores.with_edge_prior(prior.edge_prior[np.ix_(named, named)])
             inner = _structure_search(inner_prior, inner_scores, [c.select(names) for c in clips],
@@ -482,10 +499,10 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
     struct_ll = scores.per_frame(structure) if scores is not None else float("nan")
     step("structure", 1, 1)
     if body is not None and not joint_centres:      # marker bars: their order (model/body.py BarOrder)
-        body = replace(body, orders=bar_orders(positions, body.segments, structure.array,
+        body = replace(body, orders=bar_orders(positions, joining, structure.array,
                                                max_frames=config.body.max_frames,
                                                reach=sided_reach(all_pairs, len(labels))),
-                       take_orders=bar_orders(positions, body.segments, None, per_bar=TAKE_ORDERS_PER_BAR,
+                       take_orders=bar_orders(positions, joining, None, per_bar=TAKE_ORDERS_PER_BAR,
                                               max_frames=config.body.max_frames,
                                               reach=side_reach(all_pairs, len(labels))))
 
@@ -535,9 +552,16 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         ll = model.frame_log_likelihood(states[np.isfinite(states).all(-1).sum(1) >= 3])
     # how long each label's point stood still in training (the rests a label is allowed)
     model.settings["longest_rest_s"] = [round(float(r), 3) for r in longest_rests(clips)]
+    # the share of the training frames each label's point was seen in (how often a take should show it)
+    seen = coverage.as_dict()
+    model.settings["seen_share"] = [round(float(seen.get(n, 1.0)), 4) for n in labels]
     # the typical model log-likelihood per labelled point: the stream labeler's starting level
     model.settings["loglik_per_label"] = float(np.median(ll) / len(labels)) if scored_on == "complete frames" \
         else loglik_per_label(model, states)
+    if anon:                            # ... and that of the model without them (TriangulatedModel.named_only)
+        own = [i for i in range(n) if i not in set(anon)]
+        model.settings["named_loglik_per_label"] = _level_per_label(model.named_only(), states[:, own],
+                                                                    named_on or scored_on)
     summary = TrainSummary(
         labels=labels, frames_total=int(states.shape[0]), frames_complete=int(complete.sum()),
         structure=structure.names(labels), structure_method=config.structure,
