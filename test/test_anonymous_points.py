@@ -192,3 +192,25 @@ def test_a_take_without_those_markers_is_labelled_by_the_model_without_them(hdm,
     assert "labelled without them" in take["note"]
     assert "anonymous_points" not in res["ignored"]["inputs"][0]
     assert res["anonymous"]["accuracy"] == pytest.approx(res["ignored"]["accuracy"], abs=0.003)
+
+
+def test_bag_label_without_those_markers_labels_again_without_them(hdm, models, tmp_path, capsys):
+    """``dtm-bag label``: the same judgement over a bag's clouds, and the bag labelled again by
+    the model without the anonymous points (the labelled C3D written once, from that pass)."""
+    from dtm_labeler.cli.bag import main as bag_main
+    d, paths = models
+    test = _capture(hdm, tmp_path / "off.c3d", 2000, 2240, hide=("RSHO",), extra=False)
+    assert bag_main(["make", str(test), "--points", "all", "--out", str(tmp_path / "bag"), "--json"]) == 0
+    capsys.readouterr()
+    res = {}
+    for tag in ("anonymous", "ignored"):
+        out = tmp_path / f"{tag}.c3d"
+        assert bag_main(["label", str(paths[tag]), str(tmp_path / "bag"), "--out", str(out), "--json",
+                         "--quiet"]) == 0
+        res[tag] = json.loads(capsys.readouterr().out)
+        back = load_clip(out)
+        assert back.n_frames == 240 and not any(n.startswith("*by") for n in back.names)
+    assert res["anonymous"]["anonymous_points"]["absent"] is True
+    assert "labelled without them" in res["anonymous"]["note"] and res["anonymous"]["labels"] == len(NAMED)
+    assert "anonymous_points" not in res["ignored"]
+    assert res["anonymous"]["accuracy"] == pytest.approx(res["ignored"]["accuracy"], abs=0.003)

@@ -225,6 +225,7 @@ def _label(args) -> int:
 
     from ..evaluation.labelled_capture import OUTPUT_SUFFIXES, from_stamped
     from ..model.io import load_model
+    from ..labeling.anonymous_presence import AnonymousPresence
     from ..ros.bag import BagError, label_bag
 
     try:
@@ -253,6 +254,13 @@ def _label(args) -> int:
     try:
         s = label_bag(model, args.bag, None if capture else args.out, settings, storage=args.storage, topic=args.topic,
                       force=args.force, progress=progress, on_frame=keep if capture else None)
+        presence = s.get("anonymous_points")
+        if presence and presence["absent"]:      # the bag lacks those markers: labelled without them
+            clouds.clear()
+            model = model.named_only()
+            s = label_bag(model, args.bag, None if capture else args.out, settings, storage=args.storage,
+                          topic=args.topic, force=True, progress=progress, on_frame=keep if capture else None)
+            s["anonymous_points"], s["note"] = presence, AnonymousPresence.from_dict(presence).note()
         if capture:
             written = from_stamped(clouds, model.labels).write(args.out)
             s["out"] = str(written)
@@ -276,6 +284,8 @@ def _label(args) -> int:
         print("accuracy   n/a (no /markers/ground_truth in the bag)")
     print(f"latency    p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms, max {lat['max']:.2f} ms per frame; "
           f"{s['fps']:.0f} frames/s")
+    if s.get("note"):
+        print(f"note       {s['note']}")
     return 0
 
 

@@ -200,7 +200,8 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
             cap = from_records(run.records, model.labels, clip.n_frames, CaptureFormat.of(clip, a))
             res.out = str(cap.write(job.out))
         dup = clip.meta.get("unlabelled_duplicates") or {}
-        notes = [n for n in (mi.note, clip.meta.get("up_axis_note", ""), _anonymous_note(presence)) if n]
+        anon_note = AnonymousPresence.from_dict(presence).note() if presence else ""
+        notes = [n for n in (mi.note, clip.meta.get("up_axis_note", ""), anon_note) if n]
         res.frame_range, res.named, res.note = (a, b), mi.named, "; ".join(notes)
         res.unlabelled_points, res.copies_left_out = mi.n_extra, (len(dup) if job.keep_unlabelled else 0)
         res.unlabelled_samples = int(run.settings.get("unlabelled_samples", 0))
@@ -212,12 +213,6 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
         res.error = str(e).strip("'\"")
     res.wall_s = time.perf_counter() - t0
     return res
-
-
-def _anonymous_note(presence: dict | None) -> str:
-    """The note of a take found without the model's anonymous points (run settings' form)."""
-    return "" if not presence else AnonymousPresence(
-        tuple(presence["points"]), presence["held_frames"], presence["expected_frames"], presence["absent"]).note()
 
 
 def trained_on(model, source: str) -> bool:

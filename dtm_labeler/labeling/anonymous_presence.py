@@ -57,6 +57,11 @@ class AnonymousPresence:
         return asdict(self) | {"ratio": round(self.ratio, 3), "expected_frames": round(self.expected_frames, 1),
                                "points": list(self.points)}
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "AnonymousPresence":
+        """From :meth:`as_dict` (a run's settings, a JSON summary)."""
+        return cls(tuple(d["points"]), int(d["held_frames"]), float(d["expected_frames"]), bool(d["absent"]))
+
     def note(self) -> str:
         if not self.absent:
             return ""

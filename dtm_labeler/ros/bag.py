@@ -407,7 +407,11 @@ def label_bag(model, in_path: str | Path, out_path: str | Path | None, settings=
     write the input topics plus ``/markers/labeled`` and ``/markers/labeled_cloud`` to
     ``out_path`` (None: write nothing) and score against ``/markers/ground_truth`` when present.
     ``on_frame(xyz, result, stamp_ns)`` sees every labelled cloud (e.g. to write a labelled C3D).
-    Returns a summary dict (accuracy, ghost_rejection, latency_ms {p50, p99, max, mean}, fps, ...)."""
+    Returns a summary dict (accuracy, ghost_rejection, latency_ms {p50, p99, max, mean}, fps, ...;
+    for a model with anonymous points, ``anonymous_points``: whether the bag shows them,
+    :mod:`~dtm_labeler.labeling.anonymous_presence` -- ``dtm-bag label`` labels it again without
+    them where it does not)."""
+    from ..labeling.anonymous_presence import anonymous_presence
     from ..labeling.stream import StreamLabeler
     from .pointcloud import complete_ids, read_points_xyz
 
@@ -458,7 +462,9 @@ def label_bag(model, in_path: str | Path, out_path: str | Path | None, settings=
         if writer is not None:
             writer.close()
     s = settings or labeler.settings
-    return dict(bag=str(in_path), out=None if out_path is None else str(out_path), frames=n_frames,
+    presence = anonymous_presence(model, labeler.label_frames, n_frames)
+    return dict(({"anonymous_points": presence.as_dict()} if presence is not None else {}),
+                bag=str(in_path), out=None if out_path is None else str(out_path), frames=n_frames,
                 labels=len(names), method=s.method, mode=s.mode, window=s.window,
                 accuracy=scorer.accuracy, scored_frames=scorer.frames_scored, true_markers=scorer.total,
                 ghost_rejection=scorer.ghost_rejection, ghosts=scorer.ghosts, resets=resets,
