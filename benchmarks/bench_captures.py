@@ -167,7 +167,7 @@ def label(model, path: Path, **kw):
             "ghosts": m.ghosts, "ghost_rejection": m.ghost_rejection,
             "search_errors": m.search_errors, "full_search_rate": m.full_search_rate,
             "p50_ms": m.latency_ms["p50"], "p99_ms": m.latency_ms["p99"], "wall_s": r.wall_s,
-            "unlabelled_points": r.unlabelled_points}
+            "unlabelled_points": r.unlabelled_points, "anonymous_points": r.anonymous_points}
 
 
 # -- sections ---------------------------------------------------------------------------------------

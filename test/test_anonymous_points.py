@@ -172,8 +172,11 @@ def test_a_take_without_those_markers_is_labelled_by_the_model_without_them(hdm,
     assert named.structure.names(named.labels) == ignored.structure.names(ignored.labels)
     assert all(np.allclose(a.means, b.means) and np.allclose(a.covariances, b.covariances)
                for a, b in zip(named.mixtures, ignored.mixtures))
-    for key in ("pairs", "rigid_pairs", "orders", "take_orders", "quads"):   # the person's clusters without them
+    for key in ("pairs", "kind", "rigid_pairs", "orders", "take_orders", "quads"):   # the person's, without them
         assert getattr(named.body, key).tolist() == getattr(ignored.body, key).tolist(), key
+    for key in ("lo", "hi", "within_sd", "rigid_length"):
+        assert np.allclose(getattr(named.body, key), getattr(ignored.body, key), atol=1e-9), key
+    assert named.settings["loglik_per_label"] == pytest.approx(ignored.settings["loglik_per_label"])
     assert len(anon.settings["seen_share"]) == anon.n_labels and len(named.settings["seen_share"]) == len(NAMED)
     # the judgement: held in under half of the frames the training's shares predict
     frames = np.round(np.array(anon.settings["seen_share"]) * 400).astype(int)

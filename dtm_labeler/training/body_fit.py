@@ -397,7 +397,7 @@ PERSON_PAIR_MIN_FRAMES = 10
 
 
 def person_rigid_pairs(clips: Sequence[np.ndarray], segments: np.ndarray, max_frames: int = 3000,
-                       min_frames: int = PERSON_PAIR_MIN_FRAMES) -> dict[str, np.ndarray]:
+                       min_frames: int = PERSON_PAIR_MIN_FRAMES, leaves: Sequence[int] = ()) -> dict[str, np.ndarray]:
     """The trained person's rigid marker pairs (:attr:`BodyModel.rigid_pairs`) from the (F, M, 3)
     positions of the training clips, pooled (at most ``max_frames`` frames spread over them): the
     pairs the take pass measures on a take (:func:`dtm_labeler.labeling.rigid_tracks.rigid_pairs`:
@@ -448,14 +448,22 @@ def person_rigid_pairs(clips: Sequence[np.ndarray], segments: np.ndarray, max_fr
     on no segment joining (the walk 98.57 / 98.75 %: the left forefoot's markers stay out); links
     of any length (the walk's 0.85 s held a thigh and an elbow marker within 6 mm, and the
     clusters chained into one):
-    the walk 98.72 / 98.60 % but HDM05 draw 1 98.12 / 98.73 -> 97.18 / 97.25 %."""
+    the walk 98.72 / 98.60 % but HDM05 draw 1 98.12 / 98.73 -> 97.18 / 97.25 %.
+
+    ``leaves``: labels that join no two clusters and have no pairs (a model's anonymous points,
+    :mod:`dtm_labeler.training.anonymous`: a marker riding between two clusters would make them
+    one, and the named points' pairs would not be those of the model without it)."""
     P = np.concatenate([np.asarray(c, dtype=np.float64) for c in clips]) if len(clips) else np.zeros((0, 0, 3))
     if P.shape[0] == 0:
         return {"rigid_pairs": np.zeros((0, 2), dtype=np.int64), "rigid_length": np.zeros(0),
                 "rigid_spread": np.zeros(0)}
     measured = rigid_pairs(P[spread_sample(P.shape[0], max_frames)], min_frames=min_frames)
     short = measured.rigid & (measured.length <= JOIN_LENGTH_M) & (measured.spread <= JOIN_SPREAD_M)
-    cluster = joined_clusters(segment_clusters(P.shape[1], segments), short)
+    cluster = segment_clusters(P.shape[1], segments)
+    out = np.zeros(P.shape[1], dtype=bool)
+    out[np.asarray(leaves, dtype=np.int64)] = True
+    short &= ~out[:, None] & ~out[None, :]
+    cluster = np.where(out, -1, joined_clusters(cluster, short))
     u, v = np.nonzero(np.triu(measured.rigid & (cluster[:, None] == cluster[None, :]) & (cluster[:, None] >= 0), 1))
     return {"rigid_pairs": np.stack([u, v], 1), "rigid_length": measured.length[u, v],
             "rigid_spread": measured.spread[u, v]}
@@ -622,12 +630,15 @@ def mirror_moved(spread: np.ndarray, steady: np.ndarray, iu: np.ndarray, ju: np.
 
 
 def fit_body(stats: dict[str, np.ndarray], parents: np.ndarray, settings: BodySettings | None = None,
-             joint_centres: bool = True, mirror_pairs: np.ndarray | None = None) -> BodyModel:
+             joint_centres: bool = True, mirror_pairs: np.ndarray | None = None,
+             leaves: Sequence[int] = ()) -> BodyModel:
     """The generic body from :func:`pair_statistics` of the training clips: segments,
     ranges, spreads and reach limits (module doc). ``joint_centres``: the points are the 14
     body points (between-person spread 5 % of a length by default) rather than markers, whose
     placement varies between sessions and labs (30 %). ``mirror_pairs`` (left, right label
-    indices): the sides, for :func:`unmirrored_crossing`."""
+    indices): the sides, for :func:`unmirrored_crossing`. ``leaves``: labels no pair of the others
+    spans (:func:`spans_a_point`; a model's anonymous points: the named pairs are those of the
+    model without them)."""
     s = settings or BodySettings()
     between_rel = s.between_rel if s.between_rel is not None else (0.05 if joint_centres else 0.3)
     st = stats
@@ -646,7 +657,7 @@ def fit_body(stats: dict[str, np.ndarray], parents: np.ndarray, settings: BodySe
     child = np.flatnonzero(parents >= 0)
     link[child, parents[child]] = link[parents[child], child] = True
     steady = seen & (sd_p <= s.segment_abs_m) & (sd_p <= s.segment_ratio * np.nan_to_num(vec_max[iu, ju]))
-    seg = steady & link[iu, ju] & ~spans_a_point(length)[iu, ju]
+    seg = steady & link[iu, ju] & ~spans_a_point(length, leaves)[iu, ju]
     if mirror_pairs is not None and len(mirror_pairs):
         seg &= unmirrored_crossing(steady, iu, ju, M, mirror_pairs)
         seg &= ~mirror_moved(sd_clip, steady, iu, ju, M, mirror_pairs, length)
@@ -673,7 +684,7 @@ def fit_body(stats: dict[str, np.ndarray], parents: np.ndarray, settings: BodySe
 SPAN_DETOUR = 1.05
 
 
-def spans_a_point(length: np.ndarray) -> np.ndarray:
+def spans_a_point(length: np.ndarray, leaves: Sequence[int] = ()) -> np.ndarray:
     """(M, M) pairs that span a third point: one lying on the straight line between them (the
     detour through it at most ``SPAN_DETOUR`` of the pair's mean length; ``length`` (M, M)).
     The markers of one segment form a cluster on it; on a limb a point between two others is
@@ -689,6 +700,7 @@ def spans_a_point(length: np.ndarray) -> np.ndarray:
         detour = (length[:, :, None] + length.T[None, :, :]) / length[:, None, :]     # (i, k, j)
     eye = np.eye(M, dtype=bool)
     detour[eye[:, :, None] | eye.T[None, :, :]] = np.inf                              # k = i or k = j
+    detour[:, np.asarray(leaves, dtype=np.int64), :] = np.inf                           # never the point spanned
     out = (np.nan_to_num(detour, nan=np.inf) < SPAN_DETOUR).any(axis=1)
     np.fill_diagonal(out, False)
     return out

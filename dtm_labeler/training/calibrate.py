@@ -329,7 +329,10 @@ def calibrated_body(body: BodyModel, positions: np.ndarray, settings: Calibratio
         raise CalibrationError(f"no segment seen in at least {s.min_frames} calibration frames "
                                f"({positions.shape[0]} frames given)")
     generic = 0.5 * (body.lo + body.hi)
-    ratio = np.clip(np.median(med[seg] / generic[seg]), *s.scale_clip)
+    leaf = np.zeros(body.pairs.shape[0], dtype=bool) if leaves is None or not np.any(leaves) else \
+        np.asarray(leaves, dtype=bool)[u] | np.asarray(leaves, dtype=bool)[v]
+    scaled = seg & ~leaf if (seg & ~leaf).any() else seg        # the named segments set the scale
+    ratio = np.clip(np.median(med[scaled] / generic[scaled]), *s.scale_clip)
     lo, hi = body.lo.copy(), body.hi.copy()
     within, between = body.within_sd.copy(), body.between_sd.copy()
     lo[seg] = hi[seg] = med[seg]
@@ -357,13 +360,11 @@ def calibrated_body(body: BodyModel, positions: np.ndarray, settings: Calibratio
     summary["bar_orders_dropped"] = int(body.orders.shape[0] - orders.shape[0])
     take_orders = kept_orders(body.take_orders, positions)     # the take pass's, likewise
     summary["take_bar_orders"] = int(take_orders.shape[0])
-    joins = seg | borrowed
-    if leaves is not None and np.any(leaves):
-        joins &= ~(np.asarray(leaves, dtype=bool)[u] | np.asarray(leaves, dtype=bool)[v])
+    joins = (seg | borrowed) & ~leaf
     quads, signs, summary["handedness_left_to_orders"] = quads_off_ordered_bars(
         quads, signs, orders, segment_clusters(body.n_labels, body.pairs[joins]))
     summary["handedness_quads"] = int(quads.shape[0])
-    rigid = cluster_pairs(body, positions, joins)
+    rigid = cluster_pairs(body, positions, joins, leaves)
     summary["rigid_pairs"] = int(rigid["rigid_pairs"].shape[0])
     return replace(body, lo=lo, hi=hi, within_sd=within, between_sd=between, calibration=summary,
                    quads=quads, quad_sign=signs, orders=orders, take_orders=take_orders, **rigid), summary
@@ -390,15 +391,19 @@ def kept_orders(orders: np.ndarray, positions: np.ndarray, min_frames: int = 10)
     return rows[(n < min_frames) | (2 * held >= n)]
 
 
-def cluster_pairs(body: BodyModel, positions: np.ndarray, calibrated: np.ndarray) -> dict[str, np.ndarray]:
+def cluster_pairs(body: BodyModel, positions: np.ndarray, calibrated: np.ndarray,
+                  leaves: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """The calibrated person's rigid pairs within the segment clusters
     (:attr:`~dtm_labeler.model.body.BodyModel.rigid_pairs`), measured on the calibration frames
     as training measures them (:func:`~dtm_labeler.training.body_fit.person_rigid_pairs`), the
     clusters those of the ``calibrated`` (P,) segments -- for a marker body (one with handedness
     quadruples or rigid pairs); none for joint centres. The trained person's pairs are not this
-    person's, so they are never kept."""
+    person's, so they are never kept. ``leaves`` (M,) bool: labels that join no clusters
+    (:func:`~dtm_labeler.training.body_fit.person_rigid_pairs`)."""
     marker_body = bool(body.quads.shape[0] or body.rigid_pairs.shape[0])
-    return person_rigid_pairs([positions] if marker_body else [], body.pairs[calibrated & (body.kind == SEGMENT)])
+    own = () if leaves is None else np.flatnonzero(leaves)
+    return person_rigid_pairs([positions] if marker_body else [], body.pairs[calibrated & (body.kind == SEGMENT)],
+                              leaves=own)
 
 
 def unflipped_quads(body: BodyModel, quads: np.ndarray, signs: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:

@@ -459,7 +459,7 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         positions = [canonical_states(c, pairs)[..., :3] for c in clips]
         stats = pair_statistics(positions, config.body.max_frames)
         body = fit_body(stats, parents if parents is not None else rigid_tree(clips, leaves=anon), config.body,
-                        joint_centres=joint_centres, mirror_pairs=all_pairs)
+                        joint_centres=joint_centres, mirror_pairs=all_pairs, leaves=anon)
         # the segments that join clusters (rigid pairs, bars): none of an anonymous point, so
         # the named points' are those of the model without them
         joining = body.segments[~np.isin(body.segments, anon).any(1)] if anon else body.segments
@@ -468,7 +468,7 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
             quads, signs = handedness_quads([x[:, own] for x in positions], max_frames=config.body.max_frames)
             quads = own[quads]
             body = replace(body, quads=quads, quad_sign=signs,
-                           **person_rigid_pairs(positions, joining, config.body.max_frames))
+                           **person_rigid_pairs(positions, joining, config.body.max_frames, leaves=anon))
         else:                        # joint centres: the trunk's twist limit (model/body.py TrunkTwist)
             body = replace(body, twists=trunk_twists(labels, positions))
         if scores is not None and config.body.segment_edge_prior > 0:
