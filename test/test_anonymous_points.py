@@ -137,6 +137,33 @@ def test_stream_and_carried_frames_never_publish_an_anonymous_label(hdm, models,
     assert seen_anon > 50
 
 
+def test_a_stream_without_those_markers_is_noticed_live(hdm, models, tmp_path):
+    """The node's labeler judges the same from the frames it searched (the node's diagnostics warn,
+    labeling/anonymous_presence.py): a session without the markers is noticed, one with them not."""
+    from dtm_labeler.labeling.bank_labeler import BankSettings
+    from dtm_labeler.labeling.stream import LabelerSettings
+    from dtm_labeler.ros.engine import NodeLabeler, NodeSettings, Source, load, prepare
+    _, paths = models
+    source = Source(str(paths["anonymous"]))
+    prepared = prepare(source, load(source), 0.0, BankSettings(), spare=False)
+    model = prepared.base
+    notes = {}
+    for extra in (True, False):
+        mi = model_input(load_clip(_capture(hdm, tmp_path / f"s{extra}.c3d", 2000, 2240, extra=extra)), model.labels)
+        node = NodeLabeler(prepared, NodeSettings(LabelerSettings(recovery="inline"), BankSettings()))
+        assert node.anonymous_absent == ""              # nothing searched yet: no judgement
+        for f in range(mi.clip.n_frames):
+            xyz = np.concatenate([mi.clip.positions[f], mi.extra[f]])
+            node.process(xyz[np.isfinite(xyz).all(1)], f / mi.clip.rate)
+        found = node._lab.anonymous_presence()
+        assert node._lab.frames_searched == mi.clip.n_frames
+        notes[extra] = (found, node.anonymous_absent)
+        node.close()
+    assert not notes[True][0].absent and notes[True][0].ratio > 0.7 and notes[True][1] == ""
+    assert notes[False][0].absent and notes[False][0].ratio < 0.5
+    assert "anonymous points" in notes[False][1] and "--ignore-unlabelled" in notes[False][1]
+
+
 def test_named_structure_is_the_same_on_a_gappy_capture(hdm, tmp_path):
     """With gaps the structure is scored on pairs of points (a covariance made positive
     semi-definite as a whole) or on complete frames: both would depend on the anonymous points

@@ -119,6 +119,8 @@ def stats(received, published, **kw):
     (stats(0, 0), state(publishers=1, since_input_s=0.5, incompatible_qos="1 publisher(s) offer best-effort"),
      D.WARN, ["best-effort"]),
     (stats(120, 119, frames_millimetres=3), state(), D.WARN, ["millimetres"]),
+    (stats(120, 119), state(anonymous_absent="the stream does not show the model's 2 anonymous points"),
+     D.WARN, ["anonymous points", "labelling at"]),
     (stats(120, 0, skipped={"error": 120}, last_error="boom"), state(failing_s=1.5), D.ERROR, ["failing", "boom"]),
     (stats(120, 0), D.NodeState(name="n", hardware_id="/n"), D.ERROR, ["no model"]),
     (stats(0, 0), state(input_error="input_type mocap4r2_markers: not installed"), D.ERROR, ["not installed"]),

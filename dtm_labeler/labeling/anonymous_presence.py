@@ -64,12 +64,17 @@ class AnonymousPresence:
         """From :meth:`as_dict` (a run's settings, a JSON summary)."""
         return cls(tuple(d["points"]), int(d["held_frames"]), float(d["expected_frames"]), bool(d["absent"]))
 
-    def note(self) -> str:
+    def note(self, live: bool = False) -> str:
+        """What a user reads of an absent judgement ('' otherwise); ``live``: for the node, which
+        labels with the model it loaded."""
         if not self.absent:
             return ""
-        return (f"the take does not show the model's {len(self.points)} anonymous points "
-                f"({', '.join(self.points)}: held in {self.held_frames} of the {self.expected_frames:.0f} "
-                "frames their training predicts): labelled without them")
+        seen = (f"does not show the model's {len(self.points)} anonymous points ({', '.join(self.points)}: "
+                f"held in {self.held_frames} of the {self.expected_frames:.0f} frames their training predicts)")
+        if live:
+            return (f"the stream {seen}: their markers taken off? they take named markers' points; "
+                    "a model trained with --ignore-unlabelled labels such a session")
+        return f"the take {seen}: labelled without them"
 
 
 def anonymous_presence(model: TriangulatedModel, label_frames: np.ndarray, n_frames: int

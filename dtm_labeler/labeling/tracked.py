@@ -46,6 +46,7 @@ from ..search.dtm_dp import turned_labels, turned_round
 from ..search.upright import BEND_PITCHES_DEG, bent_problems, upright_problems
 from ..search.label_search import CBGASearch, GASearch, GASettings, LabelSearch, SearchOutcome, make_search, polish
 from ..search.problem import FrameProblem
+from .anonymous_presence import AnonymousPresence, anonymous_presence
 from .config import LabelerSettings
 from .bar_flips import take_bar_orders
 from .bar_order_votes import SETTLED_S, BarOrderVotes
@@ -358,6 +359,7 @@ class TrackedLabeler(FastPath):
         # searched frames in which each label held a point, anonymous points included (what
         # :mod:`.anonymous_presence` reads of a take)
         self.label_frames = np.zeros(self.n_labels, dtype=np.int64)
+        self.frames_searched = 0
         self.reset()
 
     def _bar_votes(self) -> BarOrderVotes:
@@ -496,6 +498,12 @@ class TrackedLabeler(FastPath):
         return CarriedFrame(scatter(lab, keep, n_in, -1), scatter(cf, keep, n_in, 0.0),
                             scatter(inp.ids, keep, n_in, -1))
 
+    def anonymous_presence(self) -> AnonymousPresence | None:
+        """Whether the stream so far shows the first model's anonymous points
+        (:mod:`.anonymous_presence`, over the frames searched since the labeler was built); None
+        for a model without them."""
+        return anonymous_presence(self.models[0], self.label_frames, self.frames_searched)
+
     def predicted_position(self, track_id: int, stamp: float) -> np.ndarray:
         """Where a (possibly coasting) track is predicted at ``stamp`` (NaN if unknown)."""
         return self.tracker.position_of(track_id, stamp)
@@ -551,6 +559,7 @@ class TrackedLabeler(FastPath):
         keep, n_in, model = inp.keep, inp.n_in, problems[m_pub].model
         held = pub[pub >= 0]
         self.label_frames[held[held < self.label_frames.size]] += 1
+        self.frames_searched += 1
         return self.result_type(
             labels=scatter(model.published(pub), keep, n_in, -1), confidence=scatter(conf, keep, n_in, 0.0),
             track_ids=scatter(inp.ids, keep, n_in, -1),

@@ -599,6 +599,7 @@ class LabelerCore:
             active_model=(engine.active_model if engine else "") or v["model_name"],
             actions=engine.actions if engine else (), active=self.active, input_error=self.input_error,
             recovery_error=engine.recovery_failed if engine else "",
+            anonymous_absent=engine.anonymous_absent if engine else "",
             time_base=self.guard.time_base, publishers=self._publishers(),
             incompatible_qos=self._incompatible_qos(),
             since_input_s=now - self._t_input if self._t_input is not None else float("inf"),

@@ -13,7 +13,8 @@ state into the two ``diagnostic_msgs/DiagnosticStatus`` entries ``<node>: labeli
   than 20 % of the labelled frames, in the period);
   stamp faults (zero, repeated, backwards, jumping) or interleaved sources in the period; no
   input for > 1 s while a publisher is matched; bad input or labeler errors in the period;
-  coordinates that look like millimetres; a failed model reload.
+  coordinates that look like millimetres; a failed model reload; a stream that does not show the
+  model's anonymous points (:mod:`dtm_labeler.labeling.anonymous_presence`: their markers taken off).
 * OK otherwise (the message says the rates and the latency).
 """
 from __future__ import annotations
@@ -98,6 +99,7 @@ class NodeState:
     active: bool = True               # lifecycle: labelling only while active
     input_error: str = ""             # why there is no input subscription (a missing message package)
     recovery_error: str = ""          # why the background recovery worker is not used (searches run inline)
+    anonymous_absent: str = ""        # the stream does not show the model's anonymous points (why)
     time_base: str = "header"         # header stamps, or receive time after stamp faults
     publishers: int = 0               # publishers matched on the input topic
     incompatible_qos: str = ""        # publishers whose QoS cannot reach the input (params.incompatible_publishers)
@@ -156,6 +158,8 @@ def assess(cur: NodeStats, prev: NodeStats, dt: float, st: NodeState) -> Tuple[i
         warn.append(f"{doubt} of {lab} frames published unconfirmed (searches running in the background)")
     if st.recovery_error:
         warn.append(st.recovery_error + " (searches run in the labelling thread)")
+    if st.anonymous_absent:
+        warn.append(st.anonymous_absent)
     if st.publishers > 0 and st.since_input_s > _SILENT_S:
         warn.append(f"no input for {st.since_input_s:.1f} s from {st.publishers} matched publisher(s)")
     if st.incompatible_qos:

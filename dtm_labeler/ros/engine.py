@@ -211,6 +211,13 @@ class NodeLabeler:
         f = self._lab.recovery.failed
         return "" if f == "closed" else f
 
+    @property
+    def anonymous_absent(self) -> str:
+        """Why the stream looks like a session without the model's anonymous points ('' when it
+        shows them, or the model has none; :mod:`~dtm_labeler.labeling.anonymous_presence`)."""
+        found = self._lab.anonymous_presence() if hasattr(self._lab, "anonymous_presence") else None
+        return found.note(live=True) if found is not None else ""
+
     def predicted_position(self, track_id: int, stamp: float) -> np.ndarray:
         return self._lab.predicted_position(track_id, stamp)
 
