@@ -8,7 +8,7 @@ not carry those markers. Then an anonymous point has nothing of its own to expla
 point it is given is a named marker (HDM05's gapped halves with the six `*` markers left out,
 live: ``*byLWRB`` on LWRB's point, ``*byLMT5`` on LMT5's), and the take pass starts from those
 frames: draws 1-4 98.70 / 99.09 / 98.45 / 99.66 % under the model without anonymous points,
-97.36 / 98.51 / 97.37 / 96.62 % under the model with them.
+97.92 / 98.51 / 94.05 / 98.63 % under the model with them (``results/captures.md``).
 
 The reading. Eq. 31 gives each model point a detection probability: a point a take shows is
 labelled in about the share of frames its marker was seen in training (``settings["seen_share"]``,
@@ -21,8 +21,14 @@ together: markers are put on or taken off for a session, and one point's count o
 too noisy to judge alone (HDM05's gapped halves, live: one point held in 224 of 600 frames with
 its marker absent, another in 135 with it present).
 
-Measured on those halves (the live pass's counts, the model of the gapped first half with its
-six anonymous points; held / expected): with the markers 0.85-1.08, without them 0.18-0.26.
+Measured (``benchmarks/bench_captures.py --only gapghosts``: the live pass's counts, the model of
+the gapped first half with its anonymous points; held / expected): HDM05's draws 1-4 with the
+markers 0.82-1.03, without them 0.18-0.29; the Qualisys walk's draws 2-4 0.88-1.53 and 0.10-0.55.
+Without them every take is then labelled as by ``dtm-train --ignore-unlabelled``'s model (the
+same structure, mixtures, body and levels: :meth:`~dtm_labeler.model.dtm.TriangulatedModel.named_only`).
+The node (:meth:`~dtm_labeler.labeling.tracked.TrackedLabeler.anonymous_presence`) makes the same
+judgement over the frames it searched and warns in its diagnostics; it labels on with the model
+it loaded.
 """
 from __future__ import annotations
 
@@ -35,8 +41,7 @@ from ..model.dtm import TriangulatedModel
 __all__ = ["ABSENT_BELOW", "MIN_EXPECTED_FRAMES", "AnonymousPresence", "anonymous_presence"]
 
 #: held / expected under which the take is read as not carrying the anonymous points' markers
-#: (module doc: about the geometric mean of the lowest ratio with the markers, 0.82, and the
-#: highest without, 0.50)
+#: (module doc: between the highest ratio without the markers, 0.55, and the lowest with them, 0.82)
 ABSENT_BELOW = 0.65
 #: no judgement on fewer expected frames of the anonymous points (all of them together)
 MIN_EXPECTED_FRAMES = 30.0
