@@ -556,8 +556,7 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
     seen = coverage.as_dict()
     model.settings["seen_share"] = [round(float(seen.get(n, 1.0)), 4) for n in labels]
     # the typical model log-likelihood per labelled point: the stream labeler's starting level
-    model.settings["loglik_per_label"] = float(np.median(ll) / len(labels)) if scored_on == "complete frames" \
-        else loglik_per_label(model, states)
+    model.settings["loglik_per_label"] = _level_per_label(model, states, scored_on)
     if anon:                            # ... and that of the model without them (TriangulatedModel.named_only)
         own = [i for i in range(n) if i not in set(anon)]
         model.settings["named_loglik_per_label"] = _level_per_label(model.named_only(), states[:, own],
