@@ -444,6 +444,7 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
     coverage = coverage_report(states, labels)
     coverage.check()
     anon = unnamed_points(labels)       # anonymous points (training/anonymous.py): leaves of the tree and structure
+    named = [i for i in range(n) if i not in set(anon)]      # the other points
     named_on = None                     # what the named points' own structure was scored on (with anon)
 
     # -- structure --------------------------------------------------------------------
@@ -464,9 +465,8 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
         # the named points' are those of the model without them
         joining = body.segments[~np.isin(body.segments, anon).any(1)] if anon else body.segments
         if not joint_centres:        # marker clusters: their handedness (model/body.py Handedness)
-            own = np.array([i for i in range(n) if i not in set(anon)], dtype=np.int64)   # named points
-            quads, signs = handedness_quads([x[:, own] for x in positions], max_frames=config.body.max_frames)
-            quads = own[quads]
+            quads, signs = handedness_quads([x[:, named] for x in positions], max_frames=config.body.max_frames)
+            quads = np.asarray(named, dtype=np.int64)[quads]
             body = replace(body, quads=quads, quad_sign=signs,
                            **person_rigid_pairs(positions, joining, config.body.max_frames, leaves=anon))
         else:                        # joint centres: the trunk's twist limit (model/body.py TrunkTwist)
@@ -485,7 +485,6 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
             raise ValueError("structure search needs frames where every point is seen")
         # anonymous points (training/anonymous.py) join last, as leaves: the named points keep the
         # structure they have without them, so a take that hides or lacks them labels as before
-        named = [i for i in range(n) if i not in set(anon)]
         if anon:                # scored on the named points' own states (their complete frames, their pairs)
             names = [labels[i] for i in named]
             inner_scores, named_on = structure_scores(states[:, named], config.reg_covar)
@@ -553,13 +552,11 @@ def train_model(clips: Sequence[MotionClip], config: TrainConfig | None = None,
     # how long each label's point stood still in training (the rests a label is allowed)
     model.settings["longest_rest_s"] = [round(float(r), 3) for r in longest_rests(clips)]
     # the share of the training frames each label's point was seen in (how often a take should show it)
-    seen = coverage.as_dict()
-    model.settings["seen_share"] = [round(float(seen.get(n, 1.0)), 4) for n in labels]
+    model.settings["seen_share"] = [round(float(f), 4) for f in coverage.fraction]
     # the typical model log-likelihood per labelled point: the stream labeler's starting level
     model.settings["loglik_per_label"] = _level_per_label(model, states, scored_on)
     if anon:                            # ... and that of the model without them (TriangulatedModel.named_only)
-        own = [i for i in range(n) if i not in set(anon)]
-        model.settings["named_loglik_per_label"] = _level_per_label(model.named_only(), states[:, own],
+        model.settings["named_loglik_per_label"] = _level_per_label(model.named_only(), states[:, named],
                                                                     named_on or scored_on)
     summary = TrainSummary(
         labels=labels, frames_total=int(states.shape[0]), frames_complete=int(complete.sum()),
