@@ -150,8 +150,10 @@ def _main(argv=None) -> int:
         return _bank_main(args, config)
     clips = load_inputs(args.inputs, point_spec(args.points), args.frames, capture_kwargs(args))
     for c in clips:
-        if c.meta.get("up_axis_note") and not args.json:
-            print(f"note: {c.meta['up_axis_note']}", file=sys.stderr)
+        for key in ("up_axis_note", "fragments_note"):
+            if c.meta.get(key) and not args.json:
+                print(f"note: {c.source}: {c.meta[key]}" if key == "fragments_note" else f"note: {c.meta[key]}",
+                      file=sys.stderr)
     bar = None if args.quiet or args.json else tqdm(total=1, desc="training", unit="step", file=sys.stderr)
 
     def progress(stage: str, i: int, k: int) -> None:

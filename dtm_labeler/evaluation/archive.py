@@ -94,6 +94,7 @@ class TakeResult:
     unlabelled_points: int = 0         # unlabelled channels / unknown markers fed as ghosts
     unlabelled_samples: int = 0
     copies_left_out: int = 0           # unlabelled channels that copy another channel
+    fragments_joined: int = 0          # unlabelled samples joined to the named marker they continue
     up_axis: str = ""
     note: str = ""
     out: str | None = None
@@ -121,7 +122,8 @@ class TakeResult:
         """JSON-ready description of the take (metrics are added by the caller)."""
         d = {"source": self.source, "frame_range": list(self.frame_range), "named": self.named,
              "unlabelled_points": self.unlabelled_points, "unlabelled_samples": self.unlabelled_samples,
-             "copies_left_out": self.copies_left_out, "up_axis": self.up_axis, "wall_s": self.wall_s,
+             "copies_left_out": self.copies_left_out, "fragments_joined": self.fragments_joined,
+             "up_axis": self.up_axis, "wall_s": self.wall_s,
              "worker": self.worker}
         if self.out:
             d["out"] = self.out
@@ -201,7 +203,10 @@ def label_take(job: LabelJob, model_bytes: bytes, progress: Callable[[int, int],
             res.out = str(cap.write(job.out))
         dup = clip.meta.get("unlabelled_duplicates") or {}
         anon_note = AnonymousPresence.from_dict(presence).note() if presence else ""
-        notes = [n for n in (mi.note, clip.meta.get("up_axis_note", ""), anon_note) if n]
+        notes = [n for n in (mi.note, clip.meta.get("up_axis_note", ""), clip.meta.get("fragments_note", ""),
+                             anon_note) if n]
+        res.fragments_joined = sum(max(0, min(f["last"] + 1, b) - max(f["first"], a))
+                                   for f in clip.meta.get("unlabelled_fragments", ()))
         res.frame_range, res.named, res.note = (a, b), mi.named, "; ".join(notes)
         res.unlabelled_points, res.copies_left_out = mi.n_extra, (len(dup) if job.keep_unlabelled else 0)
         res.unlabelled_samples = int(run.settings.get("unlabelled_samples", 0))

@@ -7,7 +7,9 @@
   ``meta['unlabelled_names']``; ``include_unlabelled=True`` appends them as points.
   ``meta['unlabelled_duplicates']`` maps unlabelled names that are exact copies of a
   labelled (or earlier unlabelled) point in every frame to that point (true for HDM05
-  ``*0 *1 *2`` = ``LFWT CLAV LFHD``: they are not independent clutter).
+  ``*0 *1 *2`` = ``LFWT CLAV LFHD``: they are not independent clutter). An unlabelled run
+  that continues a named marker across its gap (the system's auto-labelling lost it for a
+  while) is that marker: joined to it (:mod:`.fragments`, ``meta['unlabelled_fragments']``).
 * Missing samples: NaN from ezc3d, negative residual, and exact ``(0, 0, 0)``.
 * Units from ``POINT:UNITS`` ('mm', 'cm', 'm'); ``unit_scale`` overrides (metres per unit).
   The body is measured after reading (:func:`.sanity.check_body_units`): a take whose units
@@ -26,6 +28,7 @@ import numpy as np
 
 from .axes import resolve_up_axis, to_z_up
 from .clip import MotionClip
+from .fragments import fragments_note, join_channel_fragments
 from .naming import split_channels, strip_prefix
 from .sanity import check_body_units, check_rate
 
@@ -58,13 +61,16 @@ def c3d_units(unit_scale: float) -> str:
 
 
 def load_c3d(path: str | Path, up_axis: str = "auto", include_unlabelled: bool = False,
-             unit_scale: float | None = None) -> MotionClip:
+             unit_scale: float | None = None, join_fragments: bool = True) -> MotionClip:
     """Read the 3-D points of a C3D file as a MotionClip (see module doc for rules).
 
     ``meta``: ``format``, ``unit_scale``, ``units`` (POINT:UNITS text of that scale),
     ``raw_labels`` (labelled points, unstripped), ``unlabelled``, ``unlabelled_names``,
     ``unlabelled_duplicates``, ``first_frame`` (C3D header frame number), ``up_axis``,
-    ``up_axis_source`` (+ ``up_axis_note``), ``screen`` (POINT:X_SCREEN, Y_SCREEN or None).
+    ``up_axis_source`` (+ ``up_axis_note``), ``screen`` (POINT:X_SCREEN, Y_SCREEN or None);
+    ``unlabelled_fragments`` and ``fragments_note`` when unlabelled channels continued named
+    markers across their gaps and were joined to them (:mod:`.fragments`; ``join_fragments=False``
+    keeps them apart).
     """
     import ezc3d  # local import: only needed for C3D
 
@@ -110,12 +116,16 @@ def load_c3d(path: str | Path, up_axis: str = "auto", include_unlabelled: bool =
     xyz = to_z_up(xyz, up.axis)
     if not forced_units:
         check_body_units(xyz[:, lab] if len(lab) >= 5 else xyz, unit_scale, u, path)
+    xyz, fragments = join_channel_fragments(xyz, split, rate) if join_fragments else (xyz, [])
     meta = dict(format="c3d", unit_scale=unit_scale, units=c3d_units(unit_scale), raw_labels=tuple(split.raw),
                 unlabelled=xyz[:, unl].copy(), unlabelled_names=tuple(split.unnamed_names),
                 unlabelled_duplicates=split.duplicates, first_frame=int(c["header"]["points"].get("first_frame", 0)),
                 up_axis=up.axis, up_axis_source=up.source, screen=screen)
     if up.note:
         meta["up_axis_note"] = up.note
+    if fragments:
+        meta["unlabelled_fragments"] = [f.as_dict() for f in fragments]
+        meta["fragments_note"] = fragments_note(fragments)
     if include_unlabelled:
         idx, all_names = lab + unl, split.names + split.unnamed_names
     else:

@@ -5,7 +5,8 @@ empty cell is a missing sample. The comments may say the units, the vertical and
 in the shared files' style (``# units mm, Z up, 60 Hz``); without them: mm, the vertical
 found from the body (:mod:`.axes`), the rate from the ``time_s`` column. A stated rate is
 checked against ``time_s``. Columns without a name (``_x,_y,_z``) or named ``*N`` are
-unlabelled points (``meta['unlabelled']``, as for C3D; see :mod:`.naming`).
+unlabelled points (``meta['unlabelled']``, as for C3D; see :mod:`.naming`); their runs that
+continue a named marker across its gap are joined to it (:mod:`.fragments`).
 :func:`write_markers_csv` writes the same layout (``dtm-label --out labelled.csv``).
 
 :func:`read_xyz_csv` is the shared low-level parser (also used by
@@ -22,6 +23,7 @@ import numpy as np
 
 from .axes import from_z_up, resolve_up_axis, to_z_up
 from .clip import MotionClip
+from .fragments import fragments_note, join_channel_fragments
 from .naming import split_channels
 from .sanity import check_body_units, check_rate
 
@@ -107,10 +109,12 @@ def read_xyz_csv(path: str | Path) -> XyzCsv:
                   xyz=a[:, 2:].reshape(len(a), len(names), 3))
 
 
-def load_markers_csv(path: str | Path, unit_scale: float | None = None, up_axis: str = "auto") -> MotionClip:
+def load_markers_csv(path: str | Path, unit_scale: float | None = None, up_axis: str = "auto",
+                     join_fragments: bool = True) -> MotionClip:
     """Marker CSV -> MotionClip (metres, Z up); see the module doc for units, axes and rate.
     ``meta``: ``format``, ``frame_numbers``, ``comments``, ``unit_scale``, ``units``, ``up_axis``,
-    ``up_axis_source``, ``unlabelled``, ``unlabelled_names``, ``unlabelled_duplicates``."""
+    ``up_axis_source``, ``unlabelled``, ``unlabelled_names``, ``unlabelled_duplicates``, and
+    ``unlabelled_fragments`` / ``fragments_note`` as for C3D (:mod:`.fragments`)."""
     t = read_xyz_csv(path)
     said = t.stated(r"\bunits?\s*:?\s*(mm|cm|m)\b")
     units = (said or "mm").lower()
@@ -128,12 +132,16 @@ def load_markers_csv(path: str | Path, unit_scale: float | None = None, up_axis:
     xyz = to_z_up(xyz, up.axis)
     if not forced_units:
         check_body_units(xyz[:, lab] if len(lab) >= 5 else xyz, scale, units, str(path))
+    xyz, fragments = join_channel_fragments(xyz, split, rate) if join_fragments else (xyz, [])
     meta = dict(format="markers_csv", frame_numbers=t.frames, comments=t.comments, unit_scale=scale,
                 units=next((u for u, v in CSV_UNITS.items() if abs(v / scale - 1) < 1e-9), "mm"),
                 up_axis=up.axis, up_axis_source=up.source, unlabelled=xyz[:, split.unnamed].copy(),
                 unlabelled_names=tuple(split.unnamed_names), unlabelled_duplicates=split.duplicates)
     if up.note:
         meta["up_axis_note"] = up.note
+    if fragments:
+        meta["unlabelled_fragments"] = [f.as_dict() for f in fragments]
+        meta["fragments_note"] = fragments_note(fragments)
     return MotionClip(positions=xyz[:, lab], rate=rate, names=tuple(split.names), source=str(path), meta=meta)
 
 

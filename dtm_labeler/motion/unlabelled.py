@@ -49,13 +49,16 @@ class ModelInput:
 
 
 def unlabelled_channels(clip: MotionClip) -> tuple[np.ndarray, tuple[str, ...]]:
-    """``(points (F, K, 3), names)``: the take's unlabelled channels without copies."""
+    """``(points (F, K, 3), names)``: the take's unlabelled channels without copies, and without
+    channels left with no sample (every run a named marker's fragment, :mod:`.fragments`)."""
     pts = clip.meta.get("unlabelled")
     if not isinstance(pts, np.ndarray) or pts.ndim != 3 or pts.shape[0] != clip.n_frames or not pts.shape[1]:
         return np.zeros((clip.n_frames, 0, 3)), ()
     names = tuple(clip.meta.get("unlabelled_names", ()))
     dup = clip.meta.get("unlabelled_duplicates", {}) or {}
-    keep = [k for k, nm in enumerate(names) if nm not in dup]
+    emptied = {fr["channel"] for fr in clip.meta.get("unlabelled_fragments", ())}
+    keep = [k for k, nm in enumerate(names) if nm not in dup
+            and not (nm in emptied and not np.isfinite(pts[:, k]).any())]
     return pts[:, keep], tuple(names[k] for k in keep)
 
 
