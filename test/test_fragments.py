@@ -86,31 +86,34 @@ def test_fragments_join_their_markers_and_nothing_else(take, tmp_path):
 
 
 def test_fragment_rules_on_a_whole_take(hdm):
-    """Every marker of the 41, five stretches each: joined across up to 3 unseen frames at
-    120 Hz (MAX_GAP_S), none across 4; a run 2-4 cm off the marker's path mostly not."""
+    """Every marker of the 41, stretches moved to '*' channels: joined where one end meets the
+    marker's trajectory within 3 unseen frames at 120 Hz (MAX_GAP_S), not at 4; where both ends
+    do, across up to 30 (MAX_BRIDGE_S), not 31; a run 2-4 cm off the marker's path not; never
+    to the wrong marker."""
     P0 = hdm.positions[:3000]
     F, N, _ = P0.shape
     names = list(hdm.names)
 
-    def draw(gap, off):
+    def draw(gap, off=0.0, resumes=True):
         rng = np.random.default_rng(1)
         P, extra, truth = P0.copy(), [], []
-        for _ in range(5):
+        for _ in range(5 if resumes else 1):         # a marker that never resumes: one stretch
             for j in range(N):
-                a = int(rng.integers(10, F - 200))
+                a = int(rng.integers(40, F - 200))
                 b = a + int(rng.integers(5, 120))
                 if not np.isfinite(P[a - gap - 2:b + gap + 2, j]).all():
                     continue
                 ch = np.full((F, 3), np.nan)
                 ch[a:b] = P[a:b, j] + [off, 0.0, 0.0]
-                P[a - gap:b + gap, j] = np.nan
+                P[a - gap:b + gap if resumes else F, j] = np.nan
                 extra.append(ch)
                 truth.append(names[j])
         found = find_fragments(P, names, np.stack(extra, 1), [f"*{i}" for i in range(len(extra))], hdm.rate)
         assert all(truth[int(f.channel[1:])] == f.marker for f in found)       # never the wrong marker
         return len(found) / len(extra)
-    assert draw(0, 0.0) == 1.0 and draw(3, 0.0) > 0.99 and draw(4, 0.0) == 0.0
-    assert draw(0, 0.02) == 0.0 and draw(3, 0.04) < 0.02
+    assert draw(0) == 1.0 and draw(3) == 1.0 and draw(10) > 0.85 and draw(30) > 0.5 and draw(31) == 0.0
+    assert draw(3, resumes=False) > 0.4 and draw(4, resumes=False) == 0.0
+    assert draw(0, 0.02) == 0.0 and draw(10, 0.04) == 0.0 and draw(3, 0.02) < 0.05
 
 
 def test_dtm_label_scores_fragments_as_their_markers(take, hdm, tmp_path, capsys):

@@ -14,7 +14,10 @@ frames in which an unlabelled channel is seen is a fragment of named marker ``M`
 * ``M`` is unseen in every frame of the run (one marker is never two points at once);
 * the run starts where ``M``'s trajectory stopped -- at most :data:`MAX_GAP_S` later, its first
   point within :func:`tolerance` of ``M``'s last point carried on at ``M``'s last velocity --
-  or ends where ``M``'s trajectory resumes (the same, backwards in time);
+  or ends where ``M``'s trajectory resumes (the same, backwards in time); or it does both,
+  each within :data:`MAX_BRIDGE_S` (a marker lost, then tracked on unlabelled after an
+  occlusion until the system labels it again: the tolerance grows with the gap, and both
+  ends must meet the one trajectory);
 * the run copies no seen named marker in any frame (:data:`COPY_M`: a partial copy of a
   channel is that channel's point, not another's fragment);
 * no other named marker continues into it as well: the runner-up's distance, in tolerances,
@@ -39,6 +42,8 @@ from .naming import ChannelSplit
 
 #: a fragment may start at most this long after its marker's last sample (or end this long before it resumes)
 MAX_GAP_S = 0.025
+#: ... or, when both its ends meet the marker's trajectory, this long on each side
+MAX_BRIDGE_S = 0.25
 #: how far (m) a fragment's first point may lie from where its marker was heading, before speed
 BASE_TOLERANCE_M = 0.01
 #: ... plus this share of the marker's own displacement over the gap
@@ -94,13 +99,13 @@ def _copies(named: np.ndarray, run: np.ndarray) -> bool:
 
 
 def _end_fit(named: np.ndarray, seen: np.ndarray, point: np.ndarray, frame: int, direction: int,
-             max_gap: int) -> tuple[np.ndarray, np.ndarray]:
+             max_gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per named marker, ``point``'s distance from where the marker was heading when it was last
     seen before ``frame`` (``direction`` -1) or first seen after it (+1), within ``max_gap``
-    missing frames: ``(in tolerances, in metres)``, inf where it was not seen so near. The frame
-    nearest the run's edge in which a marker is seen decides for it."""
+    missing frames: ``(in tolerances, in metres, frames away)``, inf where it was not seen so
+    near. The frame nearest the run's edge in which a marker is seen decides for it."""
     F, N = seen.shape
-    ratio, metres = np.full(N, np.inf), np.full(N, np.inf)
+    ratio, metres, away = np.full(N, np.inf), np.full(N, np.inf), np.full(N, np.inf)
     for k in range(1, max_gap + 2):
         f = frame + direction * k
         if not 0 <= f < F:
@@ -118,7 +123,8 @@ def _end_fit(named: np.ndarray, seen: np.ndarray, point: np.ndarray, frame: int,
         tol = tolerance(np.linalg.norm(step, axis=1), k)
         ratio[here] = dist[here] / tol[here]
         metres[here] = dist[here]
-    return ratio, metres
+        away[here] = k
+    return ratio, metres, away
 
 
 def find_fragments(named: np.ndarray, names: tuple[str, ...] | list[str], unnamed: np.ndarray,
@@ -140,6 +146,7 @@ def join_fragments(named: np.ndarray, names: tuple[str, ...] | list[str], unname
     if not F or not N or not K:
         return named, unnamed, found
     max_gap = max(0, int(round(MAX_GAP_S * float(rate))))
+    max_bridge = max(max_gap, int(round(MAX_BRIDGE_S * float(rate))))
     seen = np.isfinite(named).all(axis=2)
     for _ in range(MAX_PASSES):
         joined = 0
@@ -149,9 +156,12 @@ def join_fragments(named: np.ndarray, names: tuple[str, ...] | list[str], unname
                 free = ~seen[a:b + 1].any(axis=0)                   # markers unseen over the whole run
                 if not free.any() or _copies(named[a:b + 1], unnamed[a:b + 1, k]):
                     continue
-                r0, m0 = _end_fit(named, seen, unnamed[a, k], a, -1, max_gap)
-                r1, m1 = _end_fit(named, seen, unnamed[b, k], b, +1, max_gap)
-                ratio, metres = np.minimum(r0, r1), np.where(r0 <= r1, m0, m1)
+                r0, m0, k0 = _end_fit(named, seen, unnamed[a, k], a, -1, max_bridge)
+                r1, m1, k1 = _end_fit(named, seen, unnamed[b, k], b, +1, max_bridge)
+                # one end next to the marker's trajectory, or both ends across a longer gap
+                one0, one1 = np.where(k0 <= max_gap + 1, r0, np.inf), np.where(k1 <= max_gap + 1, r1, np.inf)
+                ratio = np.minimum(np.minimum(one0, one1), np.maximum(r0, r1))
+                metres = np.where(r0 <= r1, m0, m1)
                 ratio[~free] = np.inf
                 order = np.argsort(ratio)
                 best = int(order[0])
