@@ -35,6 +35,11 @@ Sections (``--only``):
   a prop; 3 of them) as ``*`` channels of the gapped second half, the gapped first half's model;
   the HDM05 take, a draw of 22 of its markers (fewer markers: a hand's are more often all hidden)
   and the Qualisys walk; the same second half without them beside. Not in the default ``--only``.
+* ``fragments`` -- the gapped second half as a system's auto-labelling leaves it: after a gap a
+  marker often comes back unlabelled for 0.1-0.5 s before it is named again (:func:`broken_trajectories`:
+  those stretches as ``*`` channels), the gapped first half's model; labelled with the fragments joined
+  to their markers (the loaders' default, ``motion/fragments.py``), kept apart (scored as ghosts), and
+  the unbroken half beside. Not in the default ``--only``.
 * ``unnamed`` -- the HDM05 take's second half with its names stripped (only ``*`` channels,
   trajectories cut into pieces of ~1.5 s spread over channels, as an unlabelled export looks)
   through ``dtm-label MODEL unnamed.c3d --out labelled.c3d`` (the console script, a
@@ -167,7 +172,8 @@ def label(model, path: Path, **kw):
             "ghosts": m.ghosts, "ghost_rejection": m.ghost_rejection,
             "search_errors": m.search_errors, "full_search_rate": m.full_search_rate,
             "p50_ms": m.latency_ms["p50"], "p99_ms": m.latency_ms["p99"], "wall_s": r.wall_s,
-            "unlabelled_points": r.unlabelled_points, "anonymous_points": r.anonymous_points}
+            "unlabelled_points": r.unlabelled_points, "anonymous_points": r.anonymous_points,
+            "fragments_joined": r.fragments_joined}
 
 
 # -- sections ---------------------------------------------------------------------------------------
@@ -317,6 +323,53 @@ def run_gap_ghosts(tmp: Path, keys, seeds, quick: bool) -> dict:
                 f"{t} {100 * row[t]['live_accuracy']:.2f} -> {100 * row[t]['accuracy']:.2f} %, ghosts rejected "
                 f"{100 * row[t]['ghost_rejection']:.2f} % of {row[t]['ghosts']}" for t, _ in TRACKING)
                 + f"; without them (own tracker) {100 * row['without_ghosts']['accuracy']:.2f} %")
+    return out
+
+
+def broken_trajectories(positions: np.ndarray, rate: float, share: float = 0.4, seed: int = 0):
+    """What a system's auto-labelling leaves of a gapped take: after a gap, with probability
+    ``share``, the marker comes back unlabelled for 0.1-0.5 s (at most all but one frame of its
+    run: the system labels it again after) before it is named again. Returns the named channels
+    with those stretches hidden, and one ``*`` channel per stretch (F, K, 3)."""
+    rng = np.random.default_rng(seed)
+    P = positions.copy()
+    F, N, _ = P.shape
+    stars = []
+    for j in range(N):
+        seen = np.isfinite(P[:, j, 0])
+        starts = np.flatnonzero(seen[1:] & ~seen[:-1]) + 1          # back from a gap
+        for a in starts:
+            run = int(np.argmin(seen[a:])) if not seen[a:].all() else F - a
+            n = min(int(rng.uniform(0.1, 0.5) * rate), run - 1)
+            if n < 1 or rng.random() >= share:
+                continue
+            ch = np.full((F, 3), np.nan)
+            ch[a:a + n] = P[a:a + n, j]
+            P[a:a + n, j] = np.nan
+            stars.append(ch)
+    return P, (np.stack(stars, 1) if stars else np.zeros((F, 0, 3)))
+
+
+def run_fragments(tmp: Path, keys, quick: bool) -> dict:
+    """Fragments of named markers as ``*`` channels of the gapped second half (module doc,
+    ``fragments``): joined to their markers (the loaders' default) and kept apart."""
+    out = {}
+    for key in keys:
+        _, tr, la, _, gap = gapped_halves(key, quick)
+        row = {}
+        model = train_leaving_out(gap.slice(tr.start, tr.stop), row, f"fragments {key}")
+        test = gap.slice(la.start, la.stop)
+        named, stars = broken_trajectories(test.positions, test.rate)
+        path = write_c3d(tmp / f"{key}_fragments.c3d", np.concatenate([named, stars], 1),
+                         list(test.names) + [f"*{i}" for i in range(stars.shape[1])], test.rate)
+        row.update({"fragments": int(stars.shape[1]), "fragment_samples": int(np.isfinite(stars[..., 0]).sum()),
+                    "unbroken": label(model, write_take(tmp / f"{key}_unbroken.c3d", test), take_votes_s=TAKE_VOTES_S),
+                    "joined": label(model, path, take_votes_s=TAKE_VOTES_S),
+                    "apart": label(model, path, take_votes_s=TAKE_VOTES_S, load={"join_fragments": False})})
+        out[key] = row
+        log(f"fragments {key}: {row['fragments']} stretches, {row['fragment_samples']} samples; " + ", ".join(
+            f"{w} {100 * row[w]['accuracy']:.2f} %, ghosts {row[w]['ghosts']} rejected {pct(row[w]['ghost_rejection'])}"
+            for w in ("unbroken", "joined", "apart")))
     return out
 
 
@@ -531,6 +584,22 @@ def write_md(res: dict, meta: dict) -> str:
                 L.append(f"| {key} | {seed} | {pct(r['capture ids']['accuracy'])} | "
                          f"{pct(r['own tracker']['accuracy'])} |")
         L.append("")
+    if res.get("fragments"):
+        L += ["## Fragments of named markers in `*` channels", "",
+              "The gapped second half (gap seed 1) as a system's auto-labelling leaves it: after a gap a marker "
+              "comes back unlabelled for 0.1-0.5 s (40 % of its returns) before it is named again, those stretches "
+              "as `*` channels; the gapped first half's model, `dtm-label`'s default, own tracker. *joined*: the "
+              "loaders join a `*` run that continues a named marker (`motion/fragments.py`, the default); "
+              "*apart*: `join_fragments=False`, the fragments scored as ghosts; *unbroken*: the same half with "
+              "the stretches in their named channels.", "",
+              "| take | stretches (samples) | joined to their markers | unbroken: accuracy % | joined: accuracy %, "
+              "ghosts, rejected % | apart: accuracy %, ghosts, rejected % |", "|---|---|---:|---:|---|---|"]
+        for key, r in res["fragments"].items():
+            L.append(f"| {key} | {r['fragments']} ({r['fragment_samples']}) | {r['joined']['fragments_joined']} | "
+                     f"{pct(r['unbroken']['accuracy'])} | " + " | ".join(
+                         f"{pct(r[w]['accuracy'])}, {r[w]['ghosts']}, {pct(r[w]['ghost_rejection'])}"
+                         for w in ("joined", "apart")) + " |")
+        L.append("")
     if "reflections" in res:
         L += ["## Fixed reflections beside gapped takes", "",
               f"{REFLECTIONS} fixed points (floor tape, a prop: half on the floor, the rest up to 2 m, within 1.5 m of "
@@ -646,6 +715,8 @@ def main(argv=None) -> int:
                                               [1] + [int(x) for x in args.gap_seeds.split(",")], args.quick)
         if "reflections" in only:
             res["reflections"] = run_reflections(tmp, args.quick)
+        if "fragments" in only:
+            res["fragments"] = run_fragments(tmp, args.gap_takes.split(","), args.quick)
         if "unnamed" in only:
             res["unnamed"] = run_unnamed(tmp, args.quick)
             log(f"unnamed: {100 * res['unnamed']['named_right']:.2f} % of true samples named right")

@@ -98,13 +98,18 @@ def _copies(named: np.ndarray, run: np.ndarray) -> bool:
     return bool(np.any(d <= COPY_M))
 
 
-def _end_fit(named: np.ndarray, seen: np.ndarray, point: np.ndarray, frame: int, direction: int,
-             max_gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per named marker, ``point``'s distance from where the marker was heading when it was last
-    seen before ``frame`` (``direction`` -1) or first seen after it (+1), within ``max_gap``
-    missing frames: ``(in tolerances, in metres, frames away)``, inf where it was not seen so
-    near. The frame nearest the run's edge in which a marker is seen decides for it."""
+def _end_fit(named: np.ndarray, seen: np.ndarray, point: np.ndarray, inner: np.ndarray, frame: int,
+             direction: int, max_gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per named marker, how far the run's edge ``point`` (at ``frame``) and the marker's
+    trajectory miss each other when the marker was last seen before ``frame`` (``direction`` -1)
+    or first seen after it (+1), within ``max_gap`` missing frames: ``(in tolerances, in metres,
+    frames away)``, inf where it was not seen so near. The frame nearest the run's edge in which
+    a marker is seen decides for it. Either side's velocity carries it across (the marker's own
+    last step, or the run's, ``point - inner``, when the marker shows one frame only there); the
+    better reading counts."""
     F, N = seen.shape
+    run_step = point - inner if np.isfinite(inner).all() else np.zeros(3)
+    run_speed = float(np.linalg.norm(run_step))
     ratio, metres, away = np.full(N, np.inf), np.full(N, np.inf), np.full(N, np.inf)
     for k in range(1, max_gap + 2):
         f = frame + direction * k
@@ -118,11 +123,13 @@ def _end_fit(named: np.ndarray, seen: np.ndarray, point: np.ndarray, frame: int,
         if 0 <= g < F:
             both = here & seen[g]
             step[both] = named[f, both] - named[g, both]
-        pred = named[f] + step * k
-        dist = np.linalg.norm(point[None] - pred, axis=1)
-        tol = tolerance(np.linalg.norm(step, axis=1), k)
-        ratio[here] = dist[here] / tol[here]
-        metres[here] = dist[here]
+        dist = np.linalg.norm(point[None] - (named[f] + step * k), axis=1)          # the marker's heading
+        r = dist / tolerance(np.linalg.norm(step, axis=1), k)
+        dist_run = np.linalg.norm(named[f] - (point + run_step * k)[None], axis=1)  # the run's
+        r_run = dist_run / tolerance(run_speed, k)
+        use_run = r_run < r
+        ratio[here] = np.where(use_run, r_run, r)[here]
+        metres[here] = np.where(use_run, dist_run, dist)[here]
         away[here] = k
     return ratio, metres, away
 
@@ -156,8 +163,8 @@ def join_fragments(named: np.ndarray, names: tuple[str, ...] | list[str], unname
                 free = ~seen[a:b + 1].any(axis=0)                   # markers unseen over the whole run
                 if not free.any() or _copies(named[a:b + 1], unnamed[a:b + 1, k]):
                     continue
-                r0, m0, k0 = _end_fit(named, seen, unnamed[a, k], a, -1, max_bridge)
-                r1, m1, k1 = _end_fit(named, seen, unnamed[b, k], b, +1, max_bridge)
+                r0, m0, k0 = _end_fit(named, seen, unnamed[a, k], unnamed[min(a + 1, b), k], a, -1, max_bridge)
+                r1, m1, k1 = _end_fit(named, seen, unnamed[b, k], unnamed[max(b - 1, a), k], b, +1, max_bridge)
                 # one end next to the marker's trajectory, or both ends across a longer gap
                 one0, one1 = np.where(k0 <= max_gap + 1, r0, np.inf), np.where(k1 <= max_gap + 1, r1, np.inf)
                 ratio = np.minimum(np.minimum(one0, one1), np.maximum(r0, r1))
