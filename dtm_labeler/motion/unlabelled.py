@@ -16,7 +16,9 @@ a take accordingly:
   every point is an extra point and nothing can be scored (``named`` is False);
 * otherwise (model labels missing): ValueError naming them.
 
-Copies of another channel (HDM05 ``*0 *1 *2``, see :mod:`.naming`) are never fed twice.
+Copies of another channel (HDM05 ``*0 *1 *2``, see :mod:`.naming`) are never fed twice; runs of
+an unlabelled channel that continue a named marker across its gap were joined to it by the loader
+(:mod:`.fragments`) and are that marker here.
 ``keep_unlabelled=False`` gives the model's points only (``--drop-unlabelled``).
 """
 from __future__ import annotations
