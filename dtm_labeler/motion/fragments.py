@@ -46,7 +46,7 @@ MAX_GAP_S = 0.025
 MAX_BRIDGE_S = 0.25
 #: how far (m) a fragment's first point may lie from where its marker was heading, before speed
 BASE_TOLERANCE_M = 0.01
-#: ... plus this share of the marker's own displacement over the gap
+#: ... plus this share of the displacement over the gap at the marker's (or the run's) last velocity
 SPEED_SHARE = 0.25
 #: a run that comes this near (m) a seen named marker in any of its frames is a copy of it, not a fragment
 COPY_M = 0.002
@@ -78,8 +78,8 @@ class Fragment:
 
 
 def tolerance(step_m: np.ndarray | float, frames: np.ndarray | int) -> np.ndarray:
-    """How far (m) a fragment's joining point may lie from the marker's extrapolated position,
-    given the marker's last step (m per frame) and the frames between them."""
+    """How far (m) a fragment's joining point may lie from the extrapolated position, given the
+    last step it was carried on at (m per frame) and the frames between them."""
     return BASE_TOLERANCE_M + SPEED_SHARE * np.asarray(step_m) * np.asarray(frames)
 
 
