@@ -133,3 +133,32 @@ def test_dtm_label_scores_fragments_as_their_markers(take, hdm, tmp_path, capsys
     right = sum(int((np.abs(back.positions[a:b + 1, back.index(m)]
                             - clip.positions[a:b + 1, clip.index(m)]).max(-1) < 1e-4).sum()) for m, a, b in runs)
     assert right / samples > 0.9                             # the labelled C3D carries them by name
+
+
+def test_systems_names_for_unlabelled_trajectories(hdm, tmp_path):
+    """QTM's 'Unidentified N', Motive's 'Unlabeled N' and a stray part kept as 'NAME-1' are
+    unlabelled channels: joined where they continue their marker, left unlabelled elsewhere; a
+    'NAME-1' seen beside NAME is a marker of its own."""
+    clip = hdm.select(UPPER).slice(2000, 2300)
+    P = clip.positions.copy()
+    F = clip.n_frames
+    parts = {}
+    for name, (a, b) in (("RWRA", (50, 90)), ("LELB", (120, 160))):
+        j = UPPER.index(name)
+        ch = np.full((F, 3), np.nan)
+        ch[a:b] = P[a:b, j]
+        P[a:b, j] = np.nan
+        parts[name] = ch
+    ghost = np.full((F, 3), np.nan)
+    ghost[10:40] = P[10:40, UPPER.index("C7")] + [0.0, 0.0, 0.3]
+    own = hdm.select(["LKNE"]).slice(2000, 2300).positions[:, 0]          # a marker named CLAV-1, always seen
+    names = UPPER + ["RWRA-1", "Subj:Unidentified 7", "Unlabeled 1001", "CLAV-1"]
+    path = tmp_path / "systems.c3d"
+    write_c3d(path, np.concatenate([P, np.stack([parts["RWRA"], parts["LELB"], ghost, own], 1)], 1), names, clip.rate)
+    got = load_clip(path)
+    assert got.names == tuple(UPPER + ["CLAV-1"])
+    assert {(f["channel"], f["marker"]) for f in got.meta["unlabelled_fragments"]} == {
+        ("RWRA-1", "RWRA"), ("Subj:Unidentified 7", "LELB")}
+    assert np.abs(got.positions[:, :len(UPPER)] - clip.positions).max() < 1e-4      # both joined back
+    left = got.meta["unlabelled"]
+    assert np.isfinite(left[..., 0]).sum() == 30                              # the ghost, as it was

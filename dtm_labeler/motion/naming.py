@@ -5,9 +5,13 @@ Rules (the same for every loader and every tool):
 * **Subject prefixes** are dropped: everything up to the last ``':'`` (``Male:LFHD -> LFHD``),
   unless two channels would then share a name (those keep their full label).
 * **Unnamed channels** are points without a name: an empty label, or one starting with ``'*'``
-  after the prefix (``*0``, ``Bastian:*12``; Vicon/Nexus and QTM write unlabelled
-  trajectories this way, and so does ``dtm-label --out``). They are kept apart as
-  *unlabelled points* (``meta['unlabelled']``), never as model points.
+  after the prefix (``*0``, ``Bastian:*12``; Vicon/Nexus writes unlabelled trajectories this
+  way, and so does ``dtm-label --out``), or a system's word for one with its number
+  (``Unidentified 12``, ``Discarded 3``: QTM's; ``Unlabeled 1001``: Motive's;
+  :data:`SYSTEM_UNNAMED`). A stray part of a named trajectory kept under the name with a
+  ``-N`` suffix (``T10-1`` beside ``T10``, never seen with it) is unnamed too: the loaders
+  join it to its marker where it continues it (:mod:`.fragments`). They are kept apart as *unlabelled points*
+  (``meta['unlabelled']``), never as model points.
 * **Copies**: an unnamed channel that is bit-identical in every frame to a named one (the
   HDM05 takes' ``*0 *1 *2`` = ``LFWT CLAV LFHD``) or to an earlier unnamed one is the same
   physical point twice; it is recorded in ``meta['unlabelled_duplicates']`` and never fed to
@@ -20,6 +24,7 @@ Rules (the same for every loader and every tool):
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -32,10 +37,34 @@ def strip_prefix(label: str) -> str:
     return label.rsplit(":", 1)[-1].strip()
 
 
+#: a system's name for a trajectory it did not label: the word, then its number (module doc)
+SYSTEM_UNNAMED = re.compile(r"^(unlabell?ed|unidentified|discarded|unnamed)[\s_#-]*\d*$", re.IGNORECASE)
+#: a stray part of a named trajectory: the name, a dash and a small number (``T10-1``)
+STRAY_PART = re.compile(r"^(.+)-(\d{1,2})$")
+
+
 def is_unnamed(label: str) -> bool:
-    """True for an unlabelled channel: ``''``, ``'*3'``, ``'Subject:*0'``."""
+    """True for an unlabelled channel: ``''``, ``'*3'``, ``'Subject:*0'``, ``'Unidentified 12'``."""
     short = strip_prefix(str(label))
-    return not short or short.startswith("*")
+    return not short or short.startswith("*") or SYSTEM_UNNAMED.match(short) is not None
+
+
+def stray_parts(labels: Sequence[str], xyz: np.ndarray | None = None) -> set[int]:
+    """Indices of ``labels`` that are a stray part of another label's trajectory: ``T10-1`` when
+    ``T10`` is a label too (prefixes stripped) and, given the channels ``xyz`` (F, N, 3), never
+    seen in a frame where ``T10`` is (a marker of its own named so is seen beside it)."""
+    short = [strip_prefix(str(s)) for s in labels]
+    where = {s: i for i, s in enumerate(short)}
+    out = set()
+    for i, s in enumerate(short):
+        m = STRAY_PART.match(s)
+        base = where.get(m.group(1)) if m is not None else None
+        if base is None:
+            continue
+        if xyz is not None and (np.isfinite(xyz[:, i]).all(-1) & np.isfinite(xyz[:, base]).all(-1)).any():
+            continue
+        out.add(i)
+    return out
 
 
 @dataclass
@@ -58,7 +87,8 @@ class ChannelSplit:
 def split_channels(labels: Sequence[str], xyz: np.ndarray, where: str = "") -> ChannelSplit:
     """Divide channels (``labels``, ``xyz`` (F, N, 3) with NaN = missing) by the module rules."""
     raw = [str(s).strip() for s in labels]
-    unnamed = [i for i, s in enumerate(raw) if is_unnamed(s)]
+    stray = stray_parts(raw, xyz)
+    unnamed = [i for i, s in enumerate(raw) if is_unnamed(s) or i in stray]
     skip = set(unnamed)
     named = [i for i in range(len(raw)) if i not in skip]
     short = [strip_prefix(raw[i]) for i in named]
