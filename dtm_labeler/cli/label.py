@@ -455,6 +455,10 @@ def _print_summary(args, settings, model, m: Metrics, runs: list) -> None:
     if unl:
         print(f"unlabelled     {unl} point{'s' if unl > 1 else ''} of the take{'s' if len(runs) > 1 else ''} "
               "(* channels, unnamed columns, markers not in the model) fed as ghosts")
+    joined = sum(getattr(r, "fragments_joined", 0) for r in runs)
+    if joined:
+        print(f"fragments      {joined} samples of unlabelled channels continue named markers across their gaps: "
+              "joined to them (labelled and scored as those markers)")
     unnamed = [r for r in runs if not getattr(r, "named", True)]
     if unnamed:
         print(f"not scored     {len(unnamed)} take{'s' if len(unnamed) > 1 else ''} without names")
