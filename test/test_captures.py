@@ -295,3 +295,26 @@ def test_half_the_markers_hidden_stream(hdm, upper_model):
     P[hidden] = np.nan
     m = run_stream(model, corrupt_clip(clip._replace(positions=P), seed=0), use_ids=True).metrics
     assert m.accuracy >= 0.85, m.accuracy
+
+
+def test_a_capture_of_two_subjects_is_labelled_one_subject_at_a_time(hdm, upper_model, tmp_path, capsys):
+    """Two actors under prefixes with the same marker names: refused without --subject (naming
+    both); with it, that subject's markers are the points and the other actor's are unlabelled
+    points, rejected as any other person beside the body would be."""
+    from dtm_labeler.motion.naming import subjects
+    a = hdm.select(UPPER).slice(2000, 2120)
+    b = hdm.select(UPPER).slice(3000, 3120).positions + [1.5, 0.0, 0.0]       # another actor, 1.5 m away
+    f = tmp_path / "two.c3d"
+    write_c3d(f, np.concatenate([a.positions, b], 1), [f"Anna:{n}" for n in UPPER] + [f"Ben:{n}" for n in UPPER],
+              a.rate)
+    assert subjects([f"Anna:{n}" for n in UPPER] + [f"Ben:{n}" for n in UPPER] + ["Bat:tip"]) == ["Anna", "Ben"]
+    with pytest.raises(ValueError, match="2 subjects .*Anna, Ben.*--subject"):
+        load_clip(f)
+    got = load_clip(f, subject="Ben")
+    assert got.names == tuple(UPPER) and np.allclose(got.positions, b, equal_nan=True)
+    assert got.meta["unlabelled"].shape[1] == len(UPPER) and got.meta["unlabelled_names"][0] == "Anna:LFHD"
+    assert label_main([str(upper_model), str(f), "--subject", "Anna", "--json", "--quiet", "--calibrate", "off"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["accuracy"] > 0.9 and d["ghosts"] == len(UPPER) * a.n_frames and d["ghost_rejection"] > 0.95
+    assert label_main([str(upper_model), str(f), "--subject", "Carl", "--quiet"]) != 0
+    assert "no channel of subject 'Carl' (subjects: Anna, Ben)" in capsys.readouterr().err

@@ -64,6 +64,9 @@ def add_capture_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--units", default=None, choices=("mm", "cm", "m", "inch"),
                    help="length unit of the files' numbers when their own statement is wrong or missing "
                         "(default: C3D POINT:UNITS, CSV comments, else mm)")
+    g.add_argument("--subject", default=None, metavar="NAME",
+                   help="in a capture of several subjects (the same marker names under prefixes NAME:...), the "
+                        "one whose markers are the points; the others' are unlabelled points")
     g.add_argument("--asf", default=None, metavar="PATH",
                    help="skeleton for .amc takes (default: same name, the CMU subject's NN.asf for NN_MM.amc, "
                         "or the only .asf in the folder)")
@@ -74,6 +77,8 @@ def capture_kwargs(args) -> dict:
     kw = {"up_axis": args.up_axis}
     if args.units:
         kw["units"] = args.units
+    if getattr(args, "subject", None):
+        kw["subject"] = args.subject
     if args.asf:
         if not Path(args.asf).is_file():
             raise CliError(f"--asf {args.asf}: no such file")

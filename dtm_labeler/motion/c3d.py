@@ -61,7 +61,7 @@ def c3d_units(unit_scale: float) -> str:
 
 
 def load_c3d(path: str | Path, up_axis: str = "auto", include_unlabelled: bool = False,
-             unit_scale: float | None = None, join_fragments: bool = True) -> MotionClip:
+             unit_scale: float | None = None, join_fragments: bool = True, subject: str | None = None) -> MotionClip:
     """Read the 3-D points of a C3D file as a MotionClip (see module doc for rules).
 
     ``meta``: ``format``, ``unit_scale``, ``units`` (POINT:UNITS text of that scale),
@@ -70,7 +70,8 @@ def load_c3d(path: str | Path, up_axis: str = "auto", include_unlabelled: bool =
     ``up_axis_source`` (+ ``up_axis_note``), ``screen`` (POINT:X_SCREEN, Y_SCREEN or None);
     ``unlabelled_fragments`` and ``fragments_note`` when unlabelled channels continued named
     markers across their gaps and were joined to them (:mod:`.fragments`; ``join_fragments=False``
-    keeps them apart).
+    keeps them apart). ``subject``: the subject whose markers are the points, in a capture of
+    several (:func:`.naming.split_channels`).
     """
     import ezc3d  # local import: only needed for C3D
 
@@ -107,7 +108,7 @@ def load_c3d(path: str | Path, up_axis: str = "auto", include_unlabelled: bool =
     if header_rate > 0:
         check_rate(rate, np.arange(3) / header_rate, path, "POINT:RATE")
 
-    split = split_channels(_labels(params, n), xyz, path)
+    split = split_channels(_labels(params, n), xyz, path, subject)
     lab, unl = split.named, split.unnamed
     screen = [_param(params, "POINT", k) for k in ("X_SCREEN", "Y_SCREEN")]
     screen = tuple(str(v[0]).strip() for v in screen) if all(v is not None and len(v) for v in screen) else None

@@ -133,6 +133,8 @@ def load_clip(path: str | Path, points: str | Sequence[str] = "all", **kw) -> Mo
         kw["csv_kind"] = csv_kind(path)
     if ext != ".amc":
         kw.pop("asf_path", None)
+    if ext not in (".c3d", ".csv") or kw.get("subject") is None:
+        kw.pop("subject", None)                  # one subject per skeletal file
     kw = capture_options(kw, ext)
     if ext == ".bvh":
         clip = load_bvh(path, **kw)

@@ -110,7 +110,7 @@ def read_xyz_csv(path: str | Path) -> XyzCsv:
 
 
 def load_markers_csv(path: str | Path, unit_scale: float | None = None, up_axis: str = "auto",
-                     join_fragments: bool = True) -> MotionClip:
+                     join_fragments: bool = True, subject: str | None = None) -> MotionClip:
     """Marker CSV -> MotionClip (metres, Z up); see the module doc for units, axes and rate.
     ``meta``: ``format``, ``frame_numbers``, ``comments``, ``unit_scale``, ``units``, ``up_axis``,
     ``up_axis_source``, ``unlabelled``, ``unlabelled_names``, ``unlabelled_duplicates``, and
@@ -124,7 +124,7 @@ def load_markers_csv(path: str | Path, unit_scale: float | None = None, up_axis:
     if t.stated_rate() is not None:
         check_rate(rate, t.times, str(path), "the stated rate")
     xyz = t.xyz * scale
-    split = split_channels(t.names, xyz, str(path))
+    split = split_channels(t.names, xyz, str(path), subject)
     said_up = t.stated(r"\b([XYZ])[\s-]*up\b") or t.stated(r"\bup[\s-]*axis\s*:?\s*([XYZ])\b")
     lab = split.named
     up = resolve_up_axis(xyz[:, lab] if len(lab) >= 5 else xyz, up_axis, file_axis=said_up,

@@ -16,6 +16,10 @@ Rules (the same for every loader and every tool):
   HDM05 takes' ``*0 *1 *2`` = ``LFWT CLAV LFHD``) or to an earlier unnamed one is the same
   physical point twice; it is recorded in ``meta['unlabelled_duplicates']`` and never fed to
   a labeler as a second point.
+* **Several subjects** in one capture (two actors, each under a prefix with the same marker
+  names, :func:`subjects`): one is chosen (``--subject NAME``); the others' markers are
+  unlabelled points of its takes, as any other person near the body would be. Without the
+  choice such a capture is refused with the subjects' names.
 * **Several takes** (:func:`common_names`): the same names in another channel order are the
   same point set (every take is put in the first one's order); different sets keep the
   names all takes share, in the first take's order, with a one-line note; no name in common
@@ -84,11 +88,42 @@ class ChannelSplit:
         return [k for k, nm in enumerate(self.unnamed_names) if nm not in self.duplicates]
 
 
-def split_channels(labels: Sequence[str], xyz: np.ndarray, where: str = "") -> ChannelSplit:
-    """Divide channels (``labels``, ``xyz`` (F, N, 3) with NaN = missing) by the module rules."""
+def subject_of(label: str) -> str:
+    """The subject prefix of a channel label (``'Male:LFHD' -> 'Male'``; '' without one)."""
+    head, sep, _ = str(label).strip().rpartition(":")
+    return head.strip() if sep else ""
+
+
+def subjects(labels: Sequence[str], min_markers: int = 5) -> list[str]:
+    """The subjects of a capture: the prefixes under which at least ``min_markers`` named
+    channels share their names with another prefix's (one actor's marker set twice), in
+    order of appearance; [] for a capture of one subject (a prop's few channels do not count)."""
+    by: dict[str, set[str]] = {}
+    for s in labels:
+        if not is_unnamed(s):
+            by.setdefault(subject_of(s), set()).add(strip_prefix(s))
+    return [p for p, names in by.items()
+            if any(q != p and len(names & other) >= min_markers for q, other in by.items())]
+
+
+def split_channels(labels: Sequence[str], xyz: np.ndarray, where: str = "", subject: str | None = None
+                   ) -> ChannelSplit:
+    """Divide channels (``labels``, ``xyz`` (F, N, 3) with NaN = missing) by the module rules.
+    A capture of several subjects (:func:`subjects`) needs ``subject``: that subject's channels
+    are its points, every other subject's are unlabelled points (another person near the body)."""
     raw = [str(s).strip() for s in labels]
-    stray = stray_parts(raw, xyz)
-    unnamed = [i for i, s in enumerate(raw) if is_unnamed(s) or i in stray]
+    several = subjects(raw)
+    where_ = f"{where + ': ' if where else ''}"
+    if subject is not None:
+        have = sorted({subject_of(s) for s in raw if not is_unnamed(s)} - {""})
+        if subject not in have:
+            raise ValueError(f"{where_}no channel of subject {subject!r} (subjects: {', '.join(have) or 'none'})")
+    elif len(several) > 1:
+        raise ValueError(f"{where_}the capture holds {len(several)} subjects ({', '.join(several)}) with the same "
+                         "marker names; choose one with --subject NAME (the others' markers are then unlabelled points)")
+    others = set() if subject is None else {i for i, s in enumerate(raw) if not is_unnamed(s) and subject_of(s) != subject}
+    stray = stray_parts(["" if i in others else s for i, s in enumerate(raw)], xyz)
+    unnamed = [i for i, s in enumerate(raw) if is_unnamed(s) or i in stray or i in others]
     skip = set(unnamed)
     named = [i for i in range(len(raw)) if i not in skip]
     short = [strip_prefix(raw[i]) for i in named]
