@@ -8,7 +8,7 @@ import sys
 from ..model.io import load_model, save_model
 from ..motion.load import load_clip
 from ..training.calibrate import LABEL_SOURCES, CalibrationError, calibrate_from_clip
-from .common import CliError, HelpFormatter, parse_frames, run_main
+from .common import CliError, HelpFormatter, add_capture_options, capture_kwargs, parse_frames, run_main
 
 EPILOG = """examples:
   dtm-calibrate models/generic.npz rom_trial.c3d --frames 0:600 --out models/alice.npz
@@ -34,6 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="where the calibration frames' labels come from")
     p.add_argument("--out", required=True, metavar="MODEL2", help="calibrated model to write (.npz)")
     p.add_argument("--json", action="store_true", help="print the calibration summary as JSON")
+    add_capture_options(p)
     return p
 
 
@@ -44,7 +45,7 @@ def _main(argv=None) -> int:
     except (OSError, ValueError) as e:
         raise CliError(str(e)) from None
     try:
-        clip = load_clip(args.capture)
+        clip = load_clip(args.capture, **capture_kwargs(args))
     except (OSError, ValueError, KeyError) as e:
         raise CliError(f"{args.capture}: {e}") from None
     a, b = parse_frames(args.frames, clip.n_frames)
