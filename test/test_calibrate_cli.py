@@ -410,3 +410,29 @@ def test_dtm_label_says_which_segments_a_session_check_moved():
     assert refused == "not applied: no segment of the person's moved"
     line = _calibration_line({"applied": True, "frames": 100, "kept_share": 0.99, "moved": [], "broad": {"x": 1}})
     assert "no marker placed elsewhere" in line and "broad motion weights" in line and "99 %" in line, line
+
+
+def test_a_capture_not_known_to_be_the_training_persons_is_recognised_by_their_lengths(models, data_dir, run,
+                                                                                          tmp_path):
+    """A model calibrated to its training takes' person (subject 55's lambada) on a capture of
+    that person that nothing names as theirs (the lambada's later frames written as a C3D of
+    another name): the generic body's self-calibration measures their segment lengths, they
+    agree with the person's, and the take is labelled with the person's own calibration checked
+    for this session -- not with 5 s of self-measured lengths (HDM05, the whole take under a
+    model of its gapped first half: 99.25 % self-calibrated, 100 % recognised). Another
+    person's capture (subject 5's pirouette) agrees on few segments and is self-calibrated as
+    before (test above)."""
+    from dtm_labeler.motion.c3d_write import write_c3d
+    from dtm_labeler.training.calibrate import calibrate_on_takes, same_person, segments_agree
+    model_path, _, _ = models
+    lam = load_clip(data_dir / LAMBADA, points="body14")
+    person = calibrate_on_takes(load_model(model_path), [lam.slice(0, 360)])
+    path = save_model(person, tmp_path / "person.npz")
+    later = lam.slice(1200, 1800)
+    take = write_c3d(tmp_path / "session2.c3d", later.positions, list(later.names), later.rate)
+    d = json.loads(run("dtm-label", path, take, "--no-take-pass", "--json", "--quiet").stdout)
+    cal = d["inputs"][0]["calibration"]
+    assert "training takes' person" in cal["recognised"] and "set_aside" not in cal, cal
+    assert "session check" in cal["source"] and d["accuracy"] > 0.98
+    agree, compared = segments_agree(person.body, person.body)
+    assert agree == compared > 5 and same_person(person.body, person.body)

@@ -246,6 +246,10 @@ def _main(argv=None) -> int:
 
 def _calibration_line(c: dict) -> str:
     """One line on a take's subject calibration (``--calibrate``)."""
+    if c.get("recognised"):
+        who = f"recognised {c['recognised']}; "
+        return who + (_calibration_line({k: v for k, v in c.items() if k not in ("recognised", "person")})
+                      if c.get("applied", True) else "their calibration as it is")
     if c.get("applied", True) is False:
         return f"not applied: {c.get('reason', '')}"
     frames = c.get("frames")

@@ -290,6 +290,8 @@ def training_person_note(calibration: dict) -> dict:
     neither body suits every take (subject 55's lambada -> subject 7's walk, no gaps: 64.29 % with
     the generic body, 51.08 % with subject 55's); none of the takes where it was refused labelled
     better with the generic body."""
+    if calibration.get("recognised"):          # the self-calibration measured that person
+        return {"person": calibration["recognised"] + " (their calibration, checked for this session)"}
     if calibration.get("applied"):
         return {"set_aside": "the model's calibration to its training takes' person, for a capture not known "
                              "to be theirs"}

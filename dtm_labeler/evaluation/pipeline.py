@@ -35,7 +35,7 @@ from ..labeling.take_votes import take_votes
 from ..model.dtm import TriangulatedModel
 from ..motion.clip import MotionClip
 from ..motion.pointsets import model_points
-from ..training.calibrate import auto_calibrate, session_calibrate
+from ..training.calibrate import auto_calibrate, same_person, segments_agree, session_calibrate
 
 Progress = Callable[[int, int], None]
 
@@ -311,7 +311,9 @@ def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: Labeler
     ``calibrate_s`` seconds (:func:`_auto_calibrated`; the points as the labeler gets them, no
     label used) and kept when it holds up (:func:`~dtm_labeler.training.calibrate.auto_calibrate`);
     every frame is then labelled -- by ``fallback``, when given, if the calibration is not
-    kept; ``session_check``: ``model`` is calibrated to the person of the take, whose markers may
+    kept, and by ``fallback`` checked for this session (:func:`~dtm_labeler.training.calibrate.session_calibrate`)
+    when the calibration measured ``fallback``'s person
+    (:func:`~dtm_labeler.training.calibrate.same_person`); ``session_check``: ``model`` is calibrated to the person of the take, whose markers may
     sit elsewhere this session (:func:`~dtm_labeler.training.calibrate.session_calibrate` instead);
     ``settings["calibration"]`` says what was done; ``calibration_progress``: the frames
     of each of its self-labellings; ``anonymous_check``: see :func:`run_stream`."""
@@ -322,7 +324,14 @@ def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: Labeler
     if calibrate_s > 0:
         model, calibration = _auto_calibrated(model, stream, calibrate_s, calibration_progress,
                                               session_calibrate if session_check else auto_calibrate)
-        if fallback is not None and not calibration["applied"]:
+        if fallback is not None and calibration["applied"] and fallback.body is not None \
+                and same_person(model.body, fallback.body):     # the take shows the training takes' person
+            agree, compared = segments_agree(model.body, fallback.body)
+            model, calibration = _auto_calibrated(fallback, stream, calibrate_s, calibration_progress,
+                                                  session_calibrate)
+            calibration["recognised"] = (f"the training takes' person: {agree} of {compared} segments the "
+                                         "self-calibration measured agree with theirs")
+        elif fallback is not None and not calibration["applied"]:
             model = fallback
     run = run_stream(model, stream, settings, use_ids=use_ids, keep_records=keep_records, progress=progress,
                      done=done, total=total, scored=named, take_votes_s=take_votes_s, take_pass=take_pass,
