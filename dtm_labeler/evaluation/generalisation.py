@@ -67,8 +67,8 @@ from ..motion.clip import MotionClip
 from ..motion.load import load_clip
 from ..motion.naming import one_subject
 from ..search.problem import Background, FrameProblem
-from ..training.calibrate import (CalibrationError, auto_calibrate, calibrate_on_takes, same_person,
-                                  segments_agree, self_calibrate, session_calibrate)
+from ..training.calibrate import (CalibrationError, auto_calibrate, calibrate_on_takes, recognised_person,
+                                  self_calibrate, session_calibrate)
 from ..training.train import TrainConfig, train_model
 from .archive import keeps_training_calibration, of_training_person
 from .corruption import corrupt_clip
@@ -283,11 +283,9 @@ def as_dtm_label(model: TriangulatedModel, train: list[MotionClip], window: Moti
         out, summary = session_calibrate(person, [f.xyz for f in stream], stream.rate)
         return out, summary | {"person": "training takes' (the same person: " + why + "), session check"}
     out, summary = auto_calibrate(model, [f.xyz for f in stream], stream.rate)
-    if summary.get("applied") and person is not None and same_person(out.body, person.body):
-        agree, compared = segments_agree(out.body, person.body)
-        out, summary = session_calibrate(person, [f.xyz for f in stream], stream.rate)
-        return out, summary | {"person": f"training takes' (recognised: {agree} of {compared} segments agree), "
-                                         "session check"}
+    found = recognised_person(out, person, [f.xyz for f in stream], stream.rate) if summary.get("applied") else None
+    if found is not None:
+        return found[0], found[1] | {"person": "training takes' (recognised by their lengths), session check"}
     if summary.get("applied"):
         return out, summary | {"person": "self-calibrated on the window"}
     if person is not None:

@@ -35,7 +35,7 @@ from ..labeling.take_votes import take_votes
 from ..model.dtm import TriangulatedModel
 from ..motion.clip import MotionClip
 from ..motion.pointsets import model_points
-from ..training.calibrate import auto_calibrate, same_person, segments_agree, session_calibrate
+from ..training.calibrate import auto_calibrate, recognised_person, session_calibrate
 
 Progress = Callable[[int, int], None]
 
@@ -324,13 +324,10 @@ def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: Labeler
     if calibrate_s > 0:
         model, calibration = _auto_calibrated(model, stream, calibrate_s, calibration_progress,
                                               session_calibrate if session_check else auto_calibrate)
-        if fallback is not None and calibration["applied"] and fallback.body is not None \
-                and same_person(model.body, fallback.body):     # the take shows the training takes' person
-            agree, compared = segments_agree(model.body, fallback.body)
-            model, calibration = _auto_calibrated(fallback, stream, calibrate_s, calibration_progress,
-                                                  session_calibrate)
-            calibration["recognised"] = (f"the training takes' person: {agree} of {compared} segments the "
-                                         "self-calibration measured agree with theirs")
+        found = recognised_person(model, fallback, [stream[i].xyz for i in range(calibration['window'])],
+                                  stream.rate) if calibration["applied"] else None
+        if found is not None:                    # the take shows the training takes' person
+            model, calibration = found
         elif fallback is not None and not calibration["applied"]:
             model = fallback
     run = run_stream(model, stream, settings, use_ids=use_ids, keep_records=keep_records, progress=progress,
@@ -355,6 +352,7 @@ def _auto_calibrated(model: TriangulatedModel, stream: CorruptedStream, seconds:
     best = None
     for window in sorted({min(full, len(stream) // 3), full}):
         out = calibrate(model, [stream[i].xyz for i in range(window)], stream.rate, progress=progress)
+        out[1]["window"] = window            # the frames it was measured on
         if best is None or (out[1]["applied"], out[1].get("kept_share", 0.0)) > \
                 (best[1]["applied"], best[1].get("kept_share", 0.0)):
             best = out

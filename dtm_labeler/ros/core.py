@@ -226,10 +226,15 @@ class LabelerCore:
                           f"{result.seconds * 1e3:.0f} ms off the labeling thread)")
 
     def _calibration_applied(self, c: dict) -> None:
-        auto = "kept_share" in c
-        text = (f"calibrated{' (auto)' if auto else ''} on {c.get('frames', 0)} frames: {c.get('segments', 0)} of "
-                f"{c.get('segments_total', 0)} segments, scale {c.get('scale', 1.0):.3f}"
-                + (f", {100 * c['kept_share']:.0f} % of the confirmed labels kept" if auto else ""))
+        auto = "kept_share" in c or "recognised" in c
+        if c.get("recognised"):         # the training takes' person: their calibration, checked
+            moved = c.get("moved") or []
+            text = (f"calibrated (auto) on {c.get('recognised_frames', 0)} frames: recognised {c['recognised']}; their "
+                    f"calibration, {len(moved)} segment(s) placed elsewhere this session")
+        else:
+            text = (f"calibrated{' (auto)' if auto else ''} on {c.get('frames', 0)} frames: {c.get('segments', 0)} of "
+                    f"{c.get('segments_total', 0)} segments, scale {c.get('scale', 1.0):.3f}"
+                    + (f", {100 * c['kept_share']:.0f} % of the confirmed labels kept" if auto else ""))
         self._set_model(calibration=text)
         self.log.info(f"subject calibration applied ({text}); tracks kept")
 

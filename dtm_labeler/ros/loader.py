@@ -196,16 +196,19 @@ class EngineLoader:
         priority (seconds of Python that would hold the labelling thread's GIL here); dropped
         (the process ended) when a newer request supersedes it; ValueError when not applied (the
         running model stays). A model calibrated to its training takes' person is calibrated from
-        its generic body (:func:`~dtm_labeler.training.calibrate.stream_calibration_target`)."""
+        its generic body (:func:`~dtm_labeler.training.calibrate.stream_calibration_target`), and
+        where that measures the person's lengths their calibration is kept, checked for this
+        session (:func:`~dtm_labeler.training.calibrate.recognised_person`)."""
         target = stream_calibration_target(model)
         if target is None:
             raise ValueError("auto calibration not applied: the model's body is calibrated to a person already "
                              "(or has no body terms)")
+        person = model_to_bytes(model) if target is not model else None      # recognised by their lengths
         model = target
         ctx = multiprocessing.get_context("spawn")
         parent, child = ctx.Pipe(duplex=False)
         proc = ctx.Process(target=auto_calibration_process, name="dtm_labeler_calibration", daemon=True,
-                           args=(child, model_to_bytes(model), list(req.clouds), float(req.calibration.rate)))
+                           args=(child, model_to_bytes(model), list(req.clouds), float(req.calibration.rate), person))
         proc.start()
         idle_priority(proc.pid)          # from its imports on (seconds of CPU), not only once it runs
         child.close()

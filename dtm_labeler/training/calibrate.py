@@ -1139,14 +1139,39 @@ def session_calibrate(model: TriangulatedModel, clouds: Sequence[np.ndarray] | n
     return session, summary
 
 
-def auto_calibrate_bytes(model_bytes: bytes, clouds: Sequence[np.ndarray], rate: float
-                         ) -> tuple[bytes | None, dict]:
+def recognised_person(calibrated: TriangulatedModel, person: TriangulatedModel | None,
+                      clouds: Sequence[np.ndarray] | np.ndarray, rate: float) -> tuple[TriangulatedModel, dict] | None:
+    """When a take's self-calibrated model (``calibrated``) measured ``person``'s lengths
+    (:func:`same_person`; module doc, *Whose body*): ``person`` checked for this session on the
+    same ``clouds`` (:func:`session_calibrate`) and its summary, ``recognised`` saying so
+    (``applied``: the model returned is the one to label with); else None."""
+    if person is None or person.body is None or calibrated.body is None or \
+            not same_person(calibrated.body, person.body):
+        return None
+    agree, compared = segments_agree(calibrated.body, person.body)
+    out, summary = session_calibrate(person, clouds, rate)
+    said = (f"the training takes' person: {agree} of {compared} segments the self-calibration measured agree "
+            "with theirs")
+    out = out.replace(provenance=dict(out.provenance, calibration=dict(out.provenance.get("calibration") or {},
+                                                                       recognised=said, recognised_frames=len(clouds),
+                                                                       moved=summary.get("moved", []))))
+    return out, dict(summary, applied=True, recognised=said)
+
+
+def auto_calibrate_bytes(model_bytes: bytes, clouds: Sequence[np.ndarray], rate: float,
+                         person_bytes: bytes | None = None) -> tuple[bytes | None, dict]:
     """:func:`auto_calibrate` on a model file's bytes, for a process of its own (the node runs
     it away from its labelling thread): the calibrated model's file bytes (None when not
-    applied) and the summary."""
+    applied) and the summary. ``person_bytes``: the model calibrated to its training takes'
+    person whose generic body ``model_bytes`` is; where the take is theirs, their calibration
+    checked for the session (:func:`recognised_person`)."""
     from ..model.io import model_from_bytes, model_to_bytes
     model = model_from_bytes(model_bytes)
     out, summary = auto_calibrate(model, clouds, rate)
+    if summary["applied"] and person_bytes is not None:
+        found = recognised_person(out, model_from_bytes(person_bytes), clouds, rate)
+        if found is not None:
+            out, summary = found
     return (model_to_bytes(out) if summary["applied"] else None), summary
 
 
@@ -1163,13 +1188,14 @@ def idle_priority(pid: int) -> None:
             pass
 
 
-def auto_calibration_process(conn, model_bytes: bytes, clouds: Sequence[np.ndarray], rate: float) -> None:
+def auto_calibration_process(conn, model_bytes: bytes, clouds: Sequence[np.ndarray], rate: float,
+                             person_bytes: bytes | None = None) -> None:
     """Entry point of a process of its own (``multiprocessing``, spawned; its starter sets it
     to :func:`idle_priority` right away, so that its imports run there too):
     :func:`auto_calibrate_bytes` and its result sent on ``conn`` (an error as
     ``(None, {"applied": False, "reason": ...})``)."""
     try:
-        result = auto_calibrate_bytes(model_bytes, clouds, rate)
+        result = auto_calibrate_bytes(model_bytes, clouds, rate, person_bytes)
     except Exception as e:      # anything: the node keeps its model and says why
         result = (None, {"applied": False, "reason": f"{type(e).__name__}: {e}"})
     conn.send(result)
