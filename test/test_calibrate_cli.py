@@ -436,3 +436,28 @@ def test_a_capture_not_known_to_be_the_training_persons_is_recognised_by_their_l
     assert "session check" in cal["source"] and d["accuracy"] > 0.98
     agree, compared = segments_agree(person.body, person.body)
     assert agree == compared > 5 and same_person(person.body, person.body)
+
+
+def test_dtm_train_reads_one_person_from_several_captures_by_their_lengths(data_dir, tmp_path, capsys):
+    """Two captures of one person under names that say nothing (HDM05's take cut in two files):
+    each measures the same segment lengths, so dtm-train calibrates the model to that person as
+    it does for one capture or CMU takes of one subject; with another lab's person (CMU 85) the
+    lengths disagree and the body stays generic."""
+    from dtm_labeler.cli.train import main as train_main
+    from dtm_labeler.motion.c3d_write import write_c3d
+    hdm = load_clip(data_dir / "markers_c3d/hdm05_bd_05-01_01_120.c3d")
+    cmu = load_clip(data_dir / "markers_c3d/cmu_85_02_jumptwist_s85_41markers.c3d")
+    files = {}
+    for name, clip in (("mon", hdm.slice(0, 600)), ("tue", hdm.slice(3000, 3600)), ("lab2", cmu.slice(0, 600))):
+        files[name] = write_c3d(tmp_path / f"{name}.c3d", clip.positions, list(clip.names), clip.rate)
+    for takes, person in ((("mon", "tue"), True), (("mon", "lab2"), False)):
+        out = tmp_path / f"{'_'.join(takes)}.npz"
+        assert train_main([*(str(files[t]) for t in takes), "--points", "all", "--k-max", "1", "--out", str(out),
+                           "--json", "--quiet"]) == 0
+        s = json.loads(capsys.readouterr().out)
+        model = load_model(out)
+        if person:
+            assert "one person by their segment lengths (2 captures" in s["calibration"]["why"]
+            assert model.body.calibration and model.provenance["calibration"]["why"] == s["calibration"]["why"]
+        else:
+            assert "calibration" not in s and not model.body.calibration

@@ -14,6 +14,7 @@ from ..model.io import save_model
 from ..motion.naming import one_subject
 from ..search.problem import Background
 from ..training.anonymous import with_riding_markers
+from ..training.calibrate import one_person_by_lengths
 from ..training.train import BODY_AUGMENTATION, MIXTURE_KINDS, STRUCTURE_METHODS, TrainConfig, train_model
 from .common import (CliError, HelpFormatter, add_capture_options, capture_kwargs, load_inputs, point_spec,
                      run_main)
@@ -185,6 +186,8 @@ def _main(argv=None) -> int:
     calibration = None
     why = one_subject([c.source for c in clips]) if args.calibrate == "auto" else \
         ("asked" if args.calibrate == "on" else None)
+    if why is None and args.calibrate == "auto" and model.body is not None:
+        why = one_person_by_lengths(model, clips)     # several captures no name ties: their bodies may
     if why is not None and (model.body is not None or args.calibrate == "on"):
         model, calibration = _calibrated(model, clips, strict=args.calibrate == "on")
         if calibration is not None:     # kept in the file: dtm-label reads whose the calibration is
@@ -255,7 +258,9 @@ def _main(argv=None) -> int:
               + f"; a point still for longer than {REST_MARGIN:g} x its label's longest rest and {floor:g} s "
               "is scored as possibly a fixed reflection")
     if calibration:
-        other = ("every other capture" if calibration["why"] == "asked" else "other CMU takes of the same subject")
+        other = ("every other capture" if calibration["why"] == "asked" else
+                 "other CMU takes of the same subject and captures whose self-calibration measures this person's "
+                 "lengths")
         kept = (f"dtm-label keeps it on these captures and on {other} (measuring again there the segments "
                 "whose markers that session placed elsewhere)"
                 + ("" if calibration["why"] == "asked" else ", and self-calibrates anyone else's capture (keeping "
