@@ -311,9 +311,9 @@ def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: Labeler
     ``calibrate_s`` seconds (:func:`_auto_calibrated`; the points as the labeler gets them, no
     label used) and kept when it holds up (:func:`~dtm_labeler.training.calibrate.auto_calibrate`);
     every frame is then labelled -- by ``fallback``, when given, if the calibration is not
-    kept, and by ``fallback`` checked for this session (:func:`~dtm_labeler.training.calibrate.session_calibrate`)
-    when the calibration measured ``fallback``'s person
-    (:func:`~dtm_labeler.training.calibrate.same_person`); ``session_check``: ``model`` is calibrated to the person of the take, whose markers may
+    kept, and by ``fallback`` checked for this session when the calibration measured
+    ``fallback``'s person (:func:`~dtm_labeler.training.calibrate.recognised_person`);
+    ``session_check``: ``model`` is calibrated to the person of the take, whose markers may
     sit elsewhere this session (:func:`~dtm_labeler.training.calibrate.session_calibrate` instead);
     ``settings["calibration"]`` says what was done; ``calibration_progress``: the frames
     of each of its self-labellings; ``anonymous_check``: see :func:`run_stream`."""
@@ -324,7 +324,7 @@ def label_clip_run(model: TriangulatedModel, clip: MotionClip, settings: Labeler
     if calibrate_s > 0:
         model, calibration = _auto_calibrated(model, stream, calibrate_s, calibration_progress,
                                               session_calibrate if session_check else auto_calibrate)
-        found = recognised_person(model, fallback, [stream[i].xyz for i in range(calibration['window'])],
+        found = recognised_person(model, fallback, [stream[i].xyz for i in range(calibration["window"])],
                                   stream.rate) if calibration["applied"] else None
         if found is not None:                    # the take shows the training takes' person
             model, calibration = found
