@@ -10,8 +10,8 @@ Rules (the same for every loader and every tool):
   (``Unidentified 12``, ``Discarded 3``: QTM's; ``Unlabeled 1001``: Motive's;
   :data:`SYSTEM_UNNAMED`). A stray part of a named trajectory kept under the name with a
   ``-N`` suffix (``T10-1`` beside ``T10``, never seen with it) is unnamed too: the loaders
-  join it to its marker where it continues it (:mod:`.fragments`). They are kept apart as *unlabelled points*
-  (``meta['unlabelled']``), never as model points.
+  join it to its marker where it continues it (:mod:`.fragments`). They are kept apart as
+  *unlabelled points* (``meta['unlabelled']``), never as model points.
 * **Copies**: an unnamed channel that is bit-identical in every frame to a named one (the
   HDM05 takes' ``*0 *1 *2`` = ``LFWT CLAV LFHD``) or to an earlier unnamed one is the same
   physical point twice; it is recorded in ``meta['unlabelled_duplicates']`` and never fed to
@@ -113,13 +113,13 @@ def split_channels(labels: Sequence[str], xyz: np.ndarray, where: str = "", subj
     are its points, every other subject's are unlabelled points (another person near the body)."""
     raw = [str(s).strip() for s in labels]
     several = subjects(raw)
-    where_ = f"{where + ': ' if where else ''}"
+    at = f"{where}: " if where else ""
     if subject is not None:
         have = sorted({subject_of(s) for s in raw if not is_unnamed(s)} - {""})
         if subject not in have:
-            raise ValueError(f"{where_}no channel of subject {subject!r} (subjects: {', '.join(have) or 'none'})")
+            raise ValueError(f"{at}no channel of subject {subject!r} (subjects: {', '.join(have) or 'none'})")
     elif len(several) > 1:
-        raise ValueError(f"{where_}the capture holds {len(several)} subjects ({', '.join(several)}) with the same "
+        raise ValueError(f"{at}the capture holds {len(several)} subjects ({', '.join(several)}) with the same "
                          "marker names; choose one with --subject NAME (the others' markers are then unlabelled points)")
     others = set() if subject is None else {i for i, s in enumerate(raw) if not is_unnamed(s) and subject_of(s) != subject}
     stray = stray_parts(["" if i in others else s for i, s in enumerate(raw)], xyz)
