@@ -860,12 +860,16 @@ def one_person_by_lengths(model: TriangulatedModel, clips: Sequence[MotionClip])
         by.setdefault(str(c.source), []).append(c)
     if len(by) < 2 or model.body is None:
         return None
+    groups = iter(by.values())
+    counts = []
     try:
-        bodies = [calibrate_on_takes(model, group).body for group in by.values()]
+        first = calibrate_on_takes(model, next(groups)).body
+        for group in groups:                     # stops at the first capture of someone else
+            body = calibrate_on_takes(model, group).body
+            if not same_person(body, first):
+                return None
+            counts.append(segments_agree(body, first))
     except CalibrationError:
-        return None
-    counts = [segments_agree(b, bodies[0]) for b in bodies[1:]]
-    if not all(same_person(b, bodies[0]) for b in bodies[1:]):
         return None
     worst = min(counts, key=lambda ac: ac[0] / max(ac[1], 1))
     return (f"one person by their segment lengths ({len(by)} captures; at least {worst[0]} of {worst[1]} "
