@@ -845,7 +845,10 @@ def same_person(body: BodyModel, person: BodyModel) -> bool:
     """Whether a take's self-calibrated ``body`` is the calibrated ``person`` (module doc,
     *Whose body*): at least :data:`SAME_PERSON_SHARE` of at least
     :data:`SAME_PERSON_MIN_SEGMENTS` segments both measured agree (:func:`segments_agree`)."""
-    agree, compared = segments_agree(body, person)
+    return _one_person(*segments_agree(body, person))
+
+
+def _one_person(agree: int, compared: int) -> bool:
     return compared >= SAME_PERSON_MIN_SEGMENTS and agree >= SAME_PERSON_SHARE * compared
 
 
@@ -865,10 +868,9 @@ def one_person_by_lengths(model: TriangulatedModel, clips: Sequence[MotionClip])
     try:
         first = calibrate_on_takes(model, next(groups)).body
         for group in groups:                     # stops at the first capture of someone else
-            body = calibrate_on_takes(model, group).body
-            if not same_person(body, first):
+            counts.append(segments_agree(calibrate_on_takes(model, group).body, first))
+            if not _one_person(*counts[-1]):
                 return None
-            counts.append(segments_agree(body, first))
     except CalibrationError:
         return None
     worst = min(counts, key=lambda ac: ac[0] / max(ac[1], 1))
@@ -1178,10 +1180,11 @@ def recognised_person(calibrated: TriangulatedModel, person: TriangulatedModel |
     (:func:`same_person`; module doc, *Whose body*): ``person`` checked for this session on the
     same ``clouds`` (:func:`session_calibrate`) and its summary, ``recognised`` saying so
     (``applied``: the model returned is the one to label with); else None."""
-    if person is None or person.body is None or calibrated.body is None or \
-            not same_person(calibrated.body, person.body):
+    if person is None or person.body is None or calibrated.body is None:
         return None
     agree, compared = segments_agree(calibrated.body, person.body)
+    if not _one_person(agree, compared):
+        return None
     out, summary = session_calibrate(person, clouds, rate)
     said = (f"the training takes' person: {agree} of {compared} segments the self-calibration measured agree "
             "with theirs")
