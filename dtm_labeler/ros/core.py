@@ -226,7 +226,7 @@ class LabelerCore:
                           f"{result.seconds * 1e3:.0f} ms off the labeling thread)")
 
     def _calibration_applied(self, c: dict) -> None:
-        auto = "kept_share" in c or "recognised" in c
+        auto = "kept_share" in c
         if c.get("recognised"):         # the training takes' person: their calibration, checked
             moved = c.get("moved") or []
             text = (f"calibrated (auto) on {c.get('recognised_frames', 0)} frames: recognised {c['recognised']}; their "
