@@ -54,7 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
     m = sub.add_parser("make", formatter_class=HelpFormatter, help="recording -> bag (unlabeled cloud + truth)",
                        description="Write a labelled recording as a rosbag2 bag: /markers/unlabeled (PointCloud2, "
                                    "points shuffled per frame) and /markers/ground_truth (LabeledMarkerArray).")
-    m.add_argument("input", metavar="INPUT", help="a recording (.bvh .amc .c3d .csv)")
+    m.add_argument("input", metavar="INPUT", help="a recording (.bvh .amc .c3d .csv .trc .tsv)")
     m.add_argument("--out", required=True, metavar="BAG", help="bag directory to write")
     m.add_argument("--storage", choices=STORAGES, default="mcap")
     m.add_argument("--points", default="body14", help="body14, all, all,-NAME,... (all but these), or NAME,NAME,... (the labels in the bag)")

@@ -28,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
                                             "person in a capture, the way Vicon / OptiTrack subject calibration "
                                             "works; the motion model is kept.")
     p.add_argument("model", metavar="MODEL", help="model file from dtm-train (.npz, format 2)")
-    p.add_argument("capture", metavar="CAPTURE", help="recording of the person (.bvh .amc .c3d .csv)")
+    p.add_argument("capture", metavar="CAPTURE", help="recording of the person (.bvh .amc .c3d .csv .trc .tsv)")
     p.add_argument("--frames", default="0:600", help="calibration frames A:B, integers or percentages")
     p.add_argument("--labels", choices=LABEL_SOURCES, default="auto",
                    help="where the calibration frames' labels come from")

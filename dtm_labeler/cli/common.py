@@ -9,8 +9,9 @@ from typing import Sequence
 from ..motion.clip import MotionClip, frame_range
 from ..motion.load import load_clip
 from ..motion.pointsets import AllBut, to_point_set
+from ..motion.qtm_tsv import holds_markers
 
-RECORDING_SUFFIXES = (".bvh", ".amc", ".c3d", ".csv")
+RECORDING_SUFFIXES = (".bvh", ".amc", ".c3d", ".csv", ".trc", ".tsv")
 
 
 class CliError(Exception):
@@ -27,15 +28,16 @@ def parse_frames(spec: str | None, n_frames: int) -> tuple[int, int]:
 
 def expand_inputs(inputs: Sequence[str]) -> list[Path]:
     """Files as given; folders searched recursively for recordings (FBX and ASF skipped:
-    the BVH and AMC files carry the same motion)."""
+    the BVH and AMC files carry the same motion; of QTM's ``.tsv`` exports only the 3D ones)."""
     out: list[Path] = []
     for item in inputs:
         p = Path(item)
         if p.is_dir():
             found = sorted(q for q in p.rglob("*") if q.suffix.lower() in RECORDING_SUFFIXES
-                           and "positions_csv" not in q.parts)
+                           and "positions_csv" not in q.parts
+                           and (q.suffix.lower() != ".tsv" or holds_markers(q)))
             if not found:
-                raise CliError(f"{p}: no recordings (.bvh .amc .c3d .csv) found")
+                raise CliError(f"{p}: no recordings ({' '.join(RECORDING_SUFFIXES)}) found")
             out.extend(found)
         elif p.is_file():
             out.append(p)

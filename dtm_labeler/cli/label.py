@@ -57,7 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("model", metavar="MODEL", nargs="?", default=None,
                    help="model file from dtm-train (.npz); omitted with --bank")
     p.add_argument("inputs", nargs="+", metavar="INPUT",
-                   help="labelled recordings (.bvh .amc .c3d .csv) or folders of them")
+                   help="recordings (.bvh .amc .c3d .csv .trc .tsv), named or not, or folders of them")
     p.add_argument("--frames", default="0:100%", help="frame range A:B of every input, integers or percentages")
     add_corruption_arguments(p)
     p.add_argument("--track-ids", action="store_true",
@@ -68,11 +68,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "when the inputs' classes are bank actions")
     config.add_arguments(p, layers=("labeler", "bank"))
     p.add_argument("--out", default=None, metavar="FILE|DIR",
-                   help="write the labelled capture: FILE.c3d or FILE.csv (one input), or a folder for many "
+                   help="write the labelled capture: FILE.c3d, FILE.csv or FILE.trc (one input), or a folder for many "
                         "(one file per take, the archive's layout kept); channels named by the model's labels, "
                         "unlabelled points as *N, the input's rate, units and axes")
-    p.add_argument("--out-format", choices=("c3d", "csv"), default=None,
-                   help="file type in an --out folder (default: as the input; c3d for BVH/AMC)")
+    p.add_argument("--out-format", choices=("c3d", "csv", "trc"), default=None,
+                   help="file type in an --out folder (default: as the input; c3d for BVH/AMC and QTM's TSV)")
     p.add_argument("--out-points", default=None, metavar="FILE.csv",
                    help="write per-frame, per-point labels as CSV (true label, label, confidence, track id)")
     p.add_argument("--drop-unlabelled", action="store_true",
@@ -281,7 +281,7 @@ def _out_paths(args) -> list[tuple[Path, str | None]]:
             raise CliError(f"--out {out}: {len(takes)} takes need a folder (--out DIR)")
         return [(takes[0][0], str(out))]
     if out.suffix and not out.is_dir():
-        raise CliError(f"--out {out}: write a .c3d or .csv file, or give a folder")
+        raise CliError(f"--out {out}: write a {', '.join(OUTPUT_SUFFIXES)} file, or give a folder")
     paths = []
     for f, rel in takes:
         kind = args.out_format or (f.suffix.lower().lstrip(".") if f.suffix.lower() in OUTPUT_SUFFIXES else "c3d")

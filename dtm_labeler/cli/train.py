@@ -52,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
                                 description="Train a decomposable triangulated model (Hu & Wong): "
                                             "structure search + one Gaussian mixture per triangle.")
     p.add_argument("inputs", nargs="+", metavar="INPUT",
-                   help="recordings (.bvh .amc .c3d .csv) or folders of them")
+                   help="recordings (.bvh .amc .c3d .csv .trc .tsv) or folders of them")
     p.add_argument("--out", default=None, help="model file to write (.npz); required unless --bank is given")
     p.add_argument("--points", default="body14",
                    help="body14 (the paper's 14 points), all (every labelled marker), all,-NAME,... (every "

@@ -1,6 +1,6 @@
 """A labeler's output as a labelled capture: one channel per model label, unlabelled points as ``*N``.
 
-What ``dtm-label ... --out labelled.c3d|.csv`` and ``dtm-bag label ... --out labelled.c3d``
+What ``dtm-label ... --out labelled.c3d|.csv|.trc`` and ``dtm-bag label ... --out labelled.c3d``
 write. Per frame, the point published with label ``m`` goes into channel ``m`` (a gap where
 no point carries it); the points left unlabelled go into ``*N`` channels by their labeler
 track: a track keeps its channel while it is seen, a channel is reused only after its track
@@ -8,7 +8,9 @@ ended, so a ghost or an unknown marker reads as one trajectory as long as the tr
 it. Positions are the input's own (no smoothing, no filling).
 
 The file keeps the input's rate, units, vertical axis, first frame number and C3D screen
-axes (:class:`CaptureFormat`, taken from the input clip's ``meta``).
+axes (:class:`CaptureFormat`, taken from the input clip's ``meta``). A TRC states no vertical:
+one written from another format is Y up, the convention of OpenSim and of TRC readers (a TRC
+input keeps its own).
 """
 from __future__ import annotations
 
@@ -21,8 +23,9 @@ import numpy as np
 from ..motion.c3d_write import write_c3d
 from ..motion.clip import MotionClip
 from ..motion.markers_csv import write_markers_csv
+from ..motion.trc import write_trc
 
-OUTPUT_SUFFIXES = (".c3d", ".csv")
+OUTPUT_SUFFIXES = (".c3d", ".csv", ".trc")
 
 
 @dataclass
@@ -35,6 +38,7 @@ class CaptureFormat:
     first_frame: int = 0
     screen: tuple[str, str] | None = None
     frame_numbers: np.ndarray | None = None
+    source_format: str = ""                    # the input's ``meta['format']``
 
     @classmethod
     def of(cls, clip: MotionClip, start: int = 0) -> "CaptureFormat":
@@ -45,7 +49,8 @@ class CaptureFormat:
         units = m.get("units") or "mm"
         return cls(rate=float(clip.rate), units=units if units in ("mm", "cm", "m") else "mm",
                    up_axis=m.get("up_axis", "Z"), first_frame=int(m.get("first_frame", 0)) + int(start),
-                   screen=tuple(m["screen"]) if m.get("screen") else None, frame_numbers=fn)
+                   screen=tuple(m["screen"]) if m.get("screen") else None, frame_numbers=fn,
+                   source_format=str(m.get("format", "")))
 
 
 @dataclass
@@ -61,7 +66,7 @@ class LabelledCapture:
         return self.positions.shape[0]
 
     def write(self, path: str | Path) -> Path:
-        """``.c3d`` or ``.csv`` by suffix, in the input's units, axes and rate."""
+        """``.c3d``, ``.csv`` or ``.trc`` by suffix, in the input's units, axes and rate."""
         path = Path(path)
         suffix = path.suffix.lower()
         f = self.fmt
@@ -72,7 +77,11 @@ class LabelledCapture:
             return write_markers_csv(path, self.positions, self.names, f.rate, frames, f.units, f.up_axis,
                                      comments=("labelled by dtm-label: channels named by the model's labels, "
                                                "unlabelled points as *N",))
-        raise ValueError(f"{path}: labelled captures are written as {' or '.join(OUTPUT_SUFFIXES)}")
+        if suffix == ".trc":
+            frames = f.frame_numbers if f.frame_numbers is not None else f.first_frame + 1 + np.arange(self.n_frames)
+            up = f.up_axis if f.source_format == "trc" else "Y"
+            return write_trc(path, self.positions, self.names, f.rate, frames, f.units, up)
+        raise ValueError(f"{path}: labelled captures are written as {', '.join(OUTPUT_SUFFIXES)}")
 
 
 def assemble(frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], labels: Sequence[str], n_frames: int,

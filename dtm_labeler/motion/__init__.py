@@ -2,8 +2,10 @@
 
 Every loader returns a :class:`MotionClip` (metres, Z up, NaN = missing).
 Formats: BVH (:mod:`.bvh`), CMU ASF/AMC (:mod:`.asf_amc`), C3D (:mod:`.c3d`),
-MoCap Toolbox CSV (:mod:`.markers_csv`), derived joint-position CSV
-(:mod:`.positions_csv`); :func:`load_clip` dispatches on the extension.
+MoCap Toolbox CSV (:mod:`.markers_csv`), TRC (:mod:`.trc`), QTM's 3D TSV
+(:mod:`.qtm_tsv`), OptiTrack Motive's CSV (:mod:`.motive_csv`) -- the text exports share
+:mod:`.marker_table`'s rules -- and derived joint-position CSV (:mod:`.positions_csv`);
+:func:`load_clip` dispatches on the extension.
 :mod:`.pointsets` derives the paper's 14 body points; :mod:`.synthetic` makes a
 synthetic walker for demos and fast tests.
 """

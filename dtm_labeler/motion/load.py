@@ -2,9 +2,10 @@
 
 Dispatch on extension: ``.bvh``; ``.asf`` (paired with the same-stem ``.amc``) or
 ``.amc`` (skeleton: ``asf_path=`` keyword, else same-stem ``.asf``, else the only
-``.asf`` in the folder); ``.c3d``; ``.csv`` (MoCap Toolbox marker CSV or derived
-joint-positions CSV, told apart by the header). FBX is not supported (use the
-lossless ``bvh_from_fbx`` conversions). Every clip is metres, Z up, NaN = missing.
+``.asf`` in the folder); ``.c3d``; ``.csv`` (MoCap Toolbox marker CSV, OptiTrack Motive's
+CSV export or derived joint-positions CSV, told apart by the header); ``.trc`` (Cortex,
+OpenSim); ``.tsv`` (QTM's 3D export). FBX is not supported (use the lossless
+``bvh_from_fbx`` conversions). Every clip is metres, Z up, NaN = missing.
 
 ``motion_class``: the ``class`` column of the ``index.csv`` found in the file's folder
 or one of its parents when the file is listed there, reduced to its first word
@@ -25,9 +26,12 @@ from .bvh import load_bvh
 from .c3d import load_c3d
 from .clip import MotionClip
 from .markers_csv import load_markers_csv, read_header
+from .motive_csv import is_motive_csv, load_motive_csv
 from .pointsets import to_point_set
 from .positions_csv import POSITIONS16, load_positions_csv
+from .qtm_tsv import load_qtm_tsv
 from .sanity import check_body_units
+from .trc import load_trc
 
 UNITS_M = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "inch": 0.0254}
 
@@ -36,8 +40,17 @@ UNITS_M = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "inch": 0.0254}
 DEFAULT_KINDS = ("skeleton_bvh", "motion_amc", "markers_c3d", "markers_csv")
 
 
+#: the marker formats: every point a measured marker; the capture options (units, vertical,
+#: subject) apply
+MARKER_SUFFIXES = (".c3d", ".csv", ".trc", ".tsv")
+
+
 def csv_kind(path: str | Path) -> str:
-    """``'positions'`` (derived joint positions, metres, Y up) or ``'markers'`` (MoCap Toolbox)."""
+    """``'positions'`` (derived joint positions, metres, Y up), ``'motive'`` (OptiTrack Motive's
+    export) or ``'markers'`` (MoCap Toolbox layout)."""
+    with open(path, "r", encoding="utf-8-sig", errors="replace") as fh:
+        if is_motive_csv(fh.readline()):
+            return "motive"
     comments, header = read_header(path)
     names = {h.strip()[:-2] for h in header[2:]}
     if names and names <= set(POSITIONS16):
@@ -103,7 +116,7 @@ def capture_options(kw: dict, ext: str) -> dict:
             raise ValueError(f"units must be one of {', '.join(UNITS_M)}, got {units!r}")
         kw.setdefault("unit_scale", UNITS_M[units])
     forced = up is not None and str(up).lower() != "auto"
-    if ext in (".c3d",) or kw.get("csv_kind") == "markers":
+    if ext in (".c3d", ".trc", ".tsv") or kw.get("csv_kind") in ("markers", "motive"):
         if up is not None:
             kw["up_axis"] = up
     elif forced and ext == ".bvh":
@@ -118,8 +131,9 @@ def load_clip(path: str | Path, points: str | Sequence[str] = "all", **kw) -> Mo
 
     Keywords go to the format loader (``unit_scale``, ``drop_tpose``, ``up_axis``,
     ``include_end_sites`` for BVH; ``unit_scale``, ``rate`` for ASF/AMC plus ``asf_path``;
-    ``up_axis``, ``include_unlabelled``, ``unit_scale`` for C3D and marker CSV; ``csv_kind``
-    = 'markers'/'positions' to skip CSV detection); ``up_axis`` and ``units`` are read as
+    ``up_axis``, ``unit_scale``, ``join_fragments``, ``subject`` for the marker formats (C3D,
+    marker and Motive CSV, TRC, QTM TSV; ``include_unlabelled`` for C3D); ``csv_kind`` =
+    'markers'/'motive'/'positions' to skip CSV detection); ``up_axis`` and ``units`` are read as
     user options first (:func:`capture_options`). ``marker_set`` goes to ``to_point_set``.
     Skeletal recordings are checked for human units like marker files
     (:func:`.sanity.check_body_units`) unless ``unit_scale`` is given.
@@ -133,7 +147,7 @@ def load_clip(path: str | Path, points: str | Sequence[str] = "all", **kw) -> Mo
         kw["csv_kind"] = csv_kind(path)
     if ext != ".amc":
         kw.pop("asf_path", None)
-    if ext not in (".c3d", ".csv") or kw.get("subject") is None:
+    if ext not in MARKER_SUFFIXES or kw.get("subject") is None:
         kw.pop("subject", None)                  # one subject per skeletal file
     kw = capture_options(kw, ext)
     if ext == ".bvh":
@@ -154,12 +168,18 @@ def load_clip(path: str | Path, points: str | Sequence[str] = "all", **kw) -> Mo
             clip = load_positions_csv(path, **{k: v for k, v in kw.items() if k == "up_axis"})
         elif kind == "markers":
             clip = load_markers_csv(path, **kw)
+        elif kind == "motive":
+            clip = load_motive_csv(path, **kw)
         else:
-            raise ValueError(f"{path}: csv_kind must be 'markers' or 'positions', got {kind!r}")
+            raise ValueError(f"{path}: csv_kind must be 'markers', 'motive' or 'positions', got {kind!r}")
+    elif ext == ".trc":
+        clip = load_trc(path, **kw)
+    elif ext == ".tsv":
+        clip = load_qtm_tsv(path, **kw)
     elif ext == ".fbx":
         raise ValueError(f"{path}: FBX is not supported; load the BVH conversion (bvh_from_fbx/) instead")
     else:
-        raise ValueError(f"{path}: unsupported recording type {ext!r} (.bvh .asf .amc .c3d .csv)")
+        raise ValueError(f"{path}: unsupported recording type {ext!r} (.bvh .asf .amc .c3d .csv .trc .tsv)")
     if ext in (".bvh", ".asf", ".amc") and "unit_scale" not in kw:
         check_body_units(clip.positions, clip.meta.get("unit_scale", 1.0), "", str(path))
     cls, full = motion_class_of(path)

@@ -21,13 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .axes import from_z_up, resolve_up_axis, to_z_up
+from .axes import from_z_up
 from .clip import MotionClip
-from .fragments import fragments_note, join_channel_fragments
-from .naming import split_channels
-from .sanity import check_body_units, check_rate
-
-CSV_UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
+from .marker_table import UNITS_M as CSV_UNITS
+from .marker_table import MarkerTable, table_clip
+from .sanity import check_rate
 
 
 @dataclass
@@ -117,32 +115,15 @@ def load_markers_csv(path: str | Path, unit_scale: float | None = None, up_axis:
     ``unlabelled_fragments`` / ``fragments_note`` as for C3D (:mod:`.fragments`)."""
     t = read_xyz_csv(path)
     said = t.stated(r"\bunits?\s*:?\s*(mm|cm|m)\b")
-    units = (said or "mm").lower()
-    forced_units = unit_scale is not None
-    scale = float(unit_scale) if forced_units else CSV_UNITS[units]
     rate = t.rate()
     if t.stated_rate() is not None:
         check_rate(rate, t.times, str(path), "the stated rate")
-    xyz = t.xyz * scale
-    split = split_channels(t.names, xyz, str(path), subject)
     said_up = t.stated(r"\b([XYZ])[\s-]*up\b") or t.stated(r"\bup[\s-]*axis\s*:?\s*([XYZ])\b")
-    lab = split.named
-    up = resolve_up_axis(xyz[:, lab] if len(lab) >= 5 else xyz, up_axis, file_axis=said_up,
-                         file_source="the CSV comments", where=str(path))
-    xyz = to_z_up(xyz, up.axis)
-    if not forced_units:
-        check_body_units(xyz[:, lab] if len(lab) >= 5 else xyz, scale, units, str(path))
-    xyz, fragments = join_channel_fragments(xyz, split, rate) if join_fragments else (xyz, [])
-    meta = dict(format="markers_csv", frame_numbers=t.frames, comments=t.comments, unit_scale=scale,
-                units=next((u for u, v in CSV_UNITS.items() if abs(v / scale - 1) < 1e-9), "mm"),
-                up_axis=up.axis, up_axis_source=up.source, unlabelled=xyz[:, split.unnamed].copy(),
-                unlabelled_names=tuple(split.unnamed_names), unlabelled_duplicates=split.duplicates)
-    if up.note:
-        meta["up_axis_note"] = up.note
-    if fragments:
-        meta["unlabelled_fragments"] = [f.as_dict() for f in fragments]
-        meta["fragments_note"] = fragments_note(fragments)
-    return MotionClip(positions=xyz[:, lab], rate=rate, names=tuple(split.names), source=str(path), meta=meta)
+    table = MarkerTable(path=str(path), format="markers_csv", names=t.names, xyz=t.xyz, rate=rate,
+                        units=said.lower() if said else None, units_source="the CSV comments",
+                        frame_numbers=t.frames, stated_up=said_up, up_source="the CSV comments",
+                        meta=dict(comments=t.comments))
+    return table_clip(table, unit_scale, up_axis, join_fragments, subject)
 
 
 def write_markers_csv(path: str | Path, positions: np.ndarray, names: tuple[str, ...] | list[str], rate: float,

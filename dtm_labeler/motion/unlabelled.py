@@ -32,7 +32,7 @@ from .clip import MotionClip
 from .naming import is_unnamed
 from .pointsets import BODY14, model_points
 
-MARKER_FORMATS = ("c3d", "markers_csv")     # takes from optical systems: every point is a measured marker
+MARKER_FORMATS = ("c3d", "markers_csv", "trc", "qtm_tsv", "motive_csv")     # takes from optical systems: every point is a measured marker
 
 
 @dataclass
