@@ -111,6 +111,13 @@ def table_clip(t: MarkerTable, unit_scale: float | None = None, up_axis: str = "
     return MotionClip(positions=xyz[:, lab], rate=t.rate, names=tuple(split.names), source=t.path, meta=meta)
 
 
+def rate_from_times(times: np.ndarray | None, where: str, why: str) -> float:
+    """The frame rate (Hz) the time column gives, for a file whose header does not (``why``)."""
+    if times is None or len(times) < 2 or not times[-1] > times[0]:
+        raise ValueError(f"{where}: {why} and no usable time column gives the frame rate")
+    return round((len(times) - 1) / (times[-1] - times[0]), 3)
+
+
 def missing_zeros(xyz: np.ndarray) -> np.ndarray:
     """``xyz`` with samples at exactly (0, 0, 0) -- the gap code of C3D and of QTM's older
     exports; no real marker sits on the origin to the micrometre -- set to NaN."""

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from .clip import MotionClip
-from .marker_table import MarkerTable, numeric_rows, table_clip
+from .marker_table import MarkerTable, numeric_rows, rate_from_times, table_clip
 from .sanity import check_rate
 
 LENGTH_UNITS = {"meters": "m", "millimeters": "mm", "centimeters": "cm"}
@@ -98,9 +98,7 @@ def read_motive_csv(path: str | Path) -> MarkerTable:
     rate = _rate(info)
     times = a[:, 1]
     if rate is None:
-        if len(times) < 2 or not times[-1] > times[0]:
-            raise ValueError(f"{where}: no frame rate in the first line and no usable time column")
-        rate = round((len(times) - 1) / (times[-1] - times[0]), 3)
+        rate = rate_from_times(times, where, "the first line gives no frame rate")
     elif np.isfinite(times).all():
         check_rate(rate, times, where, "the export frame rate")
     said = info.get("Length Units", "")

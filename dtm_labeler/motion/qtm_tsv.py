@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from .clip import MotionClip
-from .marker_table import MarkerTable, missing_zeros, numeric_rows, table_clip
+from .marker_table import MarkerTable, missing_zeros, numeric_rows, rate_from_times, table_clip
 from .sanity import check_rate
 
 _KEY = re.compile(r"[A-Z][A-Z0-9_]*")
@@ -110,9 +110,7 @@ def read_qtm_tsv(path: str | Path) -> MarkerTable:
     freq = (header.get("FREQUENCY") or [""])[0]
     rate = _float(freq)
     if rate is None:                                     # EXT: an external timebase
-        if times is None or len(times) < 2 or not times[-1] > times[0]:
-            raise ValueError(f"{where}: FREQUENCY is {freq!r} and no Time column gives the rate")
-        rate = round((len(times) - 1) / (times[-1] - times[0]), 3)
+        rate = rate_from_times(times, where, f"FREQUENCY is {freq!r}")
     elif times is not None and np.isfinite(times).all():
         check_rate(rate, times, where, "FREQUENCY")
     declared_frames = _int(header.get("NO_OF_FRAMES"))
