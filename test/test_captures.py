@@ -246,6 +246,32 @@ def test_named_take_scores_star_ghosts_and_drop_unlabelled(hdm, upper_model, tmp
     assert d["ghosts"] == 0 and d["ghost_rejection"] is None
 
 
+def test_model_outputs_in_the_point_block_are_not_markers(hdm, upper_model, tmp_path, capsys):
+    """A processed trial (Nexus' Plug-in Gait, Visual3D) stores joint angles, moments and powers
+    as POINT channels listed in POINT:ANGLES / MOMENTS / POWERS: they are left out (named in
+    ``meta['model_outputs']``), never read as markers or fed to the labeler as ghosts."""
+    clip = hdm.select(UPPER).slice(2000, 2060)
+    F = clip.n_frames
+    rng = np.random.default_rng(0)
+    angles = rng.normal(0, 30, (F, 2, 3)) / 1000.0            # degrees, written into the mm block as they are
+    outputs = ["Subj:LKneeAngles", "Subj:RHipAngles", "Subj:LAnkleMoment", "Subj:LHipPower"]
+    extra = np.concatenate([angles, rng.normal(0, 500, (F, 1, 3)) / 1000.0, rng.normal(0, 2, (F, 1, 3)) / 1000.0], 1)
+    f = write_c3d(tmp_path / "processed.c3d", np.concatenate([clip.positions, extra], 1),
+                  [f"Subj:{n}" for n in UPPER] + outputs, clip.rate)
+    c = ezc3d.c3d(str(f))
+    c.add_parameter("POINT", "ANGLES", ["LKneeAngles", "RHipAngles"])      # listed without the prefix
+    c.add_parameter("POINT", "MOMENTS", ["Subj:LAnkleMoment"])
+    c.add_parameter("POINT", "POWERS", ["LHipPower"])
+    c.write(str(f))
+    back = load_clip(f)
+    assert back.names == tuple(UPPER) and back.meta["unlabelled_names"] == ()
+    assert back.meta["model_outputs"] == tuple(outputs)
+    np.testing.assert_allclose(back.positions, clip.positions, atol=1e-9)
+    assert label_main([str(upper_model), str(f), "--json", "--quiet", "--calibrate", "off"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["ghosts"] == 0 and d["inputs"][0]["unlabelled_points"] == 0 and d["accuracy"] > 0.9
+
+
 def test_other_names_refused_unless_ignored(upper_model, data_dir, capsys):
     take = str(data_dir / QUALISYS)
     assert label_main([str(upper_model), take, "--frames", "0:5", "--quiet"]) == 2

@@ -10,6 +10,11 @@
   ``*0 *1 *2`` = ``LFWT CLAV LFHD``: they are not independent clutter). An unlabelled run
   that continues a named marker across its gap (the system's auto-labelling lost it for a
   while) is that marker: joined to it (:mod:`.fragments`, ``meta['unlabelled_fragments']``).
+* Model outputs are not markers: the channels a processing pipeline (Vicon Nexus' Plug-in
+  Gait, Visual3D, btk) lists in ``POINT:ANGLES``, ``FORCES``, ``MOMENTS``, ``POWERS`` or
+  ``SCALARS`` hold joint angles, forces and powers in the POINT block (as OpenSim's reader,
+  these are left out); they are named in ``meta['model_outputs']`` and fed to nothing -- as
+  points they would be ghosts at the angles' values, near the lab's origin.
 * Missing samples: NaN from ezc3d, negative residual, and exact ``(0, 0, 0)``.
 * Units from ``POINT:UNITS`` ('mm', 'cm', 'm'); ``unit_scale`` overrides (metres per unit).
   The body is measured after reading (:func:`.sanity.check_body_units`): a take whose units
@@ -36,6 +41,9 @@ __all__ = ["load_c3d", "strip_prefix", "c3d_units"]
 
 _UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "dm": 0.1}
 
+#: POINT parameters that list channels holding a model's outputs, not marker positions
+MODEL_OUTPUT_GROUPS = ("ANGLES", "FORCES", "MOMENTS", "POWERS", "SCALARS")
+
 
 def _param(params: dict, group: str, name: str):
     try:
@@ -53,6 +61,14 @@ def _labels(params: dict, n: int) -> list[str]:
     labels = [str(s).strip() for s in labels[:n]]
     labels += [f"*{i}" for i in range(len(labels), n)]  # unnamed points count as unlabelled
     return labels
+
+
+def _model_outputs(params: dict, labels: list[str]) -> list[int]:
+    """Indices of the channels whose label a model-output parameter lists (module doc)."""
+    listed: set[str] = set()
+    for group in MODEL_OUTPUT_GROUPS:
+        listed |= {str(v).strip() for v in (_param(params, "POINT", group) or []) if str(v).strip()}
+    return [i for i, lab in enumerate(labels) if lab in listed or strip_prefix(lab) in listed]
 
 
 def c3d_units(unit_scale: float) -> str:
@@ -108,7 +124,14 @@ def load_c3d(path: str | Path, up_axis: str = "auto", include_unlabelled: bool =
     if header_rate > 0:
         check_rate(rate, np.arange(3) / header_rate, path, "POINT:RATE")
 
-    split = split_channels(_labels(params, n), xyz, path, subject)
+    labels = _labels(params, n)
+    outputs = _model_outputs(params, labels)
+    if outputs:
+        skip = set(outputs)
+        keep = [i for i in range(n) if i not in skip]
+        output_names = tuple(labels[i] for i in outputs)
+        labels, xyz = [labels[i] for i in keep], xyz[:, keep]
+    split = split_channels(labels, xyz, path, subject)
     lab, unl = split.named, split.unnamed
     screen = [_param(params, "POINT", k) for k in ("X_SCREEN", "Y_SCREEN")]
     screen = tuple(str(v[0]).strip() for v in screen) if all(v is not None and len(v) for v in screen) else None
@@ -122,6 +145,8 @@ def load_c3d(path: str | Path, up_axis: str = "auto", include_unlabelled: bool =
                 unlabelled=xyz[:, unl].copy(), unlabelled_names=tuple(split.unnamed_names),
                 unlabelled_duplicates=split.duplicates, first_frame=int(c["header"]["points"].get("first_frame", 0)),
                 up_axis=up.axis, up_axis_source=up.source, screen=screen)
+    if outputs:
+        meta["model_outputs"] = output_names
     if up.note:
         meta["up_axis_note"] = up.note
     if fragments:
