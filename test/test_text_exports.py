@@ -33,20 +33,27 @@ def _holed(clip, seed=0, share=0.1):
     return P
 
 
-def write_qtm_tsv(path, positions, names, rate, up="Z", zeros_for_gaps=True, columns=True, frequency=None):
+def write_qtm_tsv(path, positions, names, rate, up="Z", zeros_for_gaps=True, columns=True, frequency=None,
+                  types=False):
     """``positions`` (metres, Z up) as QTM writes a 3D TSV export: mm, header lines, an event,
-    a ``Frame Time <M> X ...`` column line (``columns``), gaps as 0 0 0 (older QTM) or empty."""
+    a ``Frame Time <M> X ...`` column line (``columns``), gaps as 0 0 0 (older QTM) or empty;
+    ``types``: a text column of each trajectory's per-frame type after its Z."""
     P = from_z_up(np.asarray(positions, dtype=float), up) * 1000.0
     F, N, _ = P.shape
     lines = ["FILE_VERSION\t2.0.0", f"NO_OF_FRAMES\t{F}", "NO_OF_CAMERAS\t12", f"NO_OF_MARKERS\t{N}",
              f"FREQUENCY\t{frequency or f'{rate:g}'}", "NO_OF_ANALOG\t0", "ANALOG_FREQUENCY\t0", "DESCRIPTION\t--",
              "TIME_STAMP\t2026-12-08, 09:41:17.220\t5721.38", "DATA_INCLUDED\t3D", "EVENT\tstart\t3\t0.015",
              "MARKER_NAMES\t" + "\t".join(names), "TRAJECTORY_TYPES\t" + "\t".join(["Measured"] * N)]
+    per = [*"XYZ", "Type"] if types else [*"XYZ"]
     if columns:
-        lines.append("Frame\tTime\t" + "\t".join(f"{n} {a}" for n in names for a in "XYZ") + "\t")
+        lines.append("Frame\tTime\t" + "\t".join(f"{n} {a}" for n in names for a in per) + "\t")
     for i in range(F):
         gap = "0.000" if zeros_for_gaps else ""
-        cells = [gap if not np.isfinite(v) else f"{v:.3f}" for v in P[i].reshape(-1)]
+        cells = []
+        for k in range(N):
+            cells += [gap if not np.isfinite(v) else f"{v:.3f}" for v in P[i, k]]
+            if types:
+                cells.append("Measured" if np.isfinite(P[i, k]).all() else "Gap")
         lead = [str(i + 1), f"{i / rate:.5f}"] if columns else []
         lines.append("\t".join(lead + cells))
     path.write_text("\n".join(lines) + "\n")
@@ -161,12 +168,13 @@ def test_bad_trc_files_say_what_is_wrong(tmp_path):
 def test_qtm_tsv_reads_like_the_qualisys_c3d(data_dir, tmp_path):
     """The shared Qualisys walk (a QTM capture, Z up) as QTM's TSV: the same points, gaps (QTM's
     zeros), rate, and its unidentified trajectory as an unlabelled point; without the column line
-    too, and with empty cells for gaps; an external timebase (``FREQUENCY EXT``) timed by its Time column."""
+    too, and with empty cells for gaps; an external timebase (``FREQUENCY EXT``) timed by its Time column;
+    a text column of trajectory types beside the numbers."""
     c3d = load_clip(data_dir / QUALISYS).slice(0, 120)
     P = _holed(c3d, seed=2)
     stray = P[:, :1] + np.array([0.0, 0.0, 0.3])             # a trajectory QTM did not identify
     names = list(c3d.meta["raw_labels"]) + ["Unidentified 1"]
-    for kw in (dict(), dict(columns=False, zeros_for_gaps=False), dict(frequency="EXT")):
+    for kw in (dict(), dict(columns=False, zeros_for_gaps=False), dict(frequency="EXT"), dict(types=True)):
         f = write_qtm_tsv(tmp_path / "walk.tsv", np.concatenate([P, stray], 1), names, c3d.rate, **kw)
         back = load_clip(f)
         assert back.names == c3d.names and back.rate == 200.0 and back.meta["format"] == "qtm_tsv"

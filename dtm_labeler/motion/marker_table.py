@@ -54,10 +54,12 @@ class MarkerTable:
     meta: dict = field(default_factory=dict)   # the format's own entries (header fields, comments)
 
 
-def numeric_rows(lines: Sequence[str], width: int, where: str, sep: str = "\t", first_line: int = 1) -> np.ndarray:
+def numeric_rows(lines: Sequence[str], width: int, where: str, sep: str = "\t", first_line: int = 1,
+                 usecols: Sequence[int] | None = None) -> np.ndarray:
     """Parse delimited numeric rows into a (len(lines), ``width``) float array: an empty cell
     or ``NaN`` is NaN; a row shorter than ``width`` has its last cells missing (exporters drop
-    trailing empty cells); a longer row may only carry empty cells past ``width``."""
+    trailing empty cells); a longer row may only carry empty cells past ``width``.
+    ``usecols``: only these columns are read (the others may hold text), in this order."""
     fixed = []
     for k, line in enumerate(lines):
         cells = line.rstrip("\r\n").split(sep)
@@ -66,6 +68,8 @@ def numeric_rows(lines: Sequence[str], width: int, where: str, sep: str = "\t", 
                 raise ValueError(f"{where}:{first_line + k}: {len(cells)} fields, the header has {width}")
             cells = cells[:width]
         cells += [""] * (width - len(cells))
+        if usecols is not None:
+            cells = [cells[c] for c in usecols]
         fixed.append(sep.join(c if c.strip() else "nan" for c in cells))
     if not fixed:
         raise ValueError(f"{where}: no data rows")
@@ -73,7 +77,7 @@ def numeric_rows(lines: Sequence[str], width: int, where: str, sep: str = "\t", 
         a = np.loadtxt(io.StringIO("\n".join(fixed)), delimiter=sep, dtype=np.float64, ndmin=2)
     except ValueError as e:
         raise ValueError(f"{where}: a data row holds text where numbers belong ({e})") from None
-    return a.reshape(len(fixed), width)
+    return a.reshape(len(fixed), width if usecols is None else len(usecols))
 
 
 def table_clip(t: MarkerTable, unit_scale: float | None = None, up_axis: str = "auto", join_fragments: bool = True,

@@ -5,7 +5,8 @@ Layout (tab-separated text): header lines of one upper-case key and its values
 ``DESCRIPTION``, ``TIME_STAMP``, ``DATA_INCLUDED``, ``EVENT`` lines, ``MARKER_NAMES`` with one
 name per trajectory, ``TRAJECTORY_TYPES``), then, when QTM wrote it, a column line ``Frame
 Time <M> X <M> Y <M> Z ...``, then one row per frame: the frame number and time when QTM was
-asked for them, and X Y Z per trajectory. Files without the header lines (QTM's option) name
+asked for them, and X Y Z per trajectory (read by their names in the column line, so other
+columns, such as a per-frame trajectory type, are passed over). Files without the header lines (QTM's option) name
 no markers and are refused. 2D, 6DOF and skeleton exports hold no marker trajectories and
 are refused with what they are.
 
@@ -98,15 +99,20 @@ def read_qtm_tsv(path: str | Path) -> MarkerTable:
         columns = [c.strip() for c in lines[i].split("\t")]
         i += 1
     rows = [ln for ln in lines[i:] if ln.strip()]
-    if columns is not None:
-        lead = _lead_columns(columns, names, where)
+    if columns is not None:                              # the trajectories' columns by name
+        while columns and not columns[-1]:
+            columns.pop()
+        front = [c for c in ("Frame", "Time") if c in columns]
+        use = [columns.index(c) for c in front] + list(_xyz_columns(columns, names, where).reshape(-1))
+        a = numeric_rows(rows, len(columns), where, first_line=i + 1, usecols=use)
     else:                                                # no column line: the width tells
         width = len(rows[0].rstrip("\t").split("\t")) if rows else 0
-        lead = 2 if width == 3 * n + 2 else 0
-    a = numeric_rows(rows, lead + 3 * n, where, first_line=i + 1)
-    xyz = missing_zeros(a[:, lead:].reshape(len(a), n, 3))
-    frames = a[:, 0].astype(int) if lead and np.isfinite(a[:, 0]).all() else None
-    times = a[:, 1] if lead >= 2 else None
+        front = ["Frame", "Time"] if width == 3 * n + 2 else []
+        a = numeric_rows(rows, len(front) + 3 * n, where, first_line=i + 1)
+    xyz = missing_zeros(a[:, len(front):].reshape(len(a), n, 3))
+    frames = a[:, front.index("Frame")] if "Frame" in front else None
+    frames = frames.astype(int) if frames is not None and np.isfinite(frames).all() else None
+    times = a[:, front.index("Time")] if "Time" in front else None
     freq = (header.get("FREQUENCY") or [""])[0]
     rate = _float(freq)
     if rate is None:                                     # EXT: an external timebase
@@ -121,15 +127,18 @@ def read_qtm_tsv(path: str | Path) -> MarkerTable:
                        units_source="QTM's TSV export", frame_numbers=frames, meta=meta)
 
 
-def _lead_columns(columns: list[str], names: list[str], where: str) -> int:
-    """How many columns (frame, time) precede the first trajectory's X in QTM's column line."""
-    first = f"{names[0]} X"
-    if first in columns:
-        return columns.index(first)
+def _xyz_columns(columns: list[str], names: list[str], where: str) -> np.ndarray:
+    """(N, 3) column indices of each trajectory's X, Y, Z in QTM's column line (``<M> X`` ...;
+    other columns -- frame, time, a per-frame type -- are skipped). Where the line does not
+    name them so, the trajectories are the last 3N columns."""
+    at = {c: k for k, c in enumerate(columns)}
+    named = [[at.get(f"{m} {a}") for a in "XYZ"] for m in names]
+    if all(k is not None for row in named for k in row):
+        return np.array(named, dtype=int)
     lead = len(columns) - 3 * len(names)
     if lead < 0:
         raise ValueError(f"{where}: the column line has {len(columns)} columns for {len(names)} trajectories")
-    return lead
+    return lead + np.arange(3 * len(names)).reshape(len(names), 3)
 
 
 def _int(v: list[str] | None) -> int | None:
