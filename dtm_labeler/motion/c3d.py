@@ -31,15 +31,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .axes import resolve_up_axis, to_z_up
 from .clip import MotionClip
-from .fragments import fragments_note, join_channel_fragments
-from .naming import split_channels, strip_prefix
-from .sanity import check_body_units, check_rate
+from .marker_table import UNITS_M as _UNITS
+from .marker_table import MarkerTable, table_clip
+from .naming import strip_prefix
+from .sanity import check_rate
 
 __all__ = ["load_c3d", "strip_prefix", "c3d_units"]
 
-_UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "dm": 0.1}
 
 #: POINT parameters that list channels holding a model's outputs, not marker positions
 MODEL_OUTPUT_GROUPS = ("ANGLES", "FORCES", "MOMENTS", "POWERS", "SCALARS")
@@ -108,14 +107,7 @@ def load_c3d(path: str | Path, up_axis: str = "auto", include_unlabelled: bool =
     except (KeyError, IndexError, ValueError):
         pass
     xyz[np.all(xyz == 0.0, axis=2)] = np.nan
-    forced_units = unit_scale is not None
     units = _param(params, "POINT", "UNITS")
-    u = (str(units[0]) if units else "mm").strip().lower()
-    if unit_scale is None:
-        if u not in _UNITS:
-            raise ValueError(f"{path}: POINT:UNITS {u!r} not understood; pass unit_scale (metres per unit)")
-        unit_scale = _UNITS[u]
-    xyz *= unit_scale
     rate = _param(params, "POINT", "RATE")
     header_rate = float(c["header"]["points"]["frame_rate"])
     rate = float(rate[0]) if rate is not None and len(rate) else header_rate
@@ -125,35 +117,22 @@ def load_c3d(path: str | Path, up_axis: str = "auto", include_unlabelled: bool =
         check_rate(rate, np.arange(3) / header_rate, path, "POINT:RATE")
 
     labels = _labels(params, n)
+    extra: dict = dict(first_frame=int(c["header"]["points"].get("first_frame", 0)))
     outputs = _model_outputs(params, labels)
     if outputs:
         skip = set(outputs)
         keep = [i for i in range(n) if i not in skip]
-        output_names = tuple(labels[i] for i in outputs)
+        extra["model_outputs"] = tuple(labels[i] for i in outputs)
         labels, xyz = [labels[i] for i in keep], xyz[:, keep]
-    split = split_channels(labels, xyz, path, subject)
-    lab, unl = split.named, split.unnamed
     screen = [_param(params, "POINT", k) for k in ("X_SCREEN", "Y_SCREEN")]
-    screen = tuple(str(v[0]).strip() for v in screen) if all(v is not None and len(v) for v in screen) else None
-    up = resolve_up_axis(xyz[:, lab] if len(lab) >= 5 else xyz, up_axis,
-                         file_axis=screen[1] if screen else None, file_source="POINT:Y_SCREEN", where=path)
-    xyz = to_z_up(xyz, up.axis)
-    if not forced_units:
-        check_body_units(xyz[:, lab] if len(lab) >= 5 else xyz, unit_scale, u, path)
-    xyz, fragments = join_channel_fragments(xyz, split, rate) if join_fragments else (xyz, [])
-    meta = dict(format="c3d", unit_scale=unit_scale, units=c3d_units(unit_scale), raw_labels=tuple(split.raw),
-                unlabelled=xyz[:, unl].copy(), unlabelled_names=tuple(split.unnamed_names),
-                unlabelled_duplicates=split.duplicates, first_frame=int(c["header"]["points"].get("first_frame", 0)),
-                up_axis=up.axis, up_axis_source=up.source, screen=screen)
-    if outputs:
-        meta["model_outputs"] = output_names
-    if up.note:
-        meta["up_axis_note"] = up.note
-    if fragments:
-        meta["unlabelled_fragments"] = [f.as_dict() for f in fragments]
-        meta["fragments_note"] = fragments_note(fragments)
+    extra["screen"] = screen = (tuple(str(v[0]).strip() for v in screen)
+                                if all(v is not None and len(v) for v in screen) else None)
+    table = MarkerTable(path=path, format="c3d", names=tuple(labels), xyz=xyz, rate=rate,
+                        units=(str(units[0]) if units else "mm").strip().lower(), units_source="POINT:UNITS",
+                        stated_up=screen[1] if screen else None, up_source="POINT:Y_SCREEN", meta=extra)
+    clip = table_clip(table, unit_scale, up_axis, join_fragments, subject)
     if include_unlabelled:
-        idx, all_names = lab + unl, split.names + split.unnamed_names
-    else:
-        idx, all_names = lab, split.names
-    return MotionClip(positions=xyz[:, idx], rate=rate, names=tuple(all_names), source=path, meta=meta)
+        m = clip.meta
+        clip = clip._replace(positions=np.concatenate([clip.positions, m["unlabelled"]], axis=1),
+                             names=clip.names + tuple(m["unlabelled_names"]))
+    return clip

@@ -31,8 +31,8 @@ from .fragments import fragments_note, join_channel_fragments
 from .naming import split_channels
 from .sanity import check_body_units
 
-#: metres per unit of the length units text exports state
-UNITS_M = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
+#: metres per unit of the length units marker files state (C3D's POINT:UNITS among them)
+UNITS_M = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "dm": 0.1}
 
 
 @dataclass
@@ -83,13 +83,15 @@ def numeric_rows(lines: Sequence[str], width: int, where: str, sep: str = "\t", 
 def table_clip(t: MarkerTable, unit_scale: float | None = None, up_axis: str = "auto", join_fragments: bool = True,
                subject: str | None = None) -> MotionClip:
     """``t`` as a MotionClip (metres, Z up, named points; the rules of the module doc).
-    ``meta``: ``format``, ``frame_numbers``, ``unit_scale``, ``units``, ``up_axis``,
+    ``meta``: ``format``, ``frame_numbers``, ``unit_scale``, ``units``, ``raw_labels`` (the named
+    points' labels as written), ``up_axis``,
     ``up_axis_source`` (+ ``up_axis_note``), ``unlabelled``, ``unlabelled_names``,
     ``unlabelled_duplicates``, ``unlabelled_fragments`` / ``fragments_note`` where unnamed runs
     were joined, and the table's own ``meta``."""
     units = (t.units or t.default_units).lower()
     if unit_scale is None and units not in UNITS_M:
-        raise ValueError(f"{t.path}: {t.units_source} gives the units as {t.units!r}; pass --units mm|cm|m")
+        raise ValueError(f"{t.path}: {t.units_source} gives the units as {t.units!r}, not understood; "
+                         "pass --units mm|cm|m")
     forced_units = unit_scale is not None
     scale = float(unit_scale) if forced_units else UNITS_M[units]
     xyz = np.array(t.xyz, dtype=np.float64) * scale
@@ -103,7 +105,7 @@ def table_clip(t: MarkerTable, unit_scale: float | None = None, up_axis: str = "
         check_body_units(xyz[:, lab] if len(lab) >= 5 else xyz, scale, units, t.path)
     xyz, fragments = join_channel_fragments(xyz, split, t.rate) if join_fragments else (xyz, [])
     meta = dict(t.meta)
-    meta.update(format=t.format, frame_numbers=t.frame_numbers, unit_scale=scale,
+    meta.update(format=t.format, frame_numbers=t.frame_numbers, unit_scale=scale, raw_labels=tuple(split.raw),
                 units=next((u for u, v in UNITS_M.items() if abs(v / scale - 1) < 1e-9), "mm"),
                 up_axis=up.axis, up_axis_source=up.source, unlabelled=xyz[:, split.unnamed].copy(),
                 unlabelled_names=tuple(split.unnamed_names), unlabelled_duplicates=split.duplicates)

@@ -23,9 +23,11 @@ import numpy as np
 
 from .axes import from_z_up
 from .clip import MotionClip
-from .marker_table import UNITS_M as CSV_UNITS
-from .marker_table import MarkerTable, table_clip
+from .marker_table import UNITS_M, MarkerTable, table_clip
 from .sanity import check_rate
+
+#: the units the CSV comments may state (``# units mm``)
+CSV_UNITS = {u: UNITS_M[u] for u in ("mm", "cm", "m")}
 
 
 @dataclass

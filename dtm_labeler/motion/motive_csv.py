@@ -46,6 +46,11 @@ def _label(row: list[str]) -> str:
     return ""
 
 
+def _padded(row: list[str], width: int) -> list[str]:
+    """A header row's cells, stripped, to ``width`` (Motive ends rows at their last named column)."""
+    return [c.strip() for c in row] + [""] * (width - len(row))
+
+
 def read_motive_csv(path: str | Path) -> MarkerTable:
     """Parse a Motive CSV export into a :class:`~.marker_table.MarkerTable` (file units and axes)."""
     where = str(path)
@@ -76,8 +81,7 @@ def read_motive_csv(path: str | Path) -> MarkerTable:
     if "type" not in rows or "name" not in rows:
         raise ValueError(f"{where}: the header rows give no Type or Name row")
     width = len(axes)
-    pad = lambda r: [c.strip() for c in r] + [""] * (width - len(r))   # noqa: E731
-    types, names, kinds = pad(rows["type"]), pad(rows["name"]), pad(kinds or [])
+    types, names, kinds = (_padded(r, width) for r in (rows["type"], rows["name"], kinds or []))
     cols, channel_names = [], []
     for c in range(2, width - 2):
         if types[c] == "Marker" and kinds[c] in ("Position", "") and axes[c:c + 3] == ["X", "Y", "Z"] \
